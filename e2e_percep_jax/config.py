@@ -1,0 +1,188 @@
+"""Frozen experiment configs, the named presets, validation, and absl flags for every field.
+
+A config is a tree of frozen dataclasses, so it is hashable (usable as a ``jit`` static argument)
+and prints itself. Presets:
+
+- ``tiny``:  32x32 images, narrow nets; for tests (seconds per step on 2 CPU cores).
+- ``demo``:  the README's main job: trains, evaluates and reports in minutes on this 2-core machine.
+- ``cpu``:   the largest config that trains in about an hour on this 2-core machine.
+- ``paper``: the paper's network at 128x128 (a GPU job).
+
+Any field is overridden from the command line as ``--<section>.<field>=value`` (for example
+``--model.variant=no_roadmap_recon --train.num_steps=500``); see :func:`define_flags`.
+"""
+import dataclasses
+import json
+import math
+from typing import Any
+
+VARIANTS = ("full", "no_input_recon", "no_roadmap_recon")
+DEFAULT_TOWN_SEED = 0
+
+
+@dataclasses.dataclass(frozen=True)
+class WorldConfig:
+    town_seed: int = DEFAULT_TOWN_SEED  # the training town; any other seed is a held-out town
+    num_vehicles: int = 100  # surrounding vehicles, the ego not counted
+
+
+@dataclasses.dataclass(frozen=True)
+class DataConfig:
+    image_size: int = 128  # R: every image is [R, R, 3]; a power of two >= 32
+    batch_size: int = 8  # B sequences per training batch
+    seq_len: int = 10  # T: each sequence has T+1 frames
+    warmup_steps: int = 200  # world steps from reset before a sequence is recorded (steady traffic)
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelConfig:
+    # Conv widths of the encoder's stride-2 layers, deepest last; the first log2(R/4) are used, so at
+    # R = 128 these are the paper's (32, 64, 128, 256, 256). Decoders mirror them.
+    conv_channels: tuple = (32, 64, 128, 256, 256, 256)
+    feature_dim: int = 256  # per-sensor feature (the encoder's last 4x4 VALID conv)
+    hidden_dim: int = 256  # width of every latent / pose MLP
+    z1_dim: int = 32
+    z2_dim: int = 256
+    variant: str = "full"  # one of VARIANTS
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    seed: int = 0
+    num_steps: int = 2000
+    learning_rate: float = 1e-4
+    checkpoint_every: int = 500  # steps; a checkpoint is also written at exit
+    log_every: int = 10
+    max_nonfinite_in_a_row: int = 10  # K: stop after K consecutive skipped (non-finite) updates
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalConfig:
+    num_steps: int = 15000  # N frames in total, as in the paper's table
+    num_worlds: int = 8  # E drives from held-out start keys, N / E frames each
+    seed: int = 1000  # evaluation start keys; disjoint from training data keys
+    town_seed: int = DEFAULT_TOWN_SEED
+    chunk_steps: int = 100  # frames per scanned chunk; memory is flat in num_steps
+    score_threshold: float = 0.5
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    world: WorldConfig = WorldConfig()
+    data: DataConfig = DataConfig()
+    model: ModelConfig = ModelConfig()
+    train: TrainConfig = TrainConfig()
+    eval: EvalConfig = EvalConfig()
+
+    def to_json(self) -> str:
+        return json.dumps(dataclasses.asdict(self), indent=2)
+
+
+def _replace(cfg: Config, **sections: dict) -> Config:
+    return dataclasses.replace(
+        cfg, **{name: dataclasses.replace(getattr(cfg, name), **fields) for name, fields in sections.items()})
+
+
+PRESETS = {
+    "paper": Config(),
+    "cpu": _replace(
+        Config(),
+        data=dict(image_size=64, batch_size=8),
+        model=dict(conv_channels=(16, 32, 64, 128, 128), feature_dim=128, hidden_dim=128),
+        train=dict(num_steps=3000),
+        eval=dict(num_steps=15000)),
+    "demo": _replace(
+        Config(),
+        data=dict(image_size=64, batch_size=8),
+        model=dict(conv_channels=(16, 32, 64, 128), feature_dim=128, hidden_dim=128),
+        train=dict(num_steps=600, checkpoint_every=200),
+        eval=dict(num_steps=2000, num_worlds=4)),
+    "tiny": _replace(
+        Config(),
+        world=dict(num_vehicles=20),
+        data=dict(image_size=32, batch_size=2, seq_len=3, warmup_steps=20),
+        model=dict(conv_channels=(8, 16, 32), feature_dim=32, hidden_dim=32, z1_dim=8, z2_dim=16),
+        train=dict(num_steps=20, checkpoint_every=10, log_every=5),
+        eval=dict(num_steps=40, num_worlds=2, chunk_steps=10)),
+}
+
+
+def get_config(name: str) -> Config:
+    if name not in PRESETS:
+        raise ValueError(f"--config={name!r} is not a preset; choose one of {sorted(PRESETS)}")
+    return PRESETS[name]
+
+
+def validate(cfg: Config) -> Config:
+    """Raises ``ValueError`` naming the offending field (as its flag) if ``cfg`` cannot run."""
+    r = cfg.data.image_size
+    if r < 32 or r & (r - 1):
+        raise ValueError(f"--data.image_size={r}: must be a power of two >= 32")
+    n_layers = int(math.log2(r // 4))
+    if len(cfg.model.conv_channels) < n_layers:
+        raise ValueError(f"--model.conv_channels has {len(cfg.model.conv_channels)} widths; "
+                         f"image_size {r} needs {n_layers}")
+    if cfg.model.variant not in VARIANTS:
+        raise ValueError(f"--model.variant={cfg.model.variant!r}: choose one of {VARIANTS}")
+    positive = {
+        "world.num_vehicles": cfg.world.num_vehicles, "data.batch_size": cfg.data.batch_size,
+        "data.seq_len": cfg.data.seq_len, "model.feature_dim": cfg.model.feature_dim,
+        "model.hidden_dim": cfg.model.hidden_dim, "model.z1_dim": cfg.model.z1_dim,
+        "model.z2_dim": cfg.model.z2_dim, "train.num_steps": cfg.train.num_steps,
+        "train.learning_rate": cfg.train.learning_rate, "train.checkpoint_every": cfg.train.checkpoint_every,
+        "train.log_every": cfg.train.log_every, "train.max_nonfinite_in_a_row": cfg.train.max_nonfinite_in_a_row,
+        "eval.num_steps": cfg.eval.num_steps, "eval.num_worlds": cfg.eval.num_worlds,
+        "eval.chunk_steps": cfg.eval.chunk_steps,
+    }
+    positive.update({f"model.conv_channels[{i}]": c for i, c in enumerate(cfg.model.conv_channels)})
+    for name, value in positive.items():
+        if not value > 0:
+            raise ValueError(f"--{name}={value}: must be positive")
+    if cfg.data.warmup_steps < 0:
+        raise ValueError(f"--data.warmup_steps={cfg.data.warmup_steps}: must be >= 0")
+    if not 0.0 < cfg.eval.score_threshold < 1.0:
+        raise ValueError(f"--eval.score_threshold={cfg.eval.score_threshold}: must lie in (0, 1)")
+    return cfg
+
+
+# ----------------------------------------------------------------------------- command line
+
+
+def _fields():
+    """(section, field, default type) for every leaf of Config."""
+    for section in dataclasses.fields(Config):
+        for f in dataclasses.fields(section.default):
+            yield section.name, f.name, type(getattr(section.default, f.name))
+
+
+def define_flags(flag_values=None) -> None:
+    """Defines ``--config`` and one ``--<section>.<field>`` absl flag per config field (default: unset)."""
+    from absl import flags
+    fv = flags.FLAGS if flag_values is None else flag_values
+    flags.DEFINE_string("config", "cpu", f"preset, one of {sorted(PRESETS)}", flag_values=fv)
+    definers = {int: flags.DEFINE_integer, float: flags.DEFINE_float, str: flags.DEFINE_string,
+                bool: flags.DEFINE_boolean}
+    for section, name, typ in _fields():
+        if typ is tuple:
+            flags.DEFINE_list(f"{section}.{name}", None, "comma-separated integers", flag_values=fv)
+        else:
+            definers[typ](f"{section}.{name}", None, f"override {section}.{name}", flag_values=fv)
+
+
+def from_flags(flag_values=None) -> Config:
+    """The preset named by ``--config`` with every set ``--<section>.<field>`` applied, validated."""
+    from absl import flags
+    fv = flags.FLAGS if flag_values is None else flag_values
+    cfg = get_config(fv["config"].value)
+    overrides: dict[str, dict[str, Any]] = {}
+    for section, name, typ in _fields():
+        value = fv[f"{section}.{name}"].value
+        if value is None:
+            continue
+        if typ is tuple:
+            try:
+                value = tuple(int(v) for v in value)
+            except ValueError:
+                raise ValueError(f"--{section}.{name}={','.join(value)}: expected comma-separated integers")
+        overrides.setdefault(section, {})[name] = value
+    return validate(_replace(cfg, **overrides))
