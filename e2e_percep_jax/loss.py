@@ -1,0 +1,77 @@
+"""The training objective: -ELBO + PIXOR detection loss + ego-pose loss, one jitted pure function.
+
+    total = sum_k recon_k + kl + det_cls + det_reg + pose
+
+- recon_k (k in the variant's images: camera, lidar, roadmap): Gaussian negative log-likelihood of
+  the image in [0, 1] units under the decoder's mean and std sqrt(0.1), i.e. (x - mean)^2 / 0.2 per
+  pixel and channel, without the constant 0.5 * log(2 pi 0.1) per value (as the torch peer).
+- kl: KL(q(z1_t) || p(z1_t)) (prior N(0, I) at t = 1); the z2 KL is zero because q(z2) = p(z2).
+- det_cls: focal loss (alpha 0.25 on positives, gamma 2) on the class map.
+- det_reg: 0.1 x smooth-L1 (beta 1) between predicted and target regression maps at positive pixels
+  (``det_cls`` > 0.5); targets elsewhere are ignored, whatever their value.
+- pose: smooth-L1 (beta 1) on the pose in :func:`~e2e_percep_jax.model.normalise_pose` units.
+
+Normalisation: every term is summed over pixels, channels / latent dims and the T+1 frames of a
+sequence, then averaged over the B sequences of the batch (the torch peer's reconstruction and KL
+normalisation, used here for detection and pose too), so a term means "per sequence of T+1 frames"
+whatever the batch size or the number of devices.
+"""
+import functools
+
+import distrax
+import jax
+import jax.numpy as jnp
+import optax
+
+from e2e_percep_jax import model as model_lib
+from e2e_percep_jax.config import Config
+
+RECON_VAR = 0.1  # fixed decoder variance: std sqrt(0.1)
+FOCAL_ALPHA, FOCAL_GAMMA = 0.25, 2.0
+DET_REG_WEIGHT = 0.1
+BATCH_KEYS = ("camera", "lidar", "roadmap", "det_cls", "det_reg", "pose", "action")  # what the loss reads
+
+
+def focal_loss(logit, target):
+    """Elementwise focal loss; logit, target [...] (target 1 on positives, 0 elsewhere)."""
+    positive = target > 0.5
+    log_pt = jnp.where(positive, jax.nn.log_sigmoid(logit), jax.nn.log_sigmoid(-logit))
+    alpha = jnp.where(positive, FOCAL_ALPHA, 1.0 - FOCAL_ALPHA)
+    return -alpha * (1.0 - jnp.exp(log_pt)) ** FOCAL_GAMMA * log_pt
+
+
+def gaussian_kl(q_loc, q_scale, p_loc, p_scale):
+    """KL(N(q) || N(p)) for diagonal Gaussians, summed over the last axis: [..., D] -> [...]."""
+    return distrax.MultivariateNormalDiag(q_loc, q_scale).kl_divergence(distrax.MultivariateNormalDiag(p_loc, p_scale))
+
+
+@functools.partial(jax.jit, static_argnames="cfg")
+def loss_fn(params, batch, key, cfg: Config):
+    """-ELBO + detection + pose loss of a batch, per sequence (see the module docstring).
+
+    batch: the frame contract with [B, T+1] leading axes (only :data:`BATCH_KEYS` are read);
+    key: PRNG key for the posterior samples. Returns (total [], metrics dict of [] float32: one entry
+    per active term (``recon_<image>``, ``kl``, ``det_cls``, ``det_reg``, ``pose``) and ``total``).
+    """
+    b, t1 = batch["camera"].shape[:2]
+    out = model_lib.filter_sequence(params, batch["camera"], batch["lidar"], batch["action"], key, cfg)
+    z = jnp.concatenate([out["z1"], out["z2"]], -1).reshape(b * t1, -1)
+    pred = jax.tree.map(lambda x: x.reshape((b, t1) + x.shape[1:]), model_lib.decode(params, z, cfg))
+    per_sequence = lambda x: jnp.sum(x) / b
+
+    metrics = {}
+    for k in model_lib.reconstructed_images(cfg.model.variant):
+        target = batch[k].astype(jnp.float32) / 255.0
+        metrics[f"recon_{k}"] = per_sequence((pred[k] - target) ** 2) / (2.0 * RECON_VAR)
+    metrics["kl"] = per_sequence(gaussian_kl(out["q_z1_loc"], out["q_z1_scale"], out["p_z1_loc"], out["p_z1_scale"]))
+    metrics["det_cls"] = per_sequence(focal_loss(pred["det_logit"], batch["det_cls"]))
+    # Regression targets are defined at positive pixels only (elsewhere they may be anything, even
+    # non-finite): select them with `where` on both sides so no NaN reaches the value or the gradient.
+    positive = batch["det_cls"] > 0.5
+    reg_target = jnp.where(positive, batch["det_reg"], 0.0)
+    reg_error = jnp.where(positive, optax.huber_loss(pred["det_reg"], reg_target), 0.0)  # smooth-L1, beta 1
+    metrics["det_reg"] = DET_REG_WEIGHT * per_sequence(reg_error)
+    metrics["pose"] = per_sequence(optax.huber_loss(pred["pose"], model_lib.normalise_pose(batch["pose"])))
+    total = sum(metrics.values())
+    metrics["total"] = total
+    return total, metrics

@@ -1,0 +1,336 @@
+"""The sequential latent perception model (paper §III; DESIGN.md §4) in flax.linen.
+
+One frame t flows as (R = image size, F = ``feature_dim``, Z = ``z1_dim + z2_dim``):
+
+    camera, lidar uint8 [B, R, R, 3] --encoders--> features float32 [B, 2F]
+    posterior step: (z1, z2 of frame t-1, action t-1, features t) -> z1_t ~ q(z1), z2_t ~ p(z2)
+    decode: z_t = [z1_t, z2_t] [B, Z] -> images, PIXOR maps, normalised pose
+
+Layers match the torch peer (``shared/peer/torch_peer_bench.py``) layer for layer, so the parameter
+counts are equal: torch's stride-2 ``Conv2d(k, 2, k // 2)`` is a flax ``Conv`` with explicit padding,
+its ``ConvTranspose2d(k, 2, k // 2, output_padding=1)`` is :class:`Deconv2x` (a stride-2 layer halves /
+doubles the size exactly). Leaky-ReLU with slope 0.2 follows every layer except the Gaussian outputs
+of the latent MLPs, the pose head's output and the PIXOR class logit (a sigmoid).
+
+Public API (``cfg`` is the full :class:`~e2e_percep_jax.config.Config`; params are a plain pytree):
+
+- :func:`init_params` ``(key, cfg) -> params``
+- :func:`init_filter_state` / :func:`filter_step`: streaming posterior filtering, one frame a call;
+  :func:`filter_sequence` is the same recursion as one ``lax.scan`` over a batch of sequences.
+- :func:`decode` ``(params, z, cfg)``: every decoder head from latents.
+- :func:`normalise_pose` / :func:`pose_to_metres`: the fixed affine map between the pose head's
+  output and the frame contract's pose.
+"""
+import functools
+import math
+
+import distrax
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from e2e_percep_jax.config import Config, ModelConfig
+
+LEAK = 0.2  # leaky-ReLU slope of the reference (flax's default is 0.01)
+MIN_SCALE = 1e-5  # Gaussian scale = softplus(raw) + MIN_SCALE
+
+# The pose head predicts (pose - POSE_OFFSET) / POSE_SCALE: x, y (m) centred on the ~400 m town and
+# in units of 100 m, heading cos/sin as they are, speed in units of 10 m/s. A fixed affine map, so
+# targets are O(1) for the loss and predictions map back to metres exactly.
+POSE_OFFSET = np.array([200.0, 200.0, 0.0, 0.0, 0.0], np.float32)
+POSE_SCALE = np.array([100.0, 100.0, 1.0, 1.0, 10.0], np.float32)
+
+
+def normalise_pose(pose):
+    """Frame-contract pose [..., 5] (x m, y m, cos, sin, speed m/s) -> the pose head's target units."""
+    return (pose - POSE_OFFSET) / POSE_SCALE
+
+
+def pose_to_metres(pose_normalised):
+    """Inverse of :func:`normalise_pose`: pose head output [..., 5] -> (x m, y m, cos, sin, speed m/s)."""
+    return pose_normalised * POSE_SCALE + POSE_OFFSET
+
+
+def conv_widths(model_cfg: ModelConfig, image_size: int) -> tuple:
+    """Widths of the encoder's stride-2 convs: the first log2(R / 4), taking R down to 4 x 4."""
+    return tuple(model_cfg.conv_channels[:int(math.log2(image_size // 4))])
+
+
+def reconstructed_images(variant: str) -> tuple:
+    """Image keys whose reconstruction the variant's ELBO contains (only these decoders are built)."""
+    return {"full": ("camera", "lidar", "roadmap"),
+            "no_input_recon": ("roadmap",),
+            "no_roadmap_recon": ("camera", "lidar")}[variant]
+
+
+def _act(x):
+    return nn.leaky_relu(x, LEAK)
+
+
+def _conv_s2(features: int, kernel: int) -> nn.Conv:
+    """torch ``Conv2d(kernel, stride 2, padding kernel // 2)``: [N, H, W, C] -> [N, H/2, W/2, features]."""
+    p = kernel // 2
+    return nn.Conv(features, (kernel, kernel), strides=(2, 2), padding=((p, p), (p, p)))
+
+
+class Deconv2x(nn.Module):
+    """torch ``ConvTranspose2d(kernel, 2, kernel // 2, output_padding=1)``: [N, H, W, C] -> [N, 2H, 2W, features].
+
+    The same function and parameters (``kernel`` [k, k, C, features], ``bias``) as flax's
+    ``ConvTranspose(features, (k, k), strides=2, padding=(k - 1 - k // 2, k - k // 2))``, computed
+    sub-pixel: each of the four output phases (row, column parity) is a stride-1 conv of the input
+    with a sub-kernel of taps, so one conv with 4 x features outputs, interleaved, gives the output.
+    XLA:CPU runs a transposed conv as a conv over the zero-dilated input, ~10x slower to differentiate.
+    """
+    features: int
+    kernel: int
+
+    @nn.compact
+    def __call__(self, x):
+        k, lo, c = self.kernel, self.kernel - 1 - self.kernel // 2, x.shape[-1]
+        w = self.param("kernel", nn.initializers.lecun_normal(), (k, k, c, self.features))
+        b = self.param("bias", nn.initializers.zeros, (self.features,))
+        # 1-D: out[2u + a] = sum_j x[u + d] w[j] over taps j with d = (a + j - lo) / 2 an integer.
+        taps = [(a, j, (a + j - lo) // 2) for a in (0, 1) for j in range(k) if (a + j - lo) % 2 == 0]
+        d_min, d_max = min(d for *_, d in taps), max(d for *_, d in taps)
+        n = d_max - d_min + 1
+        index, used = np.zeros((n, 2), int), np.zeros((n, 2), np.float32)  # [offset, phase] -> tap j
+        for a, j, d in taps:
+            index[d - d_min, a], used[d - d_min, a] = j, 1.0
+        sub = w[index][:, :, index] * (used[:, :, None, None, None, None] * used[None, None, :, :, None, None])
+        sub = sub.transpose(0, 2, 4, 1, 3, 5).reshape(n, n, c, 4 * self.features)  # [dy, dx, C, (ay, ax, F)]
+        y = jax.lax.conv_general_dilated(x, sub, (1, 1), ((-d_min, d_max), (-d_min, d_max)),
+                                         dimension_numbers=("NHWC", "HWIO", "NHWC"))
+        nb, h, wd = x.shape[:3]
+        y = y.reshape(nb, h, wd, 2, 2, self.features).transpose(0, 1, 3, 2, 4, 5)
+        return y.reshape(nb, 2 * h, 2 * wd, self.features) + b
+
+
+class Encoder(nn.Module):
+    """uint8 image [N, R, R, 3] -> feature [N, feature_dim]."""
+    widths: tuple
+    feature_dim: int
+
+    @nn.compact
+    def __call__(self, image):
+        x = image.astype(jnp.float32) / 255.0
+        for i, width in enumerate(self.widths):
+            x = _act(_conv_s2(width, 5 if i == 0 else 3)(x))
+        x = _act(nn.Conv(self.feature_dim, (4, 4), padding="VALID")(x))  # 4 x 4 -> 1 x 1
+        return x.reshape(x.shape[0], -1)
+
+
+class Trunk(nn.Module):
+    """Latent [N, Z] -> feature map [N, R/2, R/2, widths[0]], the encoder mirrored."""
+    widths: tuple
+    feature_dim: int
+
+    @nn.compact
+    def __call__(self, z):
+        x = z[:, None, None, :]
+        x = _act(nn.ConvTranspose(self.feature_dim, (4, 4), padding="VALID")(x))  # 1 x 1 -> 4 x 4
+        for width in reversed(self.widths[:-1]):
+            x = _act(Deconv2x(width, 3)(x))
+        return x
+
+
+class ImageDecoder(nn.Module):
+    """Latent [N, Z] -> Gaussian mean image [N, R, R, 3] (in [0, 1] units; not clipped)."""
+    widths: tuple
+    feature_dim: int
+
+    @nn.compact
+    def __call__(self, z):
+        return _act(Deconv2x(3, 5)(Trunk(self.widths, self.feature_dim)(z)))
+
+
+class PixorDecoder(nn.Module):
+    """Latent [N, Z] -> (class logit [N, R, R, 1], regression [N, R, R, 6]); own trunk."""
+    widths: tuple
+    feature_dim: int
+
+    @nn.compact
+    def __call__(self, z):
+        h = Trunk(self.widths, self.feature_dim)(z)
+        return Deconv2x(1, 5)(h), _act(Deconv2x(6, 5)(h))
+
+
+class MLP(nn.Module):
+    """x [N, in] -> [N, out] through two leaky hidden layers of ``hidden`` units."""
+    hidden: int
+    out: int
+
+    @nn.compact
+    def __call__(self, x):
+        x = _act(nn.Dense(self.hidden)(x))
+        x = _act(nn.Dense(self.hidden)(x))
+        return nn.Dense(self.out)(x)
+
+
+class GaussianMLP(nn.Module):
+    """Inputs [N, ...] (concatenated on the last axis) -> (loc, scale) [N, out], scale = softplus + 1e-5."""
+    hidden: int
+    out: int
+
+    @nn.compact
+    def __call__(self, *inputs):
+        loc, raw = jnp.split(MLP(self.hidden, 2 * self.out)(jnp.concatenate(inputs, -1)), 2, -1)
+        return loc, jax.nn.softplus(raw) + MIN_SCALE
+
+
+def _sample(loc, scale, key):
+    """A draw from N(loc, diag(scale^2)), or its mean when ``key`` is None."""
+    return loc if key is None else distrax.MultivariateNormalDiag(loc, scale).sample(seed=key)
+
+
+class PerceptionModel(nn.Module):
+    """All networks of the paper. ``first`` [N] bool marks frames that start a sequence."""
+    cfg: ModelConfig
+    image_size: int
+
+    def setup(self):
+        m, widths = self.cfg, conv_widths(self.cfg, self.image_size)
+        self.camera_encoder = Encoder(widths, m.feature_dim)
+        self.lidar_encoder = Encoder(widths, m.feature_dim)
+        self.q_z1_first = GaussianMLP(m.hidden_dim, m.z1_dim)  # q(z1_1 | f_1)
+        self.q_z1_next = GaussianMLP(m.hidden_dim, m.z1_dim)  # q(z1_t+1 | f_t+1, z2_t, a_t)
+        self.p_z1_next = GaussianMLP(m.hidden_dim, m.z1_dim)  # p(z1_t+1 | z2_t, a_t)
+        self.p_z2_first = GaussianMLP(m.hidden_dim, m.z2_dim)  # p(z2_1 | z1_1)
+        self.p_z2_next = GaussianMLP(m.hidden_dim, m.z2_dim)  # p(z2_t+1 | z1_t+1, z2_t, a_t)
+        self.image_decoders = {k: ImageDecoder(widths, m.feature_dim) for k in reconstructed_images(m.variant)}
+        self.pixor_decoder = PixorDecoder(widths, m.feature_dim)
+        self.pose_head = MLP(m.hidden_dim, 5)
+
+    def encode(self, camera, lidar):
+        """uint8 [N, R, R, 3] x 2 -> concatenated features [N, 2 * feature_dim]."""
+        return jnp.concatenate([self.camera_encoder(camera), self.lidar_encoder(lidar)], -1)
+
+    def z1_prior(self, z2_prev, prev_action, first):
+        """p(z1_t): N(0, I) on first frames, else p(z1_t | z2_t-1, a_t-1). -> (loc, scale) [N, z1]."""
+        loc, scale = self.p_z1_next(z2_prev, prev_action)
+        f = first[:, None]
+        return jnp.where(f, 0.0, loc), jnp.where(f, 1.0, scale)
+
+    def z1_posterior(self, features, z2_prev, prev_action, first):
+        """q(z1_t | f_t) on first frames, else q(z1_t | f_t, z2_t-1, a_t-1). -> (loc, scale) [N, z1]."""
+        loc1, scale1 = self.q_z1_first(features)
+        loc, scale = self.q_z1_next(features, z2_prev, prev_action)
+        f = first[:, None]
+        return jnp.where(f, loc1, loc), jnp.where(f, scale1, scale)
+
+    def z2_prior(self, z1, z2_prev, prev_action, first):
+        """p(z2_t | z1_t) on first frames, else p(z2_t | z1_t, z2_t-1, a_t-1); also q(z2). -> (loc, scale)."""
+        loc1, scale1 = self.p_z2_first(z1)
+        loc, scale = self.p_z2_next(z1, z2_prev, prev_action)
+        f = first[:, None]
+        return jnp.where(f, loc1, loc), jnp.where(f, scale1, scale)
+
+    def posterior_step(self, state, features, prev_action, key):
+        """One filtering step from encoded features; see :func:`filter_step` for the arguments."""
+        z2_prev, first = state["z2"], state["first"]
+        k1, k2 = (None, None) if key is None else jax.random.split(key)
+        p1_loc, p1_scale = self.z1_prior(z2_prev, prev_action, first)
+        q1_loc, q1_scale = self.z1_posterior(features, z2_prev, prev_action, first)
+        z1 = _sample(q1_loc, q1_scale, k1)
+        # q(z2) is p(z2) itself (SLAC), so the z2 KL is zero and is not part of the loss.
+        z2_loc, z2_scale = self.z2_prior(z1, z2_prev, prev_action, first)
+        z2 = _sample(z2_loc, z2_scale, k2)
+        new_state = {"z1": z1, "z2": z2, "first": jnp.zeros_like(first)}
+        outputs = {"z1": z1, "z2": z2, "q_z1_loc": q1_loc, "q_z1_scale": q1_scale, "p_z1_loc": p1_loc,
+                   "p_z1_scale": p1_scale, "z2_loc": z2_loc, "z2_scale": z2_scale}
+        return new_state, outputs
+
+    def decode(self, z):
+        """Latent [N, Z] -> dict: built image means [N, R, R, 3], det_logit / det_cls [N, R, R, 1]
+        (logit / probability), det_reg [N, R, R, 6], pose [N, 5] (normalised units)."""
+        out = {k: dec(z) for k, dec in self.image_decoders.items()}
+        logit, out["det_reg"] = self.pixor_decoder(z)
+        out["det_logit"], out["det_cls"] = logit, jax.nn.sigmoid(logit)
+        out["pose"] = self.pose_head(z)
+        return out
+
+    def __call__(self, camera, lidar, prev_action, state):
+        """Every network once (used by ``init``): one posterior-mean step, then decode."""
+        state, out = self.posterior_step(state, self.encode(camera, lidar), prev_action, None)
+        return self.decode(jnp.concatenate([out["z1"], out["z2"]], -1))
+
+
+def build_model(cfg: Config) -> PerceptionModel:
+    return PerceptionModel(cfg.model, cfg.data.image_size)
+
+
+def init_filter_state(batch_size: int, cfg: Config) -> dict:
+    """Filter state before a sequence's first frame: z1 [B, z1], z2 [B, z2] zeros, first [B] True.
+
+    Set ``first`` to True for any row to restart that row's filter (e.g. after a world reset).
+    """
+    m = cfg.model
+    return {"z1": jnp.zeros((batch_size, m.z1_dim)), "z2": jnp.zeros((batch_size, m.z2_dim)),
+            "first": jnp.ones((batch_size,), bool)}
+
+
+@functools.partial(jax.jit, static_argnames="cfg")
+def init_params(key, cfg: Config):
+    """Parameters of every network built for ``cfg``: a pytree of float32 arrays.
+
+    Flax's default initialisation (LeCun-normal kernels: truncated normal with std sqrt(1 / fan_in),
+    fan_in = all kernel axes but the last; zero biases), drawn as ONE random vector: per-layer
+    draws cost XLA's CPU compiler ~1.5 s per distinct shape (a minute for this model).
+    """
+    r, n = cfg.data.image_size, 1
+    image = jnp.zeros((n, r, r, 3), jnp.uint8)
+    shapes = jax.eval_shape(lambda k: build_model(cfg).init(k, image, image, jnp.zeros((n, 2)),
+                                                            init_filter_state(n, cfg)), key)
+    leaves, treedef = jax.tree_util.tree_flatten_with_path(shapes)
+    is_kernel = [path[-1].key == "kernel" for path, _ in leaves]
+    sizes = [math.prod(x.shape) for (_, x), kernel in zip(leaves, is_kernel) if kernel]
+    # variance_scaling's truncated normal: std corrected by 0.8796 for the truncation at +-2 std.
+    draws = iter(jnp.split(jax.random.truncated_normal(key, -2.0, 2.0, (sum(sizes),)), np.cumsum(sizes)[:-1]))
+    values = [next(draws).reshape(x.shape) * (math.sqrt(1.0 / math.prod(x.shape[:-1])) / 0.87962566103423978)
+              if kernel else jnp.zeros(x.shape, x.dtype) for (_, x), kernel in zip(leaves, is_kernel)]
+    return jax.tree.unflatten(treedef, values)
+
+
+def filter_step(params, state, camera, lidar, prev_action, key, cfg: Config):
+    """Streaming posterior filtering: one frame for B rows.
+
+    camera, lidar: uint8 [B, R, R, 3] at frame t; prev_action: float32 [B, 2], the action applied
+    from frame t-1 to t (ignored on first frames); key: PRNG key for z1 ~ q and z2 ~ p, or None for
+    the means. Returns (state, outputs) with outputs z1 [B, z1], z2 [B, z2], the z1 posterior and prior
+    (``q_z1_loc``/``q_z1_scale``, ``p_z1_loc``/``p_z1_scale``) and z2's (``z2_loc``/``z2_scale``).
+    """
+    model = build_model(cfg)
+    features = model.apply(params, camera, lidar, method=PerceptionModel.encode)
+    return model.apply(params, state, features, prev_action, key, method=PerceptionModel.posterior_step)
+
+
+def filter_sequence(params, camera, lidar, action, key, cfg: Config):
+    """Posterior filtering over B sequences: encoders on all frames at once, then ONE ``lax.scan``
+    of the same posterior step as :func:`filter_step` over time.
+
+    camera, lidar: uint8 [B, T+1, R, R, 3]; action: float32 [B, T+1, 2], action t applied from frame t
+    to t+1 (the last one is unused); key: PRNG key or None (means). Frame t uses
+    ``jax.random.split(key, T+1)[t]``, so streaming :func:`filter_step` with those keys gives the same
+    result. Returns :func:`filter_step`'s outputs stacked to [B, T+1, ...].
+    """
+    model = build_model(cfg)
+    b, t1 = camera.shape[:2]
+    flat = lambda x: x.reshape((b * t1,) + x.shape[2:])
+    features = model.apply(params, flat(camera), flat(lidar), method=PerceptionModel.encode)
+    prev_action = jnp.concatenate([jnp.zeros_like(action[:, :1]), action[:, :-1]], 1)
+    time_major = lambda x: jnp.swapaxes(x, 0, 1)
+    keys = None if key is None else jax.random.split(key, t1)
+
+    def step(state, xs):
+        f, a, k = xs
+        return model.apply(params, state, f, a, k, method=PerceptionModel.posterior_step)
+
+    xs = (time_major(features.reshape(b, t1, -1)), time_major(prev_action), keys)
+    _, outputs = jax.lax.scan(step, init_filter_state(b, cfg), xs)
+    return jax.tree.map(time_major, outputs)
+
+
+def decode(params, z, cfg: Config) -> dict:
+    """Latents [N, z1 + z2] -> :meth:`PerceptionModel.decode`'s dict."""
+    return build_model(cfg).apply(params, z, method=PerceptionModel.decode)

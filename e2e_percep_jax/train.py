@@ -1,0 +1,308 @@
+"""Training: Adam on :func:`~e2e_percep_jax.loss.loss_fn`, data-parallel, checkpointed, resumable.
+
+Randomness, all from ``cfg.train.seed``: the batch of step s is the world's
+``make_batch(batch_key(seed, s))`` with ``batch_key = fold_in(PRNGKey(seed), s)``; the model's root is ``fold_in(PRNGKey(seed), 2**32 - 1)`` (a step the
+data stream never reaches), split into the init key and the noise root, and step s samples its
+latents with ``fold_in(noise_root, s)``. So a run is a function of (config, step) only, and a run
+killed and resumed from a checkpoint reproduces the uninterrupted run exactly.
+
+Data parallel: one 1-D mesh ``("data",)`` over all devices (of all processes); batches are sharded
+along B, the train state is replicated; ``jit`` inserts the gradient all-reduce.
+
+Outputs in ``workdir``: ``config.json`` (the resolved config), ``metrics.jsonl`` (one record per
+``log_every`` steps: mean of each loss term over those steps, gradient norm, steps/s, non-finite
+counters), ``checkpoints/<step>`` (orbax; every ``checkpoint_every`` steps and at exit).
+"""
+import dataclasses
+import functools
+import json
+import os
+import signal
+import threading
+import time
+from typing import Any, Callable, Iterator
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import orbax.checkpoint as ocp
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from e2e_percep_jax import batch as batch_lib
+from e2e_percep_jax import loss as loss_lib
+from e2e_percep_jax import model as model_lib
+from e2e_percep_jax import town as town_lib
+from e2e_percep_jax.config import Config, validate
+
+MODEL_STREAM = 2**32 - 1  # fold_in data for the model's keys; data uses fold_in(root, step), step < this
+MAX_CHECKPOINTS_KEPT = 3
+# Fields that may change when a run resumes; anything else would make the checkpoint a different run.
+RESUMABLE_CHANGES = ("train.num_steps", "train.log_every", "train.checkpoint_every",
+                     "train.max_nonfinite_in_a_row")
+
+Batches = Callable[[int], Iterator[tuple[int, dict]]]  # start_step -> (step, batch) from start_step on
+
+
+class TrainState(flax.struct.PyTreeNode):
+    """Everything a checkpoint holds.
+
+    step: int32 [], batches consumed (skipped non-finite ones included); params, opt_state: pytrees;
+    nonfinite_in_a_row / nonfinite_total: int32 [], skipped updates. Once ``nonfinite_in_a_row``
+    reaches ``max_nonfinite_in_a_row`` it stays there and no further update is applied.
+    """
+    step: jax.Array
+    params: Any
+    opt_state: Any
+    nonfinite_in_a_row: jax.Array
+    nonfinite_total: jax.Array
+
+
+class NonFiniteLossError(RuntimeError):
+    """Training stopped after ``max_nonfinite_in_a_row`` consecutive non-finite losses."""
+
+
+class TrainingInterrupted(Exception):
+    """SIGTERM / SIGINT arrived; a checkpoint of the last completed step was written."""
+
+    def __init__(self, signum: int, step: int):
+        super().__init__(f"interrupted by {signal.Signals(signum).name} at step {step}; checkpoint saved, "
+                         "rerun the same command to resume")
+        self.signum, self.step = signum, step
+
+
+def optimizer(cfg: Config) -> optax.GradientTransformation:
+    return optax.adam(cfg.train.learning_rate)
+
+
+def model_keys(seed: int) -> tuple[jax.Array, jax.Array]:
+    """(init key, noise root) of a run; step s's latent noise is ``fold_in(noise_root, s)``."""
+    init_key, noise_root = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(seed), MODEL_STREAM))
+    return init_key, noise_root
+
+
+def init_state(cfg: Config) -> TrainState:
+    params = model_lib.init_params(model_keys(cfg.train.seed)[0], cfg)
+    zero = lambda: jnp.zeros((), jnp.int32)  # distinct buffers: the state is donated to the step
+    return TrainState(step=zero(), params=params, opt_state=optimizer(cfg).init(params),
+                      nonfinite_in_a_row=zero(), nonfinite_total=zero())
+
+
+def train_step(state: TrainState, batch: dict, key: jax.Array, cfg: Config) -> tuple[TrainState, dict]:
+    """One Adam step on ``batch`` ([B, T+1, ...] frame contract) with latent noise ``key``.
+
+    A non-finite loss or gradient norm skips the update (params and optimizer state unchanged) and
+    counts it. Returns (state, metrics): the loss terms, ``grad_norm`` and the non-finite counters.
+    """
+    (_, metrics), grads = jax.value_and_grad(loss_lib.loss_fn, has_aux=True)(state.params, batch, key, cfg)
+    grad_norm = jnp.sqrt(sum(jnp.sum(g ** 2) for g in jax.tree.leaves(grads)))
+    finite = jnp.isfinite(metrics["total"]) & jnp.isfinite(grad_norm)  # a NaN / inf grad makes the norm so
+    halted = state.nonfinite_in_a_row >= cfg.train.max_nonfinite_in_a_row
+    apply = finite & ~halted
+    updates, opt_state = optimizer(cfg).update(grads, state.opt_state, state.params)
+    keep = lambda new, old: jax.tree.map(lambda n, o: jnp.where(apply, n, o), new, old)
+    in_a_row = jnp.where(halted, state.nonfinite_in_a_row, jnp.where(finite, 0, state.nonfinite_in_a_row + 1))
+    state = TrainState(step=state.step + 1,
+                       params=keep(optax.apply_updates(state.params, updates), state.params),
+                       opt_state=keep(opt_state, state.opt_state),
+                       nonfinite_in_a_row=in_a_row,
+                       nonfinite_total=state.nonfinite_total + (~finite).astype(jnp.int32))
+    return state, dict(metrics, grad_norm=grad_norm, nonfinite_in_a_row=in_a_row,
+                       nonfinite_total=state.nonfinite_total)
+
+
+def make_mesh(devices=None) -> Mesh:
+    """1-D data-parallel mesh ``("data",)`` over ``devices`` (default: every device of every process)."""
+    return Mesh(np.asarray(jax.devices() if devices is None else devices), ("data",))
+
+
+def shard_batch(batch: dict, mesh: Mesh) -> dict:
+    """The loss's keys of a global batch [B, T+1, ...], sharded along B over ``mesh``.
+
+    With several processes each holds the same global batch (it is a function of the step) and
+    contributes the rows of its own devices.
+    """
+    sharding = NamedSharding(mesh, PartitionSpec("data"))
+    batch = {k: batch[k] for k in loss_lib.BATCH_KEYS}
+    if jax.process_count() == 1:
+        return jax.device_put(batch, sharding)
+    host = jax.tree.map(np.asarray, batch)
+    return jax.tree.map(lambda x: jax.make_array_from_callback(x.shape, sharding, lambda i: x[i]), host)
+
+
+@functools.cache  # the same jitted object for the same (cfg, mesh), so its compilation is reused
+def make_train_step(cfg: Config, mesh: Mesh):
+    """:func:`train_step` jitted for ``mesh``: state and key replicated, batch sharded along B."""
+    replicated, sharded = NamedSharding(mesh, PartitionSpec()), NamedSharding(mesh, PartitionSpec("data"))
+    return jax.jit(lambda state, batch, key: train_step(state, batch, key, cfg),
+                   in_shardings=(replicated, sharded, replicated), out_shardings=replicated,
+                   donate_argnums=0)
+
+
+def world_batches(cfg: Config) -> Batches:
+    """The world's batch stream for ``cfg`` (town built once)."""
+    town = town_lib.build_town(cfg.world.town_seed)
+    return lambda start: batch_lib.batch_stream(town, cfg, cfg.train.seed, start_step=start)
+
+
+def _flat_config(cfg: Config) -> dict:
+    return {f"{s}.{k}": v for s, fields in dataclasses.asdict(cfg).items() for k, v in fields.items()}
+
+
+def check_resumable(cfg: Config, workdir: str) -> None:
+    """Raises ValueError naming the first flag that differs from the run already in ``workdir``."""
+    with open(os.path.join(workdir, "config.json")) as f:
+        saved = json.load(f)
+    old = {f"{s}.{k}": tuple(v) if isinstance(v, list) else v for s, fields in saved.items() for k, v in fields.items()}
+    for name, value in _flat_config(cfg).items():
+        if name.startswith("eval.") or name in RESUMABLE_CHANGES or old.get(name) == value:
+            continue
+        raise ValueError(f"--{name}={value} differs from the run being resumed in {workdir} "
+                         f"({old.get(name)}); use a new --workdir")
+
+
+def check_run(cfg: Config, workdir: str) -> int | None:
+    """Every check that needs no compilation: the config, its fit to the devices, and, if ``workdir``
+    holds a checkpoint, that ``cfg`` continues that run. Raises ValueError naming the flag; returns the
+    step to resume from (None for a fresh run)."""
+    validate(cfg)
+    n_devices = jax.device_count()
+    if cfg.data.batch_size % n_devices:
+        raise ValueError(f"--data.batch_size={cfg.data.batch_size} must be a multiple of the number of "
+                         f"devices ({n_devices})")
+    with _checkpoint_manager(workdir) as manager:
+        start = manager.latest_step()
+    if start is not None:
+        check_resumable(cfg, workdir)
+    return start
+
+
+def _checkpoint_manager(workdir: str) -> ocp.CheckpointManager:
+    return ocp.CheckpointManager(
+        os.path.join(os.path.abspath(workdir), "checkpoints"),
+        options=ocp.CheckpointManagerOptions(max_to_keep=MAX_CHECKPOINTS_KEPT, cleanup_tmp_directories=True))
+
+
+def _host(tree):
+    """Replicated device arrays -> NumPy (reads this process's copy, so it works on any process)."""
+    return jax.tree.map(lambda x: np.asarray(x.addressable_data(0)), tree)
+
+
+def _truncate_metrics(path: str, last_step: int) -> None:
+    """Drops records past ``last_step`` (written by a killed run after its last checkpoint)."""
+    if not os.path.exists(path):
+        return
+    with open(path) as f:
+        lines = [line for line in f if line.strip() and json.loads(line)["step"] <= last_step]
+    with open(path, "w") as f:
+        f.writelines(lines)
+
+
+def _eta(seconds: float) -> str:
+    m, s = divmod(int(seconds), 60)
+    h, m = divmod(m, 60)
+    return f"{h}h{m:02d}m" if h else f"{m}m{s:02d}s"
+
+
+class _StopSignals:
+    """Turns SIGTERM / SIGINT into a flag checked between steps, so a step is never cut in half."""
+
+    def __init__(self):
+        self.signum = None
+        self._previous = {}
+
+    def __enter__(self):
+        if threading.current_thread() is threading.main_thread():
+            for s in (signal.SIGTERM, signal.SIGINT):
+                self._previous[s] = signal.signal(s, self._handle)
+        return self
+
+    def _handle(self, signum, frame):
+        self.signum = signum
+
+    def __exit__(self, *exc):
+        for s, handler in self._previous.items():
+            signal.signal(s, handler)
+
+
+def train(cfg: Config, workdir: str, batches: Batches | None = None) -> TrainState:
+    """Trains ``cfg`` in ``workdir`` up to ``cfg.train.num_steps``, resuming from its latest checkpoint.
+
+    ``batches`` (default: :func:`world_batches`) maps a start step to (step, batch) pairs. Every
+    configuration error raises ValueError (:func:`check_run`) before anything is compiled. Raises
+    :class:`NonFiniteLossError` (no checkpoint written for the bad steps) or
+    :class:`TrainingInterrupted` (checkpoint written). Returns the final state.
+    """
+    start, t = check_run(cfg, workdir), cfg.train
+    workdir = os.path.abspath(workdir)
+    main_process = jax.process_index() == 0
+    config_path, metrics_path = os.path.join(workdir, "config.json"), os.path.join(workdir, "metrics.jsonl")
+    manager = _checkpoint_manager(workdir)
+    if main_process:
+        with open(config_path, "w") as f:
+            f.write(cfg.to_json())
+        _truncate_metrics(metrics_path, start or 0)
+
+    mesh = make_mesh()
+    state = jax.device_put(init_state(cfg), NamedSharding(mesh, PartitionSpec()))
+    if start is not None:
+        abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=x.sharding), state)
+        state = manager.restore(start, args=ocp.args.StandardRestore(abstract))
+        print(f"resumed from step {start} in {workdir}", flush=True)
+    start = start or 0
+    step_fn = make_train_step(cfg, mesh)
+    noise_root = model_keys(t.seed)[1]
+    stream = (batches or world_batches(cfg))(start)
+    compiled, pending, tick = None, [], time.perf_counter()
+
+    def save(step):
+        if manager.latest_step() != step:
+            manager.save(step, args=ocp.args.StandardSave(state))
+
+    def check_finite(step):
+        in_a_row = int(_host(state.nonfinite_in_a_row))
+        if in_a_row >= t.max_nonfinite_in_a_row:
+            manager.wait_until_finished()
+            raise NonFiniteLossError(
+                f"stopping at step {step}: {in_a_row} non-finite losses in a row "
+                f"(--train.max_nonfinite_in_a_row={t.max_nonfinite_in_a_row}); they updated nothing; "
+                f"last checkpoint kept: step {manager.latest_step()}")
+
+    with _StopSignals() as stop, manager:  # closing the manager waits for pending saves
+        for step, batch in stream:
+            if step >= t.num_steps or stop.signum is not None:
+                break
+            batch = shard_batch(batch, mesh)
+            key = jax.random.fold_in(noise_root, step)
+            if compiled is None:  # compiled once, timed, outside the steps/s clock
+                compile_start = time.perf_counter()
+                compiled = step_fn.lower(state, batch, key).compile()
+                print(f"compiled the train step in {time.perf_counter() - compile_start:.1f} s", flush=True)
+                tick = time.perf_counter()
+            state, metrics = compiled(state, batch, key)
+            pending.append(metrics)
+            done = step + 1
+            if done % t.log_every == 0 or done == t.num_steps:
+                records = _host(pending)
+                now = time.perf_counter()
+                steps_per_s = len(pending) / (now - tick)
+                record = {"step": done, **{k: float(np.mean([r[k] for r in records])) for k in records[0]},
+                          "nonfinite_in_a_row": int(records[-1]["nonfinite_in_a_row"]),
+                          "nonfinite_total": int(records[-1]["nonfinite_total"]), "steps_per_s": steps_per_s}
+                if main_process:
+                    with open(metrics_path, "a") as f:
+                        f.write(json.dumps(record) + "\n")
+                    print(f"step {done}/{t.num_steps}  loss {record['total']:.6g}  {steps_per_s:.2f} steps/s  "
+                          f"ETA {_eta((t.num_steps - done) / steps_per_s)}", flush=True)
+                pending, tick = [], now
+                check_finite(done)
+            if done % t.checkpoint_every == 0:
+                check_finite(done)
+                save(done)
+        final_step = int(_host(state.step))
+        check_finite(final_step)
+        save(final_step)
+        if stop.signum is not None:
+            raise TrainingInterrupted(stop.signum, final_step)
+    return state

@@ -1,0 +1,70 @@
+"""On-the-fly batches: the contract's shapes, determinism per key, resumable streams, and that frame t
+holds the observation of state t and the action that led to state t+1."""
+import itertools
+
+import jax
+import numpy as np
+import pytest
+
+from e2e_percep_jax import batch, config, sensors, world
+from e2e_percep_jax.town import build_town
+
+CFG = config.get_config("tiny")
+
+
+@pytest.fixture(scope="module")
+def town():
+    return build_town(CFG.world.town_seed)
+
+
+@pytest.fixture(scope="module")
+def first_batch(town):
+    return jax.tree.map(np.asarray, batch.make_batch(batch.batch_key(0, 0), town, CFG))
+
+
+def test_batch_follows_the_contract(first_batch):
+    b, t1, r, n = CFG.data.batch_size, CFG.data.seq_len + 1, CFG.data.image_size, CFG.world.num_vehicles
+    expected = {"camera": (np.uint8, (r, r, 3)), "lidar": (np.uint8, (r, r, 3)), "roadmap": (np.uint8, (r, r, 3)),
+                "det_cls": (np.float32, (r, r, 1)), "det_reg": (np.float32, (r, r, 6)), "pose": (np.float32, (5,)),
+                "action": (np.float32, (2,)), "boxes": (np.float32, (n, 5)), "boxes_valid": (np.bool_, (n,)),
+                "boxes_occluded": (np.bool_, (n,))}
+    assert set(first_batch) == set(expected)
+    for key, (dtype, shape) in expected.items():
+        assert first_batch[key].dtype == dtype and first_batch[key].shape == (b, t1) + shape, key
+        assert np.all(np.isfinite(first_batch[key].astype(np.float32))), key
+    np.testing.assert_allclose(np.hypot(first_batch["pose"][..., 2], first_batch["pose"][..., 3]), 1.0, atol=1e-5)
+    assert np.all(np.abs(first_batch["action"][..., 0]) <= 3.0 + 1e-6)
+    assert np.all(np.abs(first_batch["action"][..., 1]) <= 0.3 + 1e-6)
+
+
+def test_same_key_same_batch_other_key_other_batch(town, first_batch):
+    again = batch.make_batch(batch.batch_key(0, 0), town, CFG)
+    for key in first_batch:
+        np.testing.assert_array_equal(np.asarray(again[key]), first_batch[key], err_msg=key)
+    other = batch.make_batch(batch.batch_key(0, 1), town, CFG)
+    assert not np.array_equal(np.asarray(other["pose"]), first_batch["pose"])
+
+
+def test_stream_resumes_at_the_same_data(town):
+    steps = list(itertools.islice(batch.batch_stream(town, CFG, seed=3), 3))
+    assert [s for s, _ in steps] == [0, 1, 2]
+    step, resumed = next(batch.batch_stream(town, CFG, seed=3, start_step=2))
+    assert step == 2
+    np.testing.assert_array_equal(np.asarray(resumed["camera"]), np.asarray(steps[2][1]["camera"]))
+
+
+@pytest.mark.slow
+def test_frames_pair_state_t_with_the_action_to_t_plus_1(town, first_batch):
+    # Independent re-run of the first sequence, one step at a time.
+    key = jax.random.split(batch.batch_key(0, 0), CFG.data.batch_size)[0]
+    step = jax.jit(world.step)
+    state = world.reset(key, town, CFG.world)
+    for _ in range(CFG.data.warmup_steps):
+        state = step(state, town)
+    observe = jax.jit(sensors.observe, static_argnums=2)
+    for t in range(CFG.data.seq_len + 1):
+        frame = observe(state, town, CFG.data.image_size)
+        state = step(state, town)
+        np.testing.assert_allclose(first_batch["pose"][0, t], frame["pose"], atol=1e-3)
+        np.testing.assert_allclose(first_batch["action"][0, t], state.ego_action, atol=1e-4)
+        assert np.mean(first_batch["roadmap"][0, t] == np.asarray(frame["roadmap"])) > 0.99

@@ -1,0 +1,102 @@
+"""Loss tests: distrax pinned to closed forms, every term against NumPy formulas, per-sequence
+normalisation, variants, finite gradients reaching every network."""
+import dataclasses
+
+import distrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from test_model import TINY, synthetic_batch
+
+from e2e_percep_jax import loss, model
+
+
+def test_distrax_gaussian_kl_and_log_prob_match_closed_form():
+    """Guards against a distrax / tfp release changing either (numbers from NumPy formulas)."""
+    mq, sq = np.array([0.3, -1.2, 2.0]), np.array([0.5, 1.5, 0.1])
+    mp, sp = np.array([0.0, 0.4, 1.5]), np.array([1.0, 0.7, 0.2])
+    x = np.array([0.1, -0.5, 1.9])
+    kl = np.sum(np.log(sp / sq) + (sq ** 2 + (mq - mp) ** 2) / (2 * sp ** 2) - 0.5)
+    log_prob = np.sum(-0.5 * ((x - mq) / sq) ** 2 - np.log(sq) - 0.5 * np.log(2 * np.pi))
+    f32 = lambda a: jnp.asarray(a, jnp.float32)
+    np.testing.assert_allclose(loss.gaussian_kl(f32(mq), f32(sq), f32(mp), f32(sp)), kl, rtol=1e-5)
+    np.testing.assert_allclose(distrax.MultivariateNormalDiag(f32(mq), f32(sq)).log_prob(f32(x)), log_prob, rtol=1e-5)
+    # The formula itself, per dimension by hand: ln 2 + .34/2 - .5, ln(.7/1.5) + 4.81/.98 - .5, ln 2 + .26/.08 - .5.
+    np.testing.assert_allclose(kl, 0.363147 + 3.646023 + 3.443147, rtol=1e-6)
+
+
+def np_focal(logit, y):
+    """The torch peer's focal loss (on clamped probabilities), elementwise."""
+    p = np.clip(1 / (1 + np.exp(-logit)), 1e-6, 1 - 1e-6)
+    pt, a = np.where(y > 0.5, p, 1 - p), np.where(y > 0.5, 0.25, 0.75)
+    return -a * (1 - pt) ** 2 * np.log(pt)
+
+
+def np_smooth_l1(d):
+    return np.where(np.abs(d) < 1, 0.5 * d ** 2, np.abs(d) - 0.5)
+
+
+def test_focal_loss_matches_torch_form():
+    logit = np.linspace(-8, 8, 33)
+    for y in (0.0, 1.0):
+        np.testing.assert_allclose(loss.focal_loss(jnp.asarray(logit), jnp.full(33, y)), np_focal(logit, y),
+                                   rtol=1e-4, atol=1e-7)
+
+
+@pytest.fixture(scope="module")
+def setup():
+    cfg = TINY
+    return cfg, model.init_params(jax.random.PRNGKey(0), cfg), synthetic_batch(1, cfg)
+
+
+def test_every_term_matches_numpy_per_sequence(setup):
+    """With posterior means (key None) the loss is deterministic: recompute each term in NumPy from
+    the model's outputs, summed over pixels and time, divided by B."""
+    cfg, params, batch = setup
+    total, metrics = loss.loss_fn(params, batch, None, cfg)
+    out = jax.tree.map(np.asarray, model.filter_sequence(params, batch["camera"], batch["lidar"], batch["action"],
+                                                          None, cfg))
+    b, t1 = batch["camera"].shape[:2]
+    pred = model.decode(params, np.concatenate([out["z1"], out["z2"]], -1).reshape(b * t1, -1), cfg)
+    pred = {k: np.asarray(v, np.float64).reshape((b, t1) + v.shape[1:]) for k, v in pred.items()}
+    want = {f"recon_{k}": np.sum((pred[k] - batch[k] / 255.0) ** 2 / (2 * 0.1)) / b
+            for k in ("camera", "lidar", "roadmap")}
+    mq, sq, mp, sp = (out[k].astype(np.float64) for k in ("q_z1_loc", "q_z1_scale", "p_z1_loc", "p_z1_scale"))
+    want["kl"] = np.sum(np.log(sp / sq) + (sq ** 2 + (mq - mp) ** 2) / (2 * sp ** 2) - 0.5) / b
+    want["det_cls"] = np.sum(np_focal(pred["det_logit"], batch["det_cls"])) / b
+    positive = batch["det_cls"] > 0.5
+    want["det_reg"] = 0.1 * np.sum(np.where(positive, np_smooth_l1(pred["det_reg"] - batch["det_reg"]), 0)) / b
+    pose_target = (batch["pose"] - [200, 200, 0, 0, 0]) / [100, 100, 1, 1, 10]
+    want["pose"] = np.sum(np_smooth_l1(pred["pose"] - pose_target)) / b
+    want["total"] = sum(want.values())
+    assert set(metrics) == set(want)
+    for k in want:
+        np.testing.assert_allclose(metrics[k], want[k], rtol=2e-4, err_msg=k)
+    assert total == metrics["total"]
+    assert want["det_reg"] > 0 and want["kl"] > 0
+
+
+def test_loss_is_per_sequence_whatever_the_batch_size(setup):
+    cfg, params, batch = setup
+    doubled = jax.tree.map(lambda x: np.concatenate([x, x]), batch)
+    singles = [loss.loss_fn(params, jax.tree.map(lambda x: x[i:i + 1], batch), None, cfg)[0] for i in range(2)]
+    np.testing.assert_allclose(loss.loss_fn(params, doubled, None, cfg)[0], loss.loss_fn(params, batch, None, cfg)[0],
+                               rtol=1e-5)
+    np.testing.assert_allclose(np.mean(singles), loss.loss_fn(params, batch, None, cfg)[0], rtol=1e-5)
+
+
+@pytest.mark.parametrize("variant, images", [("full", {"camera", "lidar", "roadmap"}),
+                                             ("no_input_recon", {"roadmap"}),
+                                             ("no_roadmap_recon", {"camera", "lidar"})])
+def test_gradients_finite_and_reach_every_network(setup, variant, images):
+    _, _, batch = setup
+    cfg = dataclasses.replace(TINY, model=dataclasses.replace(TINY.model, variant=variant))
+    params = model.init_params(jax.random.PRNGKey(0), cfg)
+    assert {k[len("image_decoders_"):] for k in params["params"] if k.startswith("image_decoders_")} == images
+    grad_fn = jax.jit(jax.grad(lambda p, b, k: loss.loss_fn(p, b, k, cfg), has_aux=True))
+    grads, metrics = grad_fn(params, batch, jax.random.PRNGKey(3))
+    assert {k[len("recon_"):] for k in metrics if k.startswith("recon_")} == images
+    for path, g in jax.tree_util.tree_leaves_with_path(grads):
+        assert np.all(np.isfinite(g)), path
+        assert np.any(g != 0), path  # every parameter takes part in the loss

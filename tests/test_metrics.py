@@ -1,0 +1,283 @@
+"""Detection and pose metrics against brute force, closed forms and hand-computed cases."""
+import math
+
+import numpy as np
+import pytest
+
+from e2e_percep_jax import metrics
+
+THRESHOLDS = (0.1, 0.3, 0.5, 0.7)
+
+
+def box(x, y, yaw, length, width):
+    return np.array([x, y, yaw, length, width], dtype=np.float64)
+
+
+# ---------------------------------------------------------------- rotated IoU
+
+
+def _inside(points, b):
+    """Point-in-rotated-rectangle, written here independently of the library."""
+    dx, dy = points[..., 0] - b[0], points[..., 1] - b[1]
+    c, s = math.cos(b[2]), math.sin(b[2])
+    along, across = c * dx + s * dy, -s * dx + c * dy
+    return (np.abs(along) <= b[3] / 2) & (np.abs(across) <= b[4] / 2), np.maximum(
+        np.abs(along) - b[3] / 2, np.abs(across) - b[4] / 2)
+
+
+def _grid_intersection(a, b, n=400):
+    """Intersection area of boxes a, b from an n x n grid of cell centres tiling a, with an error bound.
+
+    The cells tile a exactly, so only cells that b's boundary may cross are uncertain: those whose
+    centre lies within half a cell diagonal of it (|max(|u| - l/2, |v| - w/2)| never exceeds the
+    distance to a rectangle's boundary).
+    """
+    cell_l, cell_w = a[3] / n, a[4] / n
+    u = (np.arange(n) + 0.5) * cell_l - a[3] / 2
+    v = (np.arange(n) + 0.5) * cell_w - a[4] / 2
+    uu, vv = np.meshgrid(u, v, indexing="ij")
+    c, s = math.cos(a[2]), math.sin(a[2])
+    points = np.stack([a[0] + c * uu - s * vv, a[1] + s * uu + c * vv], axis=-1)
+    inside_b, boundary_dist = _inside(points, b)
+    uncertain = np.abs(boundary_dist) <= 0.5 * math.hypot(cell_l, cell_w)
+    cell_area = cell_l * cell_w
+    return inside_b.sum() * cell_area, uncertain.sum() * cell_area
+
+
+def test_rotated_iou_matches_point_grid_on_random_pairs():
+    rng = np.random.default_rng(0)
+    num = 100
+    centres = rng.uniform(-2, 2, (2, num, 2)) + rng.uniform(-50, 50, (1, num, 2))  # pairs near each other
+    sizes = rng.uniform([0.5, 0.3], [6.0, 3.0], (2, num, 2))
+    yaws = rng.uniform(-np.pi, np.pi, (2, num))
+    a = np.concatenate([centres[0], yaws[0, :, None], sizes[0]], axis=1)
+    b = np.concatenate([centres[1], yaws[1, :, None], sizes[1]], axis=1)
+    iou = metrics.rotated_iou(a, b)
+    assert iou.shape == (num, num)
+    np.testing.assert_allclose(iou, metrics.rotated_iou(b, a).T, atol=1e-12)  # symmetry
+    assert np.all((iou >= 0.0) & (iou <= 1.0))
+    overlapping = 0
+    for i in range(num):
+        inter, bound = _grid_intersection(a[i], b[i])
+        area_a, area_b = a[i, 3] * a[i, 4], b[i, 3] * b[i, 4]
+        exact_inter = iou[i, i] * (area_a + area_b) / (1.0 + iou[i, i])  # invert IoU = I / (A + B - I)
+        assert abs(exact_inter - inter) <= bound + 1e-9, (i, exact_inter, inter, bound)
+        overlapping += inter > 0
+    assert overlapping > 50  # the test exercises real overlaps, not mostly zeros
+
+
+OCTAGON = 2 * (math.sqrt(2) - 1)  # unit square ∩ its 45° rotation about the centre: a regular octagon
+
+
+@pytest.mark.parametrize("a, b, expected", [
+    (box(0, 0, 0.3, 4, 2), box(0, 0, 0.3, 4, 2), 1.0),  # identical
+    (box(312.5, -207.25, 2.9, 4.5, 1.9), box(312.5, -207.25, 2.9, 4.5, 1.9), 1.0),  # identical, far away
+    (box(0, 0, 0, 4, 2), box(4, 0, 0, 4, 2), 0.0),  # touching along an edge
+    (box(0, 0, 0.7, 4, 2), box(4 * math.cos(0.7), 4 * math.sin(0.7), 0.7, 4, 2), 0.0),  # rotated, touching
+    (box(0, 0, 0, 2, 2), box(2, 2, 0, 2, 2), 0.0),  # touching at a corner
+    (box(0, 0, 0, 2, 2), box(10, 0, 0.5, 2, 2), 0.0),  # disjoint
+    (box(0, 0, 0, 2, 2), box(2.5, 0, math.pi / 4, 2, 2), 0.0),  # disjoint but within circumscribed circles
+    (box(1, 1, 0.4, 6, 4), box(1.5, 1.2, 0.4, 2, 1), 2 / 24),  # nested, same yaw
+    (box(0, 0, 0, 6, 4), box(0.5, 0.2, 1.0, 2, 1), 2 / 24),  # nested, rotated
+    (box(0, 0, 0, 2, 2), box(0, 0, math.pi / 2, 2, 2), 1.0),  # square turned 90°
+    (box(0, 0, 0, 4, 2), box(0, 0, math.pi / 2, 4, 2), 4 / 12),  # rectangle turned 90°: a cross
+    (box(0, 0, 0, 1, 1), box(0, 0, math.pi / 4, 1, 1), OCTAGON / (2 - OCTAGON)),
+    (box(0, 0, 0.5, 4, 2), box(math.cos(0.5), math.sin(0.5), 0.5, 4, 2), 3 / 5),  # collinear edges, shifted
+    (box(0, 0, 0, 4, 2), box(0, 0, math.pi, 4, 2), 1.0),  # same footprint, opposite heading
+])
+def test_rotated_iou_closed_forms(a, b, expected):
+    assert metrics.rotated_iou(a[None], b[None])[0, 0] == pytest.approx(expected, abs=1e-9)
+    assert metrics.rotated_iou(b[None], a[None])[0, 0] == pytest.approx(expected, abs=1e-9)
+
+
+def test_rotated_iou_empty_inputs():
+    assert metrics.rotated_iou(np.zeros((0, 5)), np.ones((3, 5))).shape == (0, 3)
+    assert metrics.rotated_iou(np.ones((2, 5)), np.zeros((0, 5))).shape == (2, 0)
+
+
+# ---------------------------------------------------------------- NMS
+
+
+def test_nms_collapses_duplicates_to_the_best_and_keeps_separate_boxes():
+    car_a, car_b = box(0, 0, 0.2, 4.5, 2), box(0, 5, -0.1, 4.5, 2)
+    boxes = np.stack([car_a + [0.2, 0, 0, 0, 0], car_b, car_a, car_b + [0, 0.3, 0.05, 0, 0],
+                      car_a + [-0.1, 0.1, 0, 0, 0]])
+    scores = np.array([0.6, 0.7, 0.9, 0.5, 0.8])
+    np.testing.assert_array_equal(metrics.nms(boxes, scores, 0.3), [2, 1])
+
+
+def test_nms_keeps_all_non_overlapping_boxes_by_score():
+    boxes = np.stack([box(10.0 * i, 0, 0.3 * i, 4, 2) for i in range(5)])
+    scores = np.array([0.2, 0.9, 0.5, 0.7, 0.1])
+    np.testing.assert_array_equal(metrics.nms(boxes, scores, 0.1), [1, 3, 2, 0, 4])
+    assert metrics.nms(np.zeros((0, 5)), np.zeros(0), 0.5).shape == (0,)
+
+
+# ---------------------------------------------------------------- matching and AP
+
+
+def test_one_ground_truth_is_matched_at_most_once():
+    gt = np.stack([box(0, 0, 0, 4, 2), box(0, 1.5, 0, 4, 2)])  # two cars side by side, overlapping
+    # Both detections overlap gt 0 best; the second must fall back to gt 1 (IoU 3.2/12.8), not reuse gt 0.
+    det = np.stack([box(0, 0.2, 0, 4, 2), box(0, 0.3, 0, 4, 2)])
+    matched = metrics.match_detections(det, np.array([0.9, 0.8]), gt, (0.1, 0.5))
+    np.testing.assert_array_equal(matched, [[0, 1], [0, -1]])
+    # Two detections on a single ground truth: one TP, one FP.
+    acc = metrics.DetectionAccumulator((0.5,))
+    acc.add_frame(det, np.array([0.9, 0.8]), gt[:1], np.ones(1, bool), np.zeros(1, bool))
+    curve = acc.results()[0.5]["all"]
+    np.testing.assert_allclose(curve.precision, [1.0, 0.5])
+    np.testing.assert_allclose(curve.recall, [1.0, 1.0])
+
+
+def test_average_precision_of_a_hand_computed_pr_sequence():
+    # Ranked TP, FP, TP, FP, TP against 4 ground truths.
+    precision = np.array([1, 1 / 2, 2 / 3, 2 / 4, 3 / 5])
+    recall = np.array([1, 1, 2, 2, 3]) / 4
+    # Envelope from the right: 1, 2/3, 2/3, 3/5, 3/5; recall steps of 1/4 at ranks 1, 3, 5.
+    expected = 0.25 * 1 + 0.25 * (2 / 3) + 0.25 * (3 / 5)
+    assert metrics.average_precision(precision, recall) == pytest.approx(expected, abs=1e-12)
+    assert metrics.average_precision([], []) == 0.0
+
+
+def _cars(n):
+    return np.stack([box(8.0 * i, 0, 0.1 * i, 4.5, 2) for i in range(n)])
+
+
+def _frame(acc, det, scores, gt, occluded=None, valid=None):
+    k = len(gt)
+    acc.add_frame(det, np.asarray(scores, float), gt, np.ones(k, bool) if valid is None else valid,
+                  np.zeros(k, bool) if occluded is None else occluded)
+
+
+def test_accumulator_pr_curve_and_ap_over_frames():
+    acc = metrics.DetectionAccumulator(THRESHOLDS)
+    gt = _cars(4)
+    miss = box(0, 30, 0, 4.5, 2)
+    # The sequence of the previous test, spread over two frames, added in arbitrary score order.
+    _frame(acc, np.stack([gt[0], miss]), [0.9, 0.6], gt[:2])
+    _frame(acc, np.stack([miss, gt[3], gt[2]]), [0.8, 0.5, 0.7], gt[2:])
+    for thr, subsets in acc.results().items():
+        curve = subsets["all"]
+        assert curve.num_gt == 4
+        np.testing.assert_allclose(curve.precision, [1, 1 / 2, 2 / 3, 2 / 4, 3 / 5])
+        np.testing.assert_allclose(curve.recall, [0.25, 0.25, 0.5, 0.5, 0.75])
+        np.testing.assert_allclose(curve.score, [0.9, 0.8, 0.7, 0.6, 0.5], atol=1e-4)  # bin edges
+        # Dropping the first recall step, as the reference did, would give 0.3167.
+        assert curve.ap == pytest.approx(0.25 + 0.25 * 2 / 3 + 0.25 * 3 / 5, abs=1e-12)
+
+
+def test_accumulator_perfect_all_false_empty_and_threshold_dependence():
+    gt = _cars(3)
+    perfect = metrics.DetectionAccumulator(THRESHOLDS)
+    _frame(perfect, gt, [0.9, 0.8, 0.7], gt)
+    assert all(s["all"].ap == pytest.approx(1.0) for s in perfect.results().values())
+
+    all_false = metrics.DetectionAccumulator(THRESHOLDS)
+    _frame(all_false, gt + [0, 20, 0, 0, 0], [0.9, 0.8, 0.7], gt)
+    assert all(s["all"].ap == 0.0 for s in all_false.results().values())
+
+    no_detections = metrics.DetectionAccumulator(THRESHOLDS)
+    _frame(no_detections, np.zeros((0, 5)), [], gt)
+    assert all(s["all"].ap == 0.0 and s["all"].precision.size == 0 for s in no_detections.results().values())
+
+    no_gt = metrics.DetectionAccumulator(THRESHOLDS)
+    _frame(no_gt, gt, [0.9, 0.8, 0.7], np.zeros((0, 5)))
+    for s in no_gt.results().values():
+        assert math.isnan(s["all"].ap) and s["all"].num_gt == 0
+        np.testing.assert_allclose(s["all"].precision, [0, 0, 0])
+
+    # A detection shifted 1.4 m along a 4.5 m x 2 m car: IoU 6.2 / 11.8 = 0.525, a match at IoU <= 0.5 only.
+    shifted = metrics.DetectionAccumulator(THRESHOLDS)
+    _frame(shifted, gt[:1] + [1.4, 0, 0, 0, 0], [0.9], gt[:1])
+    assert [s["all"].ap for s in shifted.results().values()] == pytest.approx([1, 1, 1, 0])
+
+
+def test_padding_ground_truth_is_ignored():
+    gt = _cars(2)
+    acc = metrics.DetectionAccumulator((0.5,))
+    _frame(acc, gt, [0.9, 0.8], gt, valid=np.array([True, False]))
+    curve = acc.results()[0.5]["all"]
+    assert curve.num_gt == 1
+    np.testing.assert_allclose(curve.precision, [1.0, 0.5])  # the detection on the padded box is an FP
+
+
+def test_occluded_visible_split_as_documented():
+    gt = _cars(3)
+    occluded = np.array([False, True, True])
+    acc = metrics.DetectionAccumulator((0.5,))
+    # 0.9 hits visible gt 0, 0.8 hits nothing, 0.7 hits occluded gt 1; occluded gt 2 is missed.
+    _frame(acc, np.stack([gt[0], box(0, 30, 0, 4, 2), gt[1]]), [0.9, 0.8, 0.7], gt, occluded=occluded)
+    res = acc.results()[0.5]
+    assert (res["all"].num_gt, res["visible"].num_gt, res["occluded"].num_gt) == (3, 1, 2)
+    np.testing.assert_allclose(res["all"].precision, [1, 1 / 2, 2 / 3])
+    np.testing.assert_allclose(res["all"].recall, [1 / 3, 1 / 3, 2 / 3])
+    assert res["all"].ap == pytest.approx(1 / 3 + 1 / 3 * 2 / 3)
+    # Visible: the occluded match (0.7) is excluded; the unmatched detection is an FP.
+    np.testing.assert_allclose(res["visible"].precision, [1, 1 / 2])
+    np.testing.assert_allclose(res["visible"].recall, [1, 1])
+    np.testing.assert_allclose(res["visible"].score, [0.9, 0.8], atol=1e-4)
+    assert res["visible"].ap == pytest.approx(1.0)
+    # Occluded: the visible match (0.9) is excluded; the unmatched detection is an FP here too.
+    np.testing.assert_allclose(res["occluded"].precision, [0, 1 / 2])
+    np.testing.assert_allclose(res["occluded"].recall, [0, 1 / 2])
+    assert res["occluded"].ap == pytest.approx(0.25)
+
+
+def test_scores_must_be_probabilities():
+    acc = metrics.DetectionAccumulator()
+    with pytest.raises(ValueError):
+        _frame(acc, _cars(1), [1.5], _cars(1))
+    with pytest.raises(ValueError):
+        _frame(acc, _cars(1), [np.nan], _cars(1))
+
+
+# ---------------------------------------------------------------- pose
+
+
+def pose(x, y, psi, speed, scale=1.0):
+    return np.array([x, y, scale * math.cos(psi), scale * math.sin(psi), speed])
+
+
+def test_pose_errors_closed_forms():
+    err = metrics.pose_errors(pose(3, 4, 0.0, 5.0), pose(0, 0, 0.0, 7.5))
+    assert err.location_m == pytest.approx(5.0)
+    assert err.speed_mps == pytest.approx(2.5)
+    assert err.heading_rad == pytest.approx(0.0)
+    # Across the ±pi seam, and with an unnormalised predicted direction.
+    err = metrics.pose_errors(pose(0, 0, math.pi - 0.1, 0, scale=3.0), pose(0, 0, -math.pi + 0.1, 0))
+    assert err.heading_rad == pytest.approx(0.2, abs=1e-12)
+    opposite = metrics.pose_errors(pose(0, 0, 0.5, 0), pose(0, 0, 0.5 + math.pi, 0))
+    assert opposite.heading_rad == pytest.approx(math.pi)
+    batch = metrics.pose_errors(np.zeros((2, 3, 5)) + pose(1, 0, 0, 0), np.zeros((2, 3, 5)))
+    assert batch.location_m.shape == (2, 3) and np.allclose(batch.location_m, 1.0)
+
+
+def test_pose_accumulator_mean_median_and_step_bins():
+    acc = metrics.PoseErrorAccumulator(step_bin_edges=(0, 2, 4))
+    location = np.array([4.0, 3.0, 2.0, 1.0, 1.0, 0.0])
+    zeros = np.zeros(6)
+    # Two chunks of one drive (steps 0..5), the second with a [1, 2] batch shape.
+    acc.add(metrics.PoseErrors(location[:4], zeros[:4], zeros[:4] + 1), np.arange(4))
+    acc.add(metrics.PoseErrors(location[None, 4:], zeros[None, 4:], zeros[None, 4:] + 3),
+            np.arange(4, 6)[None])
+    res = acc.results()
+    assert res["location_m"] == {"mean": pytest.approx(11 / 6), "median": pytest.approx(1.5)}
+    assert res["speed_mps"]["mean"] == pytest.approx(10 / 6)
+    assert res["speed_mps"]["median"] == pytest.approx(1.0)
+    np.testing.assert_allclose(res["location_m_by_step"]["mean"], [3.5, 1.5, 0.5])
+    np.testing.assert_array_equal(res["location_m_by_step"]["count"], [2, 2, 2])
+    assert math.isnan(metrics.PoseErrorAccumulator().results()["heading_rad"]["mean"])
+
+
+def test_pose_accumulator_grows_past_its_initial_buffer():
+    acc = metrics.PoseErrorAccumulator()
+    rng = np.random.default_rng(0)
+    chunks = [rng.uniform(0, 10, n) for n in (700, 1, 3000, 5)]
+    for i, chunk in enumerate(chunks):
+        acc.add(metrics.PoseErrors(chunk, chunk / 10, chunk * 2), i)
+    every = np.concatenate(chunks)
+    res = acc.results()
+    assert res["location_m"]["median"] == pytest.approx(np.median(every), rel=1e-6)
+    assert res["heading_rad"]["mean"] == pytest.approx(np.mean(every) / 10, rel=1e-6)
+    np.testing.assert_array_equal(res["location_m_by_step"]["count"][:2], [len(every), 0])

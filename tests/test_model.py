@@ -1,0 +1,277 @@
+"""Model tests: shapes at every size, the paper's parameter count by hand, layers against a NumPy
+re-implementation of the torch peer's layers, and the filtering recursion (scan = streaming)."""
+import dataclasses
+
+import distrax
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from e2e_percep_jax import config, model
+from e2e_percep_jax.model import PerceptionModel
+
+TINY = config.get_config("tiny")
+
+
+def with_sizes(cfg, image_size=None, **model_fields):
+    data = cfg.data if image_size is None else dataclasses.replace(cfg.data, image_size=image_size)
+    return dataclasses.replace(cfg, data=data, model=dataclasses.replace(cfg.model, **model_fields))
+
+
+def synthetic_batch(seed, cfg, batch_size=None):
+    """Random frames (NumPy, no compile) with the frame contract's keys, dtypes and shapes [B, T+1, ...]."""
+    b, t1, r = batch_size or cfg.data.batch_size, cfg.data.seq_len + 1, cfg.data.image_size
+    rng = np.random.default_rng(seed)
+    image = lambda: rng.integers(0, 256, (b, t1, r, r, 3), np.uint8)
+    heading = rng.uniform(0, 2 * np.pi, (b, t1))
+    pose = np.stack([rng.uniform(0, 400, (b, t1)), rng.uniform(0, 400, (b, t1)), np.cos(heading), np.sin(heading),
+                     rng.uniform(0, 12, (b, t1))], -1)
+    det_cls = (rng.uniform(size=(b, t1, r, r, 1)) > 0.9).astype(np.float32)
+    # Regression targets exist at positive pixels only; elsewhere anything, here NaN / inf as a worst case.
+    det_reg = np.where(det_cls > 0.5, rng.normal(size=(b, t1, r, r, 6)), rng.choice([np.nan, np.inf], (b, t1, r, r, 6)))
+    return {"camera": image(), "lidar": image(), "roadmap": image(), "det_cls": det_cls,
+            "det_reg": det_reg.astype(np.float32),
+            "pose": pose.astype(np.float32),
+            "action": rng.uniform(-0.3, 0.3, (b, t1, 2)).astype(np.float32)}
+
+
+# ----------------------------------------------------------------------------- shapes and counts
+
+
+@pytest.mark.parametrize("r", [32, 64, 128])
+def test_every_network_output_shape(r):
+    cfg = with_sizes(TINY, r, conv_channels=(4, 8, 8, 16, 16))
+    m, n = TINY.model, 3
+    net = model.build_model(cfg)
+    params = jax.eval_shape(lambda: model.init_params(jax.random.PRNGKey(0), cfg))
+    apply = lambda method, *args: jax.eval_shape(lambda p, *a: net.apply(p, *a, method=method), params, *args)
+    image = jax.ShapeDtypeStruct((n, r, r, 3), jnp.uint8)
+    vec = lambda d: jax.ShapeDtypeStruct((n, d), jnp.float32)
+    first = jax.ShapeDtypeStruct((n,), bool)
+
+    assert apply(PerceptionModel.encode, image, image).shape == (n, 2 * m.feature_dim)
+    for method, args, dim in [(PerceptionModel.z1_prior, (vec(m.z2_dim), vec(2), first), m.z1_dim),
+                              (PerceptionModel.z1_posterior, (vec(2 * m.feature_dim), vec(m.z2_dim), vec(2), first),
+                               m.z1_dim),
+                              (PerceptionModel.z2_prior, (vec(m.z1_dim), vec(m.z2_dim), vec(2), first), m.z2_dim)]:
+        loc, scale = apply(method, *args)
+        assert loc.shape == scale.shape == (n, dim)
+    decoded = apply(PerceptionModel.decode, vec(m.z1_dim + m.z2_dim))
+    assert {k: v.shape for k, v in decoded.items()} == {
+        "camera": (n, r, r, 3), "lidar": (n, r, r, 3), "roadmap": (n, r, r, 3), "det_logit": (n, r, r, 1),
+        "det_cls": (n, r, r, 1), "det_reg": (n, r, r, 6), "pose": (n, 5)}
+    trunk = jax.eval_shape(lambda z: model.Trunk(model.conv_widths(cfg.model, r), m.feature_dim).init_with_output(
+        jax.random.PRNGKey(0), z)[0], vec(m.z1_dim + m.z2_dim))
+    assert trunk.shape == (n, r // 2, r // 2, 4)
+
+    b, t1 = 2, 4
+    seq = jax.ShapeDtypeStruct((b, t1, r, r, 3), jnp.uint8)
+    out = jax.eval_shape(lambda p, c, l, a: model.filter_sequence(p, c, l, a, jax.random.PRNGKey(0), cfg),
+                         params, seq, seq, jax.ShapeDtypeStruct((b, t1, 2), jnp.float32))
+    assert out["z1"].shape == out["q_z1_scale"].shape == out["p_z1_loc"].shape == (b, t1, m.z1_dim)
+    assert out["z2"].shape == out["z2_scale"].shape == (b, t1, m.z2_dim)
+
+
+def conv(k, cin, cout):
+    return k * k * cin * cout + cout
+
+
+def dense(cin, cout):
+    return cin * cout + cout
+
+
+def test_paper_parameter_count_by_hand():
+    """R = 128 with the paper's widths; every layer written out (equals the torch peer's count)."""
+    cfg = config.get_config("paper")
+    encoder = (conv(5, 3, 32) + conv(3, 32, 64) + conv(3, 64, 128) + conv(3, 128, 256) + conv(3, 256, 256)
+               + conv(4, 256, 256))
+    trunk = conv(4, 288, 256) + conv(3, 256, 256) + conv(3, 256, 128) + conv(3, 128, 64) + conv(3, 64, 32)
+    image_decoder = trunk + conv(5, 32, 3)
+    pixor = trunk + conv(5, 32, 1) + conv(5, 32, 6)
+    gauss = lambda cin, out: dense(cin, 256) + dense(256, 256) + dense(256, 2 * out)
+    latent = (gauss(512, 32)  # q(z1_1 | f_1)
+              + gauss(512 + 256 + 2, 32)  # q(z1_t+1 | f_t+1, z2_t, a_t)
+              + gauss(256 + 2, 32)  # p(z1_t+1 | z2_t, a_t)
+              + gauss(32, 256)  # p(z2_1 | z1_1)
+              + gauss(32 + 256 + 2, 256))  # p(z2_t+1 | z1_t+1, z2_t, a_t)
+    pose = dense(288, 256) + dense(256, 256) + dense(256, 5)
+    full = 2 * encoder + 3 * image_decoder + pixor + latent + pose
+    assert full == 13_960_149
+
+    def count(variant):
+        c = with_sizes(cfg, variant=variant)
+        shapes = jax.eval_shape(lambda k: model.init_params(k, c), jax.random.PRNGKey(0))
+        return sum(x.size for x in jax.tree.leaves(shapes))
+
+    assert count("full") == full
+    assert count("no_input_recon") == full - 2 * image_decoder
+    assert count("no_roadmap_recon") == full - image_decoder
+
+
+# ----------------------------------------------------------------------------- layers vs NumPy (torch semantics)
+
+
+def leaky(x):
+    return np.where(x > 0, x, 0.2 * x)
+
+
+def np_conv(x, w, b, stride, pad):
+    """torch Conv2d on one HWC image; w [k, k, cin, cout] applied as cross-correlation."""
+    k = w.shape[0]
+    x = np.pad(x, ((pad, pad), (pad, pad), (0, 0)))
+    h = (x.shape[0] - k) // stride + 1
+    out = np.empty((h, h, w.shape[-1]))
+    for i in range(h):
+        for j in range(h):
+            out[i, j] = np.einsum("abc,abcd->d", x[i * stride:i * stride + k, j * stride:j * stride + k], w)
+    return out + b
+
+
+def np_deconv(x, w, b, stride, pad, out_pad):
+    """torch ConvTranspose2d on one HWC image (scatter form); w [k, k, cin, cout] is torch's kernel."""
+    k, h = w.shape[0], x.shape[0]
+    size = (h - 1) * stride - 2 * pad + k + out_pad
+    full = np.zeros(((h - 1) * stride + k + out_pad,) * 2 + (w.shape[-1],))
+    for i in range(h):
+        for j in range(h):
+            full[i * stride:i * stride + k, j * stride:j * stride + k] += np.einsum("c,abcd->abd", x[i, j], w)
+    return full[pad:pad + size, pad:pad + size] + b
+
+
+def np_transposed(p, stride, pad, out_pad):
+    """flax's un-flipped ConvTranspose kernel is torch's kernel flipped in space."""
+    return lambda x: np_deconv(x, np.asarray(p["kernel"])[::-1, ::-1], np.asarray(p["bias"]), stride, pad, out_pad)
+
+
+def np_mlp(p, x):
+    for i in range(2):
+        x = leaky(x @ np.asarray(p[f"Dense_{i}"]["kernel"]) + np.asarray(p[f"Dense_{i}"]["bias"]))
+    return x @ np.asarray(p["Dense_2"]["kernel"]) + np.asarray(p["Dense_2"]["bias"])
+
+
+def np_trunk(p, z):
+    x = leaky(np_transposed(p["ConvTranspose_0"], 1, 0, 0)(z[None, None, :]))
+    for i in range(len(p) - 1):
+        x = leaky(np_transposed(p[f"Deconv2x_{i}"], 2, 1, 1)(x))
+    return x
+
+
+@pytest.mark.parametrize("kernel", [3, 5])
+def test_subpixel_deconv_equals_flax_conv_transpose(kernel):
+    lo = kernel - 1 - kernel // 2
+    x = jax.random.normal(jax.random.PRNGKey(0), (2, 5, 6, 4))
+    params = model.Deconv2x(7, kernel).init(jax.random.PRNGKey(1), x)
+    params = jax.tree.map(lambda v: v + 0.1, params)  # non-zero bias too
+    want = nn.ConvTranspose(7, (kernel, kernel), strides=(2, 2), padding=((lo, lo + 1),) * 2).apply(params, x)
+    got = model.Deconv2x(7, kernel).apply(params, x)
+    assert got.shape == (2, 10, 12, 7)
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)
+
+
+def test_layers_match_numpy_torch_semantics():
+    """Paddings (torch's k // 2, output_padding 1), leaky slope 0.2 after every conv / deconv incl. the
+    image decoders' last deconv and the reg head, sigmoid class head, softplus + 1e-5 scales."""
+    cfg = TINY
+    params = model.init_params(jax.random.PRNGKey(3), cfg)["params"]
+    batch = synthetic_batch(4, cfg, batch_size=1)
+    camera = batch["camera"][0, :1]
+    net = model.build_model(cfg)
+
+    x = np.asarray(camera[0], np.float64) / 255.0
+    p = params["camera_encoder"]
+    for i in range(3):
+        x = leaky(np_conv(x, np.asarray(p[f"Conv_{i}"]["kernel"]), np.asarray(p[f"Conv_{i}"]["bias"]), 2,
+                          2 if i == 0 else 1))
+    feature = leaky(np_conv(x, np.asarray(p["Conv_3"]["kernel"]), np.asarray(p["Conv_3"]["bias"]), 1, 0)).ravel()
+    got = net.apply({"params": params}, camera, camera, method=PerceptionModel.encode)[0]
+    np.testing.assert_allclose(got[:cfg.model.feature_dim], feature, rtol=1e-4, atol=1e-5)
+
+    z = np.asarray(jax.random.normal(jax.random.PRNGKey(5), (cfg.model.z1_dim + cfg.model.z2_dim,)))
+    got = net.apply({"params": params}, jnp.asarray(z[None], jnp.float32), method=PerceptionModel.decode)
+    p = params["image_decoders_camera"]
+    want = leaky(np_transposed(p["Deconv2x_0"], 2, 2, 1)(np_trunk(p["Trunk_0"], z)))
+    np.testing.assert_allclose(got["camera"][0], want, rtol=1e-4, atol=1e-5)
+    p = params["pixor_decoder"]
+    h = np_trunk(p["Trunk_0"], z)
+    logit = np_transposed(p["Deconv2x_0"], 2, 2, 1)(h)
+    np.testing.assert_allclose(got["det_cls"][0], 1 / (1 + np.exp(-logit)), rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(got["det_reg"][0], leaky(np_transposed(p["Deconv2x_1"], 2, 2, 1)(h)),
+                               rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(got["pose"][0], np_mlp(params["pose_head"], z), rtol=1e-4, atol=1e-5)
+
+    z1 = z[:cfg.model.z1_dim]
+    loc, scale = net.apply({"params": params}, jnp.asarray(z1[None], jnp.float32),
+                           method=lambda m, z1: m.p_z2_first(z1))
+    out = np_mlp(params["p_z2_first"]["MLP_0"], z1)
+    np.testing.assert_allclose(loc[0], out[:cfg.model.z2_dim], rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(scale[0], np.log1p(np.exp(out[cfg.model.z2_dim:])) + 1e-5, rtol=1e-4, atol=1e-6)
+
+
+# ----------------------------------------------------------------------------- filtering
+
+
+@pytest.fixture(scope="module")
+def filtered():
+    cfg = TINY
+    params = model.init_params(jax.random.PRNGKey(0), cfg)
+    batch = synthetic_batch(1, cfg)
+    key = jax.random.PRNGKey(2)
+    out = jax.jit(model.filter_sequence, static_argnums=5)(params, batch["camera"], batch["lidar"], batch["action"],
+                                                          key, cfg)
+    return cfg, params, batch, key, out
+
+
+def test_scan_equals_streaming_steps(filtered):
+    cfg, params, batch, key, scanned = filtered
+    t1 = batch["camera"].shape[1]
+    keys = jax.random.split(key, t1)
+    step = jax.jit(model.filter_step, static_argnums=6)
+    state, prev_action = model.init_filter_state(batch["camera"].shape[0], cfg), jnp.zeros_like(batch["action"][:, 0])
+    for t in range(t1):
+        state, out = step(params, state, batch["camera"][:, t], batch["lidar"][:, t], prev_action, keys[t], cfg)
+        prev_action = batch["action"][:, t]
+        for k, v in out.items():
+            np.testing.assert_allclose(v, scanned[k][:, t], rtol=1e-5, atol=1e-5, err_msg=f"{k} at t={t}")
+    # Samples differ from means, and the first prior is N(0, I).
+    assert not np.allclose(scanned["z1"], scanned["q_z1_loc"])
+    np.testing.assert_array_equal(scanned["p_z1_loc"][:, 0], 0.0)
+    np.testing.assert_array_equal(scanned["p_z1_scale"][:, 0], 1.0)
+
+
+def test_z2_kl_is_identically_zero(filtered):
+    """q(z2_t) is p(z2_t | z1_t, z2_t-1, a_t-1) evaluated at the posterior z1_t: the same distribution."""
+    cfg, params, batch, _, out = filtered
+    b, t1 = batch["camera"].shape[:2]
+    z2_prev = jnp.concatenate([jnp.zeros_like(out["z2"][:, :1]), out["z2"][:, :-1]], 1)
+    prev_action = jnp.concatenate([jnp.zeros_like(batch["action"][:, :1]), batch["action"][:, :-1]], 1)
+    first = jnp.broadcast_to(jnp.arange(t1) == 0, (b, t1))
+    flat = lambda x: x.reshape((b * t1,) + x.shape[2:])
+    loc, scale = model.build_model(cfg).apply(params, flat(out["z1"]), flat(z2_prev), flat(prev_action), flat(first),
+                                              method=PerceptionModel.z2_prior)
+    kl = distrax.MultivariateNormalDiag(flat(out["z2_loc"]), flat(out["z2_scale"])).kl_divergence(
+        distrax.MultivariateNormalDiag(loc, scale))
+    np.testing.assert_array_equal(kl, 0.0)
+    assert not any("q_z2" in name for name in params["params"])
+
+
+def test_first_flag_restarts_a_row_and_none_key_gives_means(filtered):
+    cfg, params, batch, _, _ = filtered
+    cam, lidar, act = batch["camera"][:, 0], batch["lidar"][:, 0], batch["action"][:, 0]
+    fresh, out0 = model.filter_step(params, model.init_filter_state(2, cfg), cam, lidar, act, None, cfg)
+    np.testing.assert_array_equal(out0["z1"], out0["q_z1_loc"])
+    np.testing.assert_array_equal(out0["z2"], out0["z2_loc"])
+    running, _ = model.filter_step(params, fresh, cam, lidar, act, None, cfg)
+    restarted = dict(running, first=jnp.array([True, False]))
+    _, out = model.filter_step(params, restarted, cam, lidar, act, None, cfg)
+    _, cont = model.filter_step(params, running, cam, lidar, act, None, cfg)
+    np.testing.assert_allclose(out["z2"][0], out0["z2"][0], rtol=1e-6)
+    np.testing.assert_allclose(out["z2"][1], cont["z2"][1], rtol=1e-6)
+    assert not np.allclose(cont["z2"][0], out0["z2"][0])
+
+
+def test_pose_normalisation_is_a_fixed_affine_map():
+    pose = np.array([[0.0, 400.0, 1.0, 0.0, 0.0], [200.0, 200.0, 0.0, -1.0, 10.0]], np.float32)
+    np.testing.assert_allclose(model.normalise_pose(pose), [[-2, 2, 1, 0, 0], [0, 0, 0, -1, 1]])
+    np.testing.assert_allclose(model.pose_to_metres(model.normalise_pose(pose)), pose, atol=1e-5)

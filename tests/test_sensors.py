@@ -1,0 +1,310 @@
+"""Sensors against known geometry: pinhole projection, occlusion, lidar rings and outlines, roadmap crops,
+and the frame contract. Scenes are built by hand (a few boxes on a synthetic map) so the truth is known."""
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from e2e_percep_jax import geometry as geo
+from e2e_percep_jax import sensors
+from e2e_percep_jax.town import SEM_COLORS, SEM_OFFROAD, SEM_ROAD, SEM_STOP_LINE, Town
+from e2e_percep_jax.world import WorldState
+
+MAP_RES_M = 0.2
+MAP_ORIGIN_M = (-60.0, -60.0)
+render_camera = jax.jit(sensors.render_camera, static_argnums=4)
+render_lidar = jax.jit(sensors.render_lidar, static_argnums=1)
+render_roadmap = jax.jit(sensors.render_roadmap, static_argnums=5)
+observe = jax.jit(sensors.observe, static_argnums=2)
+
+
+def make_town(sem_map=None, buildings=()):
+    """A Town with only the sensors' fields set: sem_map (default all road, 120 m square) and buildings,
+    a list of (box [5], height_m, rgb)."""
+    if sem_map is None:
+        sem_map = np.full((600, 600), SEM_ROAD, np.uint8)
+    boxes = [b for b, _, _ in buildings] or [[1e4, 1e4, 0.0, 1.0, 1.0]]  # a far dummy when there are none
+    return Town(**{f: None for f in Town._fields} | dict(
+        sem_map=sem_map, map_origin_m=np.array(MAP_ORIGIN_M, np.float32), map_res_m=np.float32(MAP_RES_M),
+        building_box=np.array(boxes, np.float32),
+        building_height_m=np.array([h for _, h, _ in buildings] or [1.0], np.float32),
+        building_color=np.array([c for _, _, c in buildings] or [[0, 0, 0]], np.uint8)))
+
+
+def make_state(ego_box, vehicles=()):
+    """A WorldState with only the sensors' fields set: the ego box (town frame) and vehicles, a list of
+    (box [5], height_m, rgb)."""
+    boxes = np.array([ego_box] + [b for b, _, _ in vehicles], np.float32)
+    n = len(boxes)
+    return WorldState(**{f: None for f in WorldState._fields} | dict(
+        veh_box=boxes, veh_speed_mps=np.arange(n, dtype=np.float32) + 3.0,
+        veh_height_m=np.array([1.5] + [h for _, h, _ in vehicles], np.float32),
+        veh_color=np.array([[200, 30, 40]] + [c for _, _, c in vehicles], np.uint8),
+        ego_action=np.zeros(2, np.float32), key=jax.random.PRNGKey(0)))
+
+
+def make_obstacles(items):
+    """Obstacles (ego frame) from a list of (box [5], height_m, rgb, is_vehicle)."""
+    return sensors.Obstacles(
+        box=jnp.array([b for b, _, _, _ in items], jnp.float32),
+        height_m=jnp.array([h for _, h, _, _ in items], jnp.float32),
+        color=jnp.array([c for _, _, c, _ in items], jnp.float32),
+        is_vehicle=jnp.array([v for _, _, _, v in items]),
+        valid=jnp.ones(len(items), bool),
+        vehicle_index=jnp.where(jnp.array([v for _, _, _, v in items]), jnp.arange(len(items)), -1))
+
+
+FAR = ([1e4, 1e4, 0.0, 1.0, 1.0], 1.0, [0, 0, 0], False)  # an obstacle nobody sees (the "empty" scene)
+
+
+def camera_image(items, r, town=None, yaw=0.0):
+    return np.asarray(render_camera(make_obstacles(items), town or make_town(), jnp.zeros(2), yaw, r))
+
+
+def focal_px(r):
+    return (r / 2) / np.tan(np.deg2rad(55.0))  # the contract: 110 degree horizontal FOV, square image
+
+
+# ----------------------------------------------------------------------------- camera
+
+
+@pytest.mark.parametrize("r", [32, 64, 128])
+@pytest.mark.parametrize("distance_m, length_m, width_m, height_m", [(6.0, 4.5, 2.0, 1.5), (11.0, 6.0, 2.5, 3.2)])
+def test_camera_box_ahead_spans_pinhole_prediction(r, distance_m, length_m, width_m, height_m):
+    # The box's rear face is distance_m ahead of the camera (which sits 0.8 m ahead of the ego centre).
+    car = ([0.8 + distance_m + length_m / 2, 0.0, 0.0, length_m, width_m], height_m, [230, 40, 200], True)
+    mask = np.any(camera_image([car, FAR], r) != camera_image([FAR, FAR], r), axis=-1)
+    f = focal_px(r)
+    t = (r / 2 - (np.arange(r) + 0.5)) / f  # column j looks along (1, t_j); row i has slope t_i
+    cols = np.flatnonzero(np.abs(t) * distance_m <= width_m / 2)
+    # Rows: from the bottom edge (ground under the rear face) up to the top of the rear face, or to the
+    # roof's far edge when the camera (1.7 m) looks down on the roof.
+    top = (height_m - 1.7) / (distance_m + length_m if height_m < 1.7 else distance_m)
+    rows = np.flatnonzero((t >= -1.7 / distance_m) & (t <= top))
+    got_rows, got_cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+    assert abs(got_rows.min() - rows.min()) <= 1 and abs(got_rows.max() - rows.max()) <= 1
+    assert abs(got_cols.min() - cols.min()) <= 1 and abs(got_cols.max() - cols.max()) <= 1
+    assert mask.sum() >= 0.8 * len(rows) * len(cols)  # a solid block, not just its outline
+
+
+def test_camera_hidden_box_leaves_no_pixel():
+    wall = ([0.8 + 10.5, 0.0, 0.0, 1.0, 14.0], 5.0, [150, 120, 100], False)
+    hidden = ([0.8 + 20.0, 1.0, 0.3, 4.0, 2.0], 1.5, [0, 255, 0], True)
+    greenish = lambda im: im[..., 1].astype(int) - np.maximum(im[..., 0], im[..., 2]) > 50
+    assert greenish(camera_image([hidden, FAR], 64)).sum() > 5  # visible on its own, in its colour
+    behind = camera_image([wall, hidden], 64)
+    np.testing.assert_array_equal(behind, camera_image([wall, FAR], 64))
+    assert not greenish(behind).any()
+
+
+def test_camera_ground_texture_projects_at_the_right_rows():
+    # A 1.2 m white stop line across a road, its centre 9 m ahead of the ego centre.
+    sem = np.full((600, 600), SEM_ROAD, np.uint8)
+    x_cells = MAP_ORIGIN_M[0] + (np.arange(600) + 0.5) * MAP_RES_M
+    sem[:, np.abs(x_cells - 9.0) < 0.6] = SEM_STOP_LINE
+    r = 128
+    image = camera_image([FAR, FAR], r, town=make_town(sem)).astype(int)
+    t = (r / 2 - (np.arange(r) + 0.5)) / focal_px(r)
+    ground_x = np.where(t < 0, 0.8 + 1.7 / -np.minimum(t, -1e-9), np.inf)  # ego x seen by each row
+    centre = image[:, r // 2]
+    white, grey = centre.mean(-1) > 180, centre.mean(-1) < 120
+    assert np.all(white[np.abs(ground_x - 9.0) < 0.6 - MAP_RES_M])
+    assert np.all(grey[(np.abs(ground_x - 9.0) > 0.6 + MAP_RES_M) & (ground_x < 30)])
+    assert np.all(image[:r // 2, :, 2] > image[:r // 2, :, 0])  # sky above the horizon: blue
+
+
+def test_camera_near_hides_far_and_sides_are_shaded():
+    near = ([0.8 + 8.0, 3.0, 0.6, 4.5, 2.0], 1.5, [200, 200, 200], True)
+    image = camera_image([near, FAR], 128)
+    # The car is seen from the side and the back, two faces with different normals: two grey levels.
+    mask = np.any(image != camera_image([FAR, FAR], 128), axis=-1)
+    levels = {tuple(v) for v in image[mask & (image.std(-1) < 2)]}
+    assert len({round(np.mean(v) / 10) for v in levels}) >= 2
+
+
+# ----------------------------------------------------------------------------- lidar
+
+
+def lidar(items, r=128):
+    image, returned = render_lidar(make_obstacles(items), r)
+    return np.asarray(image), np.asarray(returned)
+
+
+def cell_centres(r):
+    res = 32.0 / r
+    i = np.arange(r) + 0.5
+    return np.stack(np.broadcast_arrays(20.0 - i[:, None] * res, 16.0 - i[None, :] * res), -1)
+
+
+def ground_ring_radii_m():
+    elev = np.deg2rad(np.linspace(10.0, -30.0, 32))  # the contract's 32 beams
+    down = elev[elev < 0]
+    return 2.1 / np.tan(-down)
+
+
+def distance_to_outline(points, box):
+    """Distance [...] from points [..., 2] to the boundary of box [5] (inside or outside)."""
+    c, s = np.cos(box[2]), np.sin(box[2])
+    d = points - box[:2]
+    u, v = np.abs(c * d[..., 0] + s * d[..., 1]), np.abs(-s * d[..., 0] + c * d[..., 1])
+    hl, hw = box[3] / 2, box[4] / 2
+    outside = np.hypot(np.maximum(u - hl, 0), np.maximum(v - hw, 0))
+    return np.where((u <= hl) & (v <= hw), np.minimum(hl - u, hw - v), outside)
+
+
+@pytest.mark.parametrize("r", [64, 128])
+def test_lidar_ground_returns_lie_on_the_beam_rings(r):
+    image, _ = lidar([FAR, FAR], r)
+    assert image.dtype == np.uint8 and image.shape == (r, r, 3)
+    assert not image[..., 1:].any()  # no obstacle: no green, and blue is always 0
+    radius = np.linalg.norm(cell_centres(r), axis=-1)
+    red = image[..., 0] == 255
+    assert set(np.unique(image[..., 0])) <= {0, 255}
+    rings = ground_ring_radii_m()
+    tol = 32.0 / r * np.sqrt(0.5) + 1e-3  # a return lies within half a cell diagonal of its cell's centre
+    off_ring = np.abs(radius[..., None] - rings).min(-1) > tol
+    assert not np.any(red & off_ring)
+    for ring in rings[rings < 11.9]:  # every ring that fits inside the view shows up
+        assert np.any(red & (np.abs(radius - ring) <= tol))
+
+
+def test_lidar_obstacle_returns_lie_on_outlines():
+    # Tall boxes (above the 2.1 m sensor: no roof returns) at assorted poses, none around the sensor.
+    walls = [([9.0, 5.0, 0.4, 6.0, 3.0], 6.0), ([-6.0, -8.0, -0.9, 5.0, 2.0], 4.0), ([4.0, -9.0, 0.0, 2.0, 2.0], 3.0),
+             ([14.0, -3.0, 1.2, 3.0, 1.0], 5.0)]
+    image, returned = lidar([(b, h, [1, 1, 1], False) for b, h in walls])
+    assert returned.all()
+    res = 0.25
+    dist = np.min([distance_to_outline(cell_centres(128), np.array(b)) for b, _ in walls], axis=0)
+    green = image[..., 1] == 255
+    assert green.sum() > 30
+    assert np.all(dist[green] <= res * np.sqrt(0.5) + 1e-3)
+    # Red returns are ground rings or the feet of walls (below 0.25 m).
+    radius = np.linalg.norm(cell_centres(128), axis=-1)
+    on_ring = np.abs(radius[..., None] - ground_ring_radii_m()).min(-1) <= res * np.sqrt(0.5) + 1e-3
+    red = image[..., 0] == 255
+    assert np.all(on_ring[red] | (dist[red] <= res * np.sqrt(0.5) + 1e-3))
+
+
+def test_lidar_car_roofs_and_sides_stay_within_the_footprint():
+    cars = [([7.0, 3.0, 0.3, 4.5, 1.9], 1.5), ([-5.0, -2.5, 2.0, 4.0, 1.8], 1.4)]
+    image, returned = lidar([(b, h, [1, 1, 1], True) for b, h in cars])
+    assert returned.all()
+    green = image[..., 1] == 255
+    dist_outside = np.min([np.where(geo.points_in_boxes(cell_centres(128), np.array(b)), 0.0,
+                                    distance_to_outline(cell_centres(128), np.array(b))) for b, _ in cars], axis=0)
+    assert green.sum() > 10
+    assert np.all(dist_outside[green] <= 0.25 * np.sqrt(0.5) + 1e-3)
+
+
+def test_lidar_nothing_behind_a_wall():
+    wall = ([8.25, 0.0, 0.0, 0.5, 30.0], 4.0, [1, 1, 1], False)  # faces at x = 8.0 and 8.5, |y| <= 15
+    behind = (cell_centres(128)[..., 0] > 8.5 + 0.25) & (np.abs(cell_centres(128)[..., 1]) < 10.0)
+    open_image, _ = lidar([FAR, FAR])
+    assert open_image[behind].any()  # without the wall the region has ground returns
+    image, _ = lidar([wall, FAR])
+    assert not image[behind].any()
+
+
+# ----------------------------------------------------------------------------- roadmap
+
+
+def blocky_sem_map(seed):
+    """Random classes in 2 m blocks, so most pixel samples lie far from a class boundary."""
+    blocks = np.random.default_rng(seed).integers(0, 6, (60, 60)).astype(np.uint8)
+    return np.kron(blocks, np.ones((10, 10), np.uint8))
+
+
+def numpy_roadmap(sem, ego_xy, yaw, r):
+    """Independent crop: rotate every pixel centre to the town and take the nearest map cell."""
+    centres = cell_centres(r)
+    c, s = np.cos(yaw), np.sin(yaw)
+    tx = ego_xy[0] + c * centres[..., 0] - s * centres[..., 1]
+    ty = ego_xy[1] + s * centres[..., 0] + c * centres[..., 1]
+    col = np.floor((tx - MAP_ORIGIN_M[0]) / MAP_RES_M).astype(int)
+    row = np.floor((ty - MAP_ORIGIN_M[1]) / MAP_RES_M).astype(int)
+    inside = (row >= 0) & (row < sem.shape[0]) & (col >= 0) & (col < sem.shape[1])
+    return SEM_COLORS[np.where(inside, sem[np.clip(row, 0, sem.shape[0] - 1), np.clip(col, 0, sem.shape[1] - 1)],
+                               SEM_OFFROAD)]
+
+
+def roadmap(town, ego_xy, yaw, r=128, length_m=4.6, width_m=1.9):
+    return np.asarray(render_roadmap(town, jnp.asarray(ego_xy, jnp.float32), yaw, length_m, width_m, r))
+
+
+@pytest.mark.parametrize("r", [32, 128])
+def test_roadmap_ego_box_at_fixed_pixels(r):
+    town = make_town(blocky_sem_map(0))
+    centres = cell_centres(r)
+    ego = (np.abs(centres[..., 0]) <= 2.3) & (np.abs(centres[..., 1]) <= 0.95)
+    assert ego.any()
+    for ego_xy, yaw in [((0.0, 0.0), 0.0), ((13.0, -7.0), 2.2)]:
+        image = roadmap(town, ego_xy, yaw, r)
+        red = np.all(image == [255, 0, 0], axis=-1)
+        np.testing.assert_array_equal(red, ego)
+
+
+def test_roadmap_rotates_with_the_heading():
+    sem = blocky_sem_map(1)
+    town = make_town(sem)
+    ego_xy = (3.1, -4.3)
+    # Ego-centred 96 x 96 px square (|x|, |y| <= 12 m at 0.25 m/px): rows 32..127, columns 16..111.
+    square = lambda im: im[32:128, 16:112]
+    north, east = square(roadmap(town, ego_xy, np.pi / 2)), square(roadmap(town, ego_xy, 0.0))
+    # Turning the ego 90 degrees left turns its view of the world 90 degrees clockwise.
+    rotated = np.rot90(east, -1)
+    ego = np.all(north == [255, 0, 0], -1) | np.all(rotated == [255, 0, 0], -1)
+    agree = np.all(north == rotated, -1)[~ego]
+    assert agree.mean() > 0.995
+    for yaw in (0.5, -2.0):  # other angles against an independent NumPy resampling
+        image = roadmap(town, ego_xy, yaw)
+        truth = numpy_roadmap(sem, ego_xy, yaw, 128)
+        ego = np.all(image == [255, 0, 0], -1)
+        assert np.all(image == truth, -1)[~ego].mean() > 0.995
+
+
+# ----------------------------------------------------------------------------- the frame
+
+
+def scene():
+    """Ego at (5, 2) heading north-west; a wall ahead hiding one car; one car in the open; one far away."""
+    ego_yaw = 2.3
+    to_town = lambda x, y, yaw, l, w: [*np.asarray(geo.ego_to_town(np.array([x, y]), np.array([5.0, 2.0]),
+                                                                    ego_yaw)), yaw + ego_yaw, l, w]
+    buildings = [(to_town(9.0, 0.0, 0.0, 1.0, 12.0), 4.0, [120, 110, 100]),
+                 (to_town(-30.0, 30.0, 0.5, 10.0, 10.0), 12.0, [90, 90, 160])]
+    vehicles = [(to_town(14.0, 1.0, 0.2, 4.5, 1.9), 1.5, [20, 90, 200]),  # behind the wall
+                (to_town(-6.0, 6.0, 1.0, 4.2, 1.8), 1.4, [230, 200, 40]),  # in the open
+                (to_town(45.0, -30.0, 0.0, 4.0, 1.8), 1.5, [10, 10, 10])]  # outside the view
+    return make_town(blocky_sem_map(2), buildings), make_state([5.0, 2.0, ego_yaw, 4.6, 1.9], vehicles)
+
+
+@pytest.mark.parametrize("r", [32, 64, 128])
+def test_observe_follows_the_frame_contract(r):
+    town, state = scene()
+    frame = {k: np.asarray(v) for k, v in observe(state, town, r).items()}
+    expected = {"camera": (np.uint8, (r, r, 3)), "lidar": (np.uint8, (r, r, 3)), "roadmap": (np.uint8, (r, r, 3)),
+                "det_cls": (np.float32, (r, r, 1)), "det_reg": (np.float32, (r, r, 6)), "pose": (np.float32, (5,)),
+                "boxes": (np.float32, (3, 5)), "boxes_valid": (np.bool_, (3,)), "boxes_occluded": (np.bool_, (3,))}
+    assert set(frame) == set(expected)  # "action" is added by batch.rollout (it needs the next state)
+    for key, (dtype, shape) in expected.items():
+        assert frame[key].dtype == dtype and frame[key].shape == shape, key
+    np.testing.assert_allclose(frame["pose"], [5.0, 2.0, np.cos(2.3), np.sin(2.3), 3.0], atol=1e-5)
+    np.testing.assert_allclose(frame["boxes"][:, :2], [[14.0, 1.0], [-6.0, 6.0], [45.0, -30.0]], atol=1e-4)
+    np.testing.assert_allclose(frame["boxes"][:, 2:], [[0.2, 4.5, 1.9], [1.0, 4.2, 1.8], [0.0, 4.0, 1.8]], atol=1e-5)
+    np.testing.assert_array_equal(frame["boxes_valid"], [True, True, False])
+    np.testing.assert_array_equal(frame["boxes_occluded"], [True, False, True])
+    assert frame["det_cls"].sum() > 0 and np.all(frame["lidar"][..., 2] == 0)
+
+
+def test_observe_vmaps_like_single_frames():
+    town, state = scene()
+    moved = state._replace(veh_box=state.veh_box + np.array([1.5, -0.5, 0.1, 0.0, 0.0], np.float32))
+    batched = jax.tree.map(lambda a, b: np.stack([a, b]), state, moved)
+    frames = jax.jit(jax.vmap(functools.partial(sensors.observe, image_size=32), in_axes=(0, None)))(batched, town)
+    for i, s in enumerate([state, moved]):
+        single = observe(s, town, 32)
+        for key in single:
+            np.testing.assert_array_equal(np.asarray(frames[key][i]), np.asarray(single[key]), err_msg=key)
