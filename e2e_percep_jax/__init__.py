@@ -1,4 +1,14 @@
-"""e2e_percep_jax: end-to-end driving perception by sequential latent representation learning.
+"""End-to-end driving perception by sequential latent representation learning, in JAX.
 
-Layout follows the data: town/world (traffic) -> sensors -> batch -> model -> loss -> train -> evaluate.
+For other JAX code: ``perceiver, params = e2e_percep_jax.load(workdir)``, then the pure
+``perceiver.init`` / ``perceiver.step`` / ``perceiver.boxes`` (see :mod:`e2e_percep_jax.api`).
 """
+__all__ = ["Perceiver", "load"]
+
+
+def __getattr__(name):
+    # Lazy, so that importing one submodule (e.g. geometry) does not pull in the whole stack.
+    if name in __all__:
+        from e2e_percep_jax import api
+        return getattr(api, name)
+    raise AttributeError(f"module 'e2e_percep_jax' has no attribute {name!r}")

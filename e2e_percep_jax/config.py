@@ -77,27 +77,41 @@ class Config:
     def to_json(self) -> str:
         return json.dumps(dataclasses.asdict(self), indent=2)
 
+    @classmethod
+    def from_json(cls, text: str) -> "Config":
+        """Inverse of :meth:`to_json` (JSON lists become tuples again); unknown fields raise ValueError."""
+        saved, sections = json.loads(text), {}
+        for section in dataclasses.fields(cls):
+            fields = saved.get(section.name, {})
+            known = {f.name for f in dataclasses.fields(section.default)}
+            if set(fields) - known:
+                raise ValueError(f"config.json: unknown fields {sorted(set(fields) - known)} in [{section.name}]")
+            sections[section.name] = dataclasses.replace(
+                section.default, **{k: tuple(v) if isinstance(v, list) else v for k, v in fields.items()})
+        return cls(**sections)
 
-def _replace(cfg: Config, **sections: dict) -> Config:
+
+def replace(cfg: Config, **sections: dict) -> Config:
+    """``cfg`` with fields replaced per section: ``replace(cfg, data=dict(image_size=64))``."""
     return dataclasses.replace(
         cfg, **{name: dataclasses.replace(getattr(cfg, name), **fields) for name, fields in sections.items()})
 
 
 PRESETS = {
     "paper": Config(),
-    "cpu": _replace(
+    "cpu": replace(
         Config(),
         data=dict(image_size=64, batch_size=8),
         model=dict(conv_channels=(16, 32, 64, 128, 128), feature_dim=128, hidden_dim=128),
         train=dict(num_steps=3000),
         eval=dict(num_steps=15000)),
-    "demo": _replace(
+    "demo": replace(
         Config(),
         data=dict(image_size=64, batch_size=8),
         model=dict(conv_channels=(16, 32, 64, 128), feature_dim=128, hidden_dim=128),
         train=dict(num_steps=600, checkpoint_every=200),
         eval=dict(num_steps=2000, num_worlds=4)),
-    "tiny": _replace(
+    "tiny": replace(
         Config(),
         world=dict(num_vehicles=20),
         data=dict(image_size=32, batch_size=2, seq_len=3, warmup_steps=20),
@@ -185,4 +199,4 @@ def from_flags(flag_values=None) -> Config:
             except ValueError:
                 raise ValueError(f"--{section}.{name}={','.join(value)}: expected comma-separated integers")
         overrides.setdefault(section, {})[name] = value
-    return validate(_replace(cfg, **overrides))
+    return validate(replace(cfg, **overrides))

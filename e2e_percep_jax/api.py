@@ -1,0 +1,92 @@
+"""The trained perceiver, for other JAX code: load a run, then filter camera + lidar streams online.
+
+    import e2e_percep_jax as e2e
+    perceiver, params = e2e.load("runs/demo")           # latest checkpoint of a training run
+    state = perceiver.init(batch_size=4)                 # a filter state for 4 streams
+    state, out = perceiver.step(params, state, camera, lidar, action, key=None)
+    boxes = perceiver.boxes(out)                         # per stream: (boxes [M, 5], scores [M])
+
+``Perceiver.step`` is a pure function of its arguments (the perceiver itself holds only the frozen
+config), so it goes inside the caller's ``jit``, ``vmap`` and ``lax.scan``. It runs the same posterior
+step as training's scanned rollout (:func:`e2e_percep_jax.model.filter_sequence`), so streaming a
+sequence frame by frame reproduces the training-time posterior.
+"""
+import dataclasses
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from e2e_percep_jax import metrics, pixor
+from e2e_percep_jax import model as model_lib
+from e2e_percep_jax.config import Config
+from e2e_percep_jax.evaluate import restore_params
+
+NMS_IOU = 0.1  # vehicles never overlap, so any real overlap between two detections is a duplicate
+
+
+def _check(name, x, shape, dtype):
+    """Trace-time check (shapes and dtypes are static, so this also works under jit)."""
+    if tuple(x.shape) != tuple(shape) or x.dtype != dtype:
+        raise ValueError(f"{name}: expected {jnp.dtype(dtype).name}{list(shape)}, got "
+                         f"{jnp.dtype(x.dtype).name}{list(x.shape)}")
+
+
+@dataclasses.dataclass(frozen=True)
+class Perceiver:
+    """The perception model of ``cfg`` as pure functions of (params, filter state, inputs)."""
+    cfg: Config
+
+    def init(self, batch_size: int) -> dict:
+        """The filter state before the first frame of ``batch_size`` streams.
+
+        A dict of arrays: z1 [B, z1_dim], z2 [B, z2_dim], first [B] bool. Setting ``first[i]`` to True
+        restarts stream i's filter (e.g. at a new drive).
+        """
+        return model_lib.init_filter_state(batch_size, self.cfg)
+
+    def step(self, params, state: dict, camera, lidar, action, key=None):
+        """Filters one frame of B streams and decodes it.
+
+        camera, lidar: uint8 [B, R, R, 3] (the frame contract's images); action: float32 [B, 2], the
+        ego action (acceleration m/s², steering rad) applied from the previous frame to this one
+        (ignored on a stream's first frame); key: a PRNG key to sample the latents, or None for the
+        posterior means. Returns (state, outputs) with outputs:
+        ``det_cls`` [B, R, R, 1] vehicle probability, ``det_reg`` [B, R, R, 6] PIXOR regression
+        (units in :mod:`e2e_percep_jax.pixor`), ``pose`` [B, 5] (x m, y m, cos ψ, sin ψ, speed m/s,
+        town frame), ``z`` [B, z1_dim + z2_dim], and the reconstructed images the variant has
+        (``roadmap``, ``camera``, ``lidar``: float32 [B, R, R, 3] in [0, 1]).
+        """
+        b, r = state["first"].shape[0], self.cfg.data.image_size
+        _check("camera", camera, (b, r, r, 3), jnp.uint8)
+        _check("lidar", lidar, (b, r, r, 3), jnp.uint8)
+        _check("action", action, (b, 2), jnp.float32)
+        state, latent = model_lib.filter_step(params, state, camera, lidar, action, key, self.cfg)
+        z = jnp.concatenate([latent["z1"], latent["z2"]], -1)
+        decoded = model_lib.decode(params, z, self.cfg)
+        outputs = {"det_cls": decoded["det_cls"], "det_reg": decoded["det_reg"],
+                   "pose": model_lib.pose_to_metres(decoded["pose"]), "z": z}
+        outputs.update({k: jnp.clip(decoded[k], 0.0, 1.0) for k in model_lib.reconstructed_images(self.cfg.model.variant)})
+        return state, outputs
+
+    def boxes(self, outputs, score_threshold: float | None = None, iou_threshold: float = NMS_IOU):
+        """Host-side box decoding of :meth:`step`'s outputs: for each of the B streams, (boxes [M, 5]
+        in the ego frame (x m, y m, yaw rad, length m, width m), scores [M]), highest score first,
+        after greedy NMS on exact rotated IoU. ``score_threshold`` defaults to the config's."""
+        threshold = self.cfg.eval.score_threshold if score_threshold is None else score_threshold
+        cls_maps, reg_maps = np.asarray(outputs["det_cls"]), np.asarray(outputs["det_reg"])
+        per_stream = []
+        for cls_map, reg_map in zip(cls_maps, reg_maps):
+            boxes, scores = pixor.decode_boxes(cls_map, reg_map, threshold)
+            keep = metrics.nms(boxes, scores, iou_threshold)
+            per_stream.append((boxes[keep], scores[keep]))
+        return per_stream
+
+
+def load(workdir: str, step: int | None = None):
+    """(Perceiver, params) of the training run in ``workdir`` at checkpoint ``step`` (default: latest)."""
+    if not os.path.exists(os.path.join(workdir, "config.json")):
+        raise FileNotFoundError(f"workdir={workdir!r}: no config.json; is it a training run directory?")
+    cfg, params, _ = restore_params(workdir, step=step)
+    return Perceiver(cfg), params

@@ -1,0 +1,215 @@
+"""Benchmarks: every performance figure of BUILD_NOTES.md, measured the same way each time.
+
+    python experiments/bench.py                      # world, frames, batch, train (+ peer), infer, compile
+    python experiments/bench.py --what=train --train_sizes=8x10x64 --repeats=7
+
+Each figure is the median of ``--repeats`` timed runs after a warm-up (compilation excluded and
+reported separately). Each benchmark prints one JSON line and writes it to ``--out_dir/<name>.json``;
+a table of all of them closes the run. ``train`` also runs the eager PyTorch peer
+(``../shared/peer/torch_peer_bench.py``, with ``--peer_python``) at the same (B, T, R) right after
+ours and reports ``ratio_vs_peer`` = our frames/s over the peer's.
+"""
+import json
+import os
+import statistics
+import subprocess
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from absl import app, flags
+
+from e2e_percep_jax import batch as batch_lib
+from e2e_percep_jax import config as config_lib
+from e2e_percep_jax import model as model_lib
+from e2e_percep_jax import sensors, world
+from e2e_percep_jax import train as train_lib
+from e2e_percep_jax.town import build_town
+
+BENCHMARKS = ("world", "frames", "batch", "train", "infer", "compile")
+_REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+PEER_SCRIPT = os.path.join(_REPO, "..", "shared", "peer", "torch_peer_bench.py")
+
+flags.DEFINE_list("what", list(BENCHMARKS), f"benchmarks to run, any of {BENCHMARKS}")
+flags.DEFINE_string("out_dir", "runs/bench", "one <benchmark>.json per figure goes here")
+flags.DEFINE_integer("repeats", 5, "timed runs per figure; the median is reported")
+flags.DEFINE_list("train_sizes", ["8x10x64", "4x10x128"], "BxTxR of the training-step figures")
+flags.DEFINE_string("peer_python", os.path.join(_REPO, ".venv-peer", "bin", "python"),
+                    "python with torch for the peer benchmark; empty: skip the peer")
+flags.DEFINE_integer("num_worlds", 32, "worlds stepped in parallel (world) / frames observed at once (frames)")
+flags.DEFINE_integer("frames_image_size", 128, "R of the frames benchmark")
+flags.DEFINE_list("compile_seq_lens", ["10", "50"], "T values of the paper-config compile-time figure")
+flags.DEFINE_integer("infer_batch", 64, "batch of the inference throughput figure (latency is at batch 1)")
+FLAGS = flags.FLAGS
+
+
+def _median_s(fn, repeats):
+    """Median wall time (s) of ``fn()`` over ``repeats`` runs, after one untimed warm-up run."""
+    jax.block_until_ready(fn())
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def _paper_config(batch_size, seq_len, image_size):
+    """The paper's network (default widths) at the given (B, T, R)."""
+    return config_lib.validate(config_lib.replace(
+        config_lib.get_config("paper"), data=dict(batch_size=batch_size, seq_len=seq_len, image_size=image_size)))
+
+
+def _warm_worlds(town, num_worlds, cfg):
+    keys = jax.random.split(jax.random.PRNGKey(0), num_worlds)
+    states = jax.jit(jax.vmap(lambda k: world.reset(k, town, cfg.world)))(keys)
+    warm = jax.jit(lambda s: jax.lax.fori_loop(
+        0, cfg.data.warmup_steps, lambda _, x: jax.vmap(lambda y: world.step(y, town))(x), s))
+    return warm(states)
+
+
+def bench_world(town, repeats):
+    """World-steps/s: W worlds of 100 vehicles advanced by dt, 100 steps per timed run."""
+    cfg, steps = config_lib.get_config("paper"), 100
+    states = _warm_worlds(town, FLAGS.num_worlds, cfg)
+    run = jax.jit(lambda s: jax.lax.fori_loop(0, steps, lambda _, x: jax.vmap(lambda y: world.step(y, town))(x), s))
+    median = _median_s(lambda: run(states), repeats)
+    return {"num_worlds": FLAGS.num_worlds, "num_vehicles": cfg.world.num_vehicles, "steps_per_run": steps,
+            "world_steps_per_s": FLAGS.num_worlds * steps / median}
+
+
+def bench_frames(town, repeats):
+    """Full frames/s: ``sensors.observe`` (every contract key) on W world states at once."""
+    cfg, r = config_lib.get_config("paper"), FLAGS.frames_image_size
+    states = _warm_worlds(town, FLAGS.num_worlds, cfg)
+    observe = jax.jit(jax.vmap(lambda s: sensors.observe(s, town, r)))
+    median = _median_s(lambda: observe(states), repeats)
+    return {"image_size": r, "frames_at_once": FLAGS.num_worlds, "frames_per_s": FLAGS.num_worlds / median}
+
+
+def _train_step_runner(cfg, batch):
+    """(compile seconds, a zero-argument function running one compiled training step)."""
+    mesh = train_lib.make_mesh()
+    step_fn = train_lib.make_train_step(cfg, mesh)
+    holder = {"state": train_lib.init_state(cfg)}
+    batch = train_lib.shard_batch(batch, mesh)
+    key = jax.random.PRNGKey(0)
+    start = time.perf_counter()
+    compiled = step_fn.lower(holder["state"], batch, key).compile()
+    compile_s = time.perf_counter() - start
+
+    def run():
+        holder["state"], metrics = compiled(holder["state"], batch, key)  # the state is donated
+        return metrics["total"]
+
+    return compile_s, run
+
+
+def bench_batch(town, repeats):
+    """Making one training batch vs one training step, at the ``cpu`` config (target: < 10 %)."""
+    cfg = config_lib.get_config("cpu")
+    key = jax.random.PRNGKey(0)
+    batch_s = _median_s(lambda: batch_lib.make_batch(key, town, cfg), repeats)
+    _, run = _train_step_runner(cfg, batch_lib.make_batch(key, town, cfg))
+    step_s = _median_s(run, repeats)
+    return {"config": "cpu", "batch_s": batch_s, "train_step_s": step_s, "batch_over_step": batch_s / step_s}
+
+
+def _peer(batch_size, seq_len, image_size, repeats):
+    if not FLAGS.peer_python or not os.path.exists(FLAGS.peer_python):
+        return None
+    cmd = [FLAGS.peer_python, PEER_SCRIPT, "--batch", str(batch_size), "--seq-len", str(seq_len),
+           "--image-size", str(image_size), "--steps", str(repeats)]
+    out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def bench_train(town, repeats):
+    """Training-step frames/s (B·(T+1) per step) at the paper's widths, beside the eager PyTorch peer."""
+    figures = []
+    for size in FLAGS.train_sizes:
+        b, t, r = (int(v) for v in size.split("x"))
+        cfg = _paper_config(b, t, r)
+        compile_s, run = _train_step_runner(cfg, batch_lib.make_batch(jax.random.PRNGKey(0), town, cfg))
+        step_s = _median_s(run, repeats)
+        params = sum(x.size for x in jax.tree.leaves(jax.eval_shape(model_lib.init_params, jax.random.PRNGKey(0), cfg)))
+        figure = {"batch": b, "seq_len": t, "image_size": r, "params": params, "compile_s": compile_s,
+                  "step_s_median": step_s, "frames_per_s": b * (t + 1) / step_s}
+        peer = _peer(b, t, r, repeats)
+        if peer is not None:
+            figure.update(peer_frames_per_s=peer["frames_per_s"], peer_params=peer["params"],
+                          peer_threads=peer["threads"], ratio_vs_peer=figure["frames_per_s"] / peer["frames_per_s"])
+        figures.append(figure)
+    return {"sizes": figures}
+
+
+def bench_infer(town, repeats):
+    """One filtering step plus every decoder, paper config at R = 128: latency at batch 1, throughput at
+    ``--infer_batch``."""
+    cfg = _paper_config(1, 10, 128)
+    params = model_lib.init_params(jax.random.PRNGKey(0), cfg)
+
+    @jax.jit
+    def infer(params, state, camera, lidar, prev_action):
+        state, out = model_lib.filter_step(params, state, camera, lidar, prev_action, None, cfg)
+        return state, model_lib.decode(params, jnp.concatenate([out["z1"], out["z2"]], -1), cfg)
+
+    figure = {"image_size": 128}
+    for n in (1, FLAGS.infer_batch):
+        image = jnp.asarray(np.random.default_rng(0).integers(0, 256, (n, 128, 128, 3), np.uint8))
+        state = model_lib.init_filter_state(n, cfg)
+        step_s = _median_s(lambda: infer(params, state, image, image, jnp.zeros((n, 2))), max(repeats, 20))
+        if n == 1:
+            figure["latency_ms_batch1"] = 1e3 * step_s
+        else:
+            figure.update(batch=n, frames_per_s=n / step_s)
+    return figure
+
+
+def bench_compile(town, repeats):
+    """Compile time of the training step at the paper config (B = 8, R = 128) for several T."""
+    del repeats
+    figure = {"batch": 8, "image_size": 128}
+    for t in FLAGS.compile_seq_lens:
+        cfg = _paper_config(8, int(t), 128)
+        state = jax.eval_shape(lambda: train_lib.init_state(cfg))
+        batch = jax.eval_shape(lambda: batch_lib.make_batch(jax.random.PRNGKey(0), town, cfg))
+        step_fn = train_lib.make_train_step(cfg, train_lib.make_mesh())
+        start = time.perf_counter()
+        step_fn.lower(state, {k: batch[k] for k in train_lib.loss_lib.BATCH_KEYS}, jax.random.PRNGKey(0)).compile()
+        figure[f"compile_s_T{t}"] = time.perf_counter() - start
+    return figure
+
+
+def main(argv):
+    del argv
+    unknown = sorted(set(FLAGS.what) - set(BENCHMARKS))
+    if unknown:
+        sys.exit(f"error: --what={','.join(FLAGS.what)}: unknown {unknown}; choose from {BENCHMARKS}")
+    if FLAGS.repeats < 1:
+        sys.exit(f"error: --repeats={FLAGS.repeats}: must be >= 1")
+    os.makedirs(FLAGS.out_dir, exist_ok=True)
+    town = build_town(config_lib.DEFAULT_TOWN_SEED)
+    context = {"jax": jax.__version__, "backend": jax.default_backend(), "devices": jax.device_count(),
+               "cpu_count": os.cpu_count()}
+    results = {}
+    for name in FLAGS.what:
+        figure = {"benchmark": name, **globals()[f"bench_{name}"](town, FLAGS.repeats), **context}
+        results[name] = figure
+        print(json.dumps(figure), flush=True)
+        with open(os.path.join(FLAGS.out_dir, f"{name}.json"), "w") as f:
+            json.dump(figure, f, indent=2)
+    print("\n| benchmark | figure | value |\n|---|---|---|")
+    for name, figure in results.items():
+        rows = figure.get("sizes", [figure])
+        for row in rows:
+            label = "x".join(str(row[k]) for k in ("batch", "seq_len", "image_size") if k in row)
+            for key, value in row.items():
+                if isinstance(value, float):
+                    print(f"| {name} {label} | {key} | {value:.4g} |")
+
+
+if __name__ == "__main__":
+    app.run(main)

@@ -1,0 +1,83 @@
+"""The main job: train a config, evaluate it online, write the report. Resumes whatever is already done.
+
+    python experiments/main.py --config=demo --workdir=runs/demo
+
+Writes into ``--workdir``: ``config.json``, ``metrics.jsonl``, ``checkpoints/`` (training) and
+``eval/`` (``report.md``, ``metrics.json``, ``pr_curves.png``, ``examples.png``, ``drive.mp4``).
+Run again, it continues an interrupted training and skips an evaluation that already matches the
+final checkpoint. Any ``--<section>.<field>`` flag overrides the preset (see ``config.py``).
+"""
+import json
+import os
+import sys
+
+from absl import app, flags, logging
+
+from e2e_percep_jax import config as config_lib
+
+config_lib.define_flags()
+flags.DEFINE_string("workdir", None, "run directory")
+flags.DEFINE_integer("video_frames", 300, "frames of the first evaluation drive in drive.mp4 (0: no video)")
+FLAGS = flags.FLAGS
+
+
+def parse_flags(argv):
+    """absl's parser, with its multi-line fatal message replaced by one line."""
+    try:
+        return FLAGS(argv)
+    except flags.Error as e:
+        sys.exit(f"error: {e}")
+
+
+def _evaluated_step(metrics_path):
+    if not os.path.exists(metrics_path):
+        return None
+    with open(metrics_path) as f:
+        return json.load(f).get("checkpoint_step")
+
+
+def run(cfg: config_lib.Config, workdir: str, video_frames: int = 300, log=print) -> dict:
+    """Trains ``cfg`` in ``workdir`` (resuming) and evaluates its final checkpoint into ``workdir/eval``.
+    Returns the evaluation's metrics (read back if that checkpoint was already evaluated)."""
+    from e2e_percep_jax import evaluate as eval_lib
+    from e2e_percep_jax import train as train_lib
+    if train_lib.check_run(cfg, workdir) != cfg.train.num_steps:
+        train_lib.train(cfg, workdir)
+    out_dir, step = os.path.join(workdir, "eval"), cfg.train.num_steps
+    metrics_path = os.path.join(out_dir, "metrics.json")
+    if _evaluated_step(metrics_path) == step:
+        log(f"{metrics_path} already evaluates step {step}; nothing to do")
+        with open(metrics_path) as f:
+            return json.load(f)
+    cfg, params, step = eval_lib.restore_params(workdir, cfg, step)
+    return eval_lib.evaluate(cfg, params, out_dir, video_frames=video_frames, workdir=os.path.abspath(workdir),
+                             checkpoint_step=step, log=log)
+
+
+def main(argv):
+    if not FLAGS["verbosity"].present:  # jax and orbax log routine INFO lines through absl
+        logging.set_verbosity(logging.WARNING)
+    from e2e_percep_jax import train as train_lib
+    try:
+        if len(argv) > 1:
+            raise ValueError(f"unexpected arguments {argv[1:]}; every setting is a --flag")
+        if not FLAGS.workdir:
+            raise ValueError("--workdir is required")
+        if FLAGS.video_frames < 0:
+            raise ValueError(f"--video_frames={FLAGS.video_frames}: must be >= 0")
+        cfg = config_lib.from_flags()
+        train_lib.check_run(cfg, FLAGS.workdir)
+    except ValueError as e:
+        sys.exit(f"error: {e}")
+    try:
+        run(cfg, FLAGS.workdir, FLAGS.video_frames, log=lambda s: print(s, flush=True))
+    except train_lib.NonFiniteLossError as e:
+        sys.exit(f"error: {e}")
+    except train_lib.TrainingInterrupted as e:
+        print(e, file=sys.stderr)
+        sys.exit(128 + e.signum)
+    print(f"report: {os.path.join(FLAGS.workdir, 'eval', 'report.md')}")
+
+
+if __name__ == "__main__":
+    app.run(main, flags_parser=parse_flags)

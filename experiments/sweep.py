@@ -1,0 +1,165 @@
+"""Seed x variant sweeps: one training + online evaluation per (seed, variant), then one table.
+
+    python experiments/sweep.py --config=cpu --sweep_dir=runs/sweep --seeds=0,1 \
+        --variants=full,no_input_recon,no_roadmap_recon [--parallel=2] [--eval.town_seed=7]
+
+Each run is ``experiments/main.py`` in its own process and directory ``SWEEP_DIR/<variant>-seed<seed>``
+(with ``--train.seed`` and ``--model.variant`` set, and every other config flag given here passed on).
+A stopped sweep resumes: finished runs are skipped, interrupted ones continue from their checkpoint.
+``--parallel=N`` runs N processes at once (each sees all cores; on a 2-core machine 1 is fastest).
+Writes ``SWEEP_DIR/summary.json`` and ``summary.md``: mean ± std over seeds of each metric per variant.
+"""
+import json
+import os
+import subprocess
+import sys
+import time
+
+import numpy as np
+from absl import app, flags, logging
+
+from e2e_percep_jax import config as config_lib
+
+MAIN = os.path.join(os.path.dirname(os.path.abspath(__file__)), "main.py")
+IOUS = ("0.1", "0.3", "0.5", "0.7")
+
+config_lib.define_flags()
+flags.DEFINE_string("sweep_dir", None, "one sub-directory per run, and the summary, go here")
+flags.DEFINE_list("seeds", ["0", "1"], "training seeds (--train.seed of each run)")
+flags.DEFINE_list("variants", list(config_lib.VARIANTS), f"model variants, any of {config_lib.VARIANTS}")
+flags.DEFINE_integer("parallel", 1, "runs at once, as separate processes")
+flags.DEFINE_integer("video_frames", 0, "frames of drive.mp4 per run (0: none)")
+FLAGS = flags.FLAGS
+
+
+def parse_flags(argv):
+    """absl's parser, with its multi-line fatal message replaced by one line."""
+    try:
+        return FLAGS(argv)
+    except flags.Error as e:
+        sys.exit(f"error: {e}")
+
+
+def run_name(variant: str, seed: int) -> str:
+    return f"{variant}-seed{seed}"
+
+
+def summary_metrics(metrics: dict) -> dict:
+    """The sweep table's numbers from one evaluation's metrics.json: AP (%) and pose errors."""
+    row = {}
+    for iou in IOUS:
+        for subset in ("all", "visible", "occluded"):
+            ap = metrics["detection"]["ap"][iou][subset]
+            row[f"AP@{iou} {subset} (%)"] = None if ap is None else 100.0 * ap
+    for name, unit in (("location", "m"), ("heading", "rad"), ("speed", "mps")):
+        for stat in ("mean", "median"):
+            row[f"{name} {stat} ({unit.replace('mps', 'm/s')})"] = metrics["pose"][f"{name}_{unit}"][stat]
+    return row
+
+
+def mean_std(rows: list) -> dict:
+    """{metric: (mean, std, n)} over runs, ignoring runs where the metric is undefined (None)."""
+    out = {}
+    for key in rows[0]:
+        values = np.array([r[key] for r in rows if r[key] is not None], np.float64)
+        out[key] = (float(values.mean()), float(values.std()), len(values)) if len(values) else (None, None, 0)
+    return out
+
+
+def table_markdown(summary: dict, seeds) -> str:
+    variants = list(summary)
+    keys = list(next(iter(summary.values())))
+    cell = lambda m, s, n: "n/a" if m is None else f"{m:.3g} ± {s:.2g}"
+    lines = [f"Mean ± std over seeds {', '.join(map(str, seeds))} (population std).", "",
+             "| metric | " + " | ".join(variants) + " |", "|---" * (len(variants) + 1) + "|"]
+    lines += [f"| {k} | " + " | ".join(cell(*summary[v][k]) for v in variants) + " |" for k in keys]
+    return "\n".join(lines) + "\n"
+
+
+def _overrides():
+    """The config flags given on this command line, to pass on to every run (seed and variant aside)."""
+    passed = [f"--config={FLAGS.config}"]
+    for section, name, _ in config_lib._fields():
+        flag = FLAGS[f"{section}.{name}"]
+        if flag.present and f"{section}.{name}" not in ("train.seed", "model.variant"):
+            value = ",".join(map(str, flag.value)) if isinstance(flag.value, list) else flag.value
+            passed.append(f"--{section}.{name}={value}")
+    return passed
+
+
+def main(argv):
+    if not FLAGS["verbosity"].present:
+        logging.set_verbosity(logging.WARNING)
+    try:
+        if len(argv) > 1:
+            raise ValueError(f"unexpected arguments {argv[1:]}; every setting is a --flag")
+        if not FLAGS.sweep_dir:
+            raise ValueError("--sweep_dir is required")
+        try:
+            seeds = [int(s) for s in FLAGS.seeds]
+        except ValueError:
+            raise ValueError(f"--seeds={','.join(FLAGS.seeds)}: expected comma-separated integers")
+        if not seeds or len(set(seeds)) != len(seeds):
+            raise ValueError(f"--seeds={','.join(FLAGS.seeds)}: give distinct seeds")
+        for v in FLAGS.variants:
+            if v not in config_lib.VARIANTS:
+                raise ValueError(f"--variants: {v!r} is not one of {config_lib.VARIANTS}")
+        if FLAGS.parallel < 1:
+            raise ValueError(f"--parallel={FLAGS.parallel}: must be >= 1")
+        base = config_lib.from_flags()
+    except ValueError as e:
+        sys.exit(f"error: {e}")
+
+    runs = [(v, s) for v in FLAGS.variants for s in seeds]
+    metrics_path = lambda v, s: os.path.join(FLAGS.sweep_dir, run_name(v, s), "eval", "metrics.json")
+
+    def finished(v, s):
+        if not os.path.exists(metrics_path(v, s)):
+            return False
+        with open(metrics_path(v, s)) as f:
+            return json.load(f).get("checkpoint_step") == base.train.num_steps
+
+    todo = [(v, s) for v, s in runs if not finished(v, s)]
+    print(f"sweep: {len(runs)} runs, {len(runs) - len(todo)} already finished", flush=True)
+    os.makedirs(FLAGS.sweep_dir, exist_ok=True)
+    running = []
+    while todo or running:
+        while todo and len(running) < FLAGS.parallel:
+            v, s = todo.pop(0)
+            workdir = os.path.join(FLAGS.sweep_dir, run_name(v, s))
+            os.makedirs(workdir, exist_ok=True)
+            cmd = [sys.executable, MAIN, f"--workdir={workdir}", f"--train.seed={s}", f"--model.variant={v}",
+                   f"--video_frames={FLAGS.video_frames}", *_overrides()]
+            log = open(os.path.join(workdir, "main.log"), "a")
+            running.append(((v, s), subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT), log))
+            print(f"sweep: started {run_name(v, s)} (log: {log.name})", flush=True)
+        time.sleep(1.0)
+        for item in list(running):
+            (v, s), proc, log = item
+            if proc.poll() is None:
+                continue
+            running.remove(item)
+            log.close()
+            if proc.returncode:
+                for _, other, _ in running:
+                    other.terminate()  # they checkpoint on SIGTERM; a rerun resumes them
+                sys.exit(f"error: run {run_name(v, s)} failed with status {proc.returncode}; see {log.name}")
+            print(f"sweep: finished {run_name(v, s)}", flush=True)
+
+    summary = {}
+    for v in FLAGS.variants:
+        rows = []
+        for s in seeds:
+            with open(metrics_path(v, s)) as f:
+                rows.append(summary_metrics(json.load(f)))
+        summary[v] = mean_std(rows)
+    with open(os.path.join(FLAGS.sweep_dir, "summary.json"), "w") as f:
+        json.dump({"seeds": seeds, "config": json.loads(base.to_json()), "summary": summary}, f, indent=1)
+    table = table_markdown(summary, seeds)
+    with open(os.path.join(FLAGS.sweep_dir, "summary.md"), "w") as f:
+        f.write(table)
+    print(table)
+
+
+if __name__ == "__main__":
+    app.run(main, flags_parser=parse_flags)

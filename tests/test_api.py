@@ -1,0 +1,119 @@
+"""The public inference API: batching, streaming vs the training-time scan, jit/scan inside user code,
+argument errors, and loading a trained run."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import e2e_percep_jax as e2e
+from e2e_percep_jax import config as config_lib
+from e2e_percep_jax import model as model_lib
+from e2e_percep_jax import pixor
+from e2e_percep_jax import train as train_lib
+
+CFG = config_lib.get_config("tiny")
+R = CFG.data.image_size
+
+
+@pytest.fixture(scope="module")
+def params():
+    return model_lib.init_params(jax.random.PRNGKey(0), CFG)
+
+
+def _inputs(num_streams, num_frames, seed=0):
+    rng = np.random.default_rng(seed)
+    images = lambda: jnp.asarray(rng.integers(0, 256, (num_streams, num_frames, R, R, 3), np.uint8))
+    action = jnp.asarray(rng.uniform(-1, 1, (num_streams, num_frames, 2)).astype(np.float32))
+    return images(), images(), action
+
+
+def _stream(perceiver, params, camera, lidar, prev_action, keys=None):
+    """Steps frame by frame in Python; returns the outputs stacked to [B, T, ...]."""
+    state, outs = perceiver.init(camera.shape[0]), []
+    step = jax.jit(perceiver.step)
+    for t in range(camera.shape[1]):
+        state, out = step(params, state, camera[:, t], lidar[:, t], prev_action[:, t],
+                          None if keys is None else keys[t])
+        outs.append(out)
+    return jax.tree.map(lambda *x: jnp.stack(x, 1), *outs)
+
+
+def test_batch_of_streams_equals_each_stream_alone(params):
+    perceiver = e2e.Perceiver(CFG)
+    camera, lidar, action = _inputs(3, 4)
+    together = _stream(perceiver, params, camera, lidar, action)
+    for i in range(3):
+        alone = _stream(perceiver, params, camera[i:i + 1], lidar[i:i + 1], action[i:i + 1])
+        for k in ("det_cls", "det_reg", "pose", "z", "roadmap"):
+            np.testing.assert_allclose(together[k][i:i + 1], alone[k], rtol=1e-5, atol=1e-5, err_msg=k)
+
+
+@pytest.mark.parametrize("sampled", [False, True])
+def test_streaming_equals_the_training_scan(params, sampled):
+    perceiver = e2e.Perceiver(CFG)
+    camera, lidar, action = _inputs(2, 5, seed=1)  # action t: applied from frame t to t+1 (training layout)
+    key = jax.random.PRNGKey(7) if sampled else None
+    scanned = model_lib.filter_sequence(params, camera, lidar, action, key, CFG)
+    prev_action = jnp.concatenate([jnp.zeros_like(action[:, :1]), action[:, :-1]], 1)
+    keys = None if key is None else jax.random.split(key, 5)  # filter_sequence's per-frame keys
+    streamed = _stream(perceiver, params, camera, lidar, prev_action, keys)
+    z = jnp.concatenate([scanned["z1"], scanned["z2"]], -1)
+    np.testing.assert_allclose(streamed["z"], z, rtol=1e-5, atol=1e-5)
+
+
+def test_step_inside_a_users_jit_and_scan(params):
+    perceiver = e2e.Perceiver(CFG)
+    camera, lidar, action = _inputs(2, 3, seed=2)
+
+    @jax.jit
+    def user_rollout(params, camera, lidar, action):
+        def body(state, xs):
+            state, out = perceiver.step(params, state, *xs)
+            return state, out["pose"]
+        xs = tuple(jnp.swapaxes(x, 0, 1) for x in (camera, lidar, action))
+        return jax.lax.scan(body, perceiver.init(camera.shape[0]), xs)[1]
+
+    poses = jnp.swapaxes(user_rollout(params, camera, lidar, action), 0, 1)
+    streamed = _stream(perceiver, params, camera, lidar, action)
+    np.testing.assert_allclose(poses, streamed["pose"], rtol=1e-5, atol=1e-4)
+    assert poses.shape == (2, 3, 5)
+
+
+@pytest.mark.parametrize("arg, bad, expected", [
+    ("camera", np.zeros((2, R, R, 3), np.float32), f"camera: expected uint8[2, {R}, {R}, 3], got float32[2, {R}, {R}, 3]"),
+    ("lidar", np.zeros((2, R // 2, R // 2, 3), np.uint8), f"lidar: expected uint8[2, {R}, {R}, 3], got uint8[2, {R // 2}, {R // 2}, 3]"),
+    ("action", np.zeros((2, 3), np.float32), "action: expected float32[2, 2], got float32[2, 3]"),
+])
+def test_wrong_inputs_name_argument_expected_and_given(params, arg, bad, expected):
+    perceiver = e2e.Perceiver(CFG)
+    good = {"camera": np.zeros((2, R, R, 3), np.uint8), "lidar": np.zeros((2, R, R, 3), np.uint8),
+            "action": np.zeros((2, 2), np.float32)}
+    good[arg] = bad
+    with pytest.raises(ValueError) as err:
+        jax.jit(perceiver.step)(params, perceiver.init(2), good["camera"], good["lidar"], good["action"])
+    assert str(err.value) == expected
+
+
+def test_load_returns_the_trained_params_and_boxes_decode(tmp_path):
+    cfg = config_lib.replace(CFG, train=dict(num_steps=2, checkpoint_every=2, log_every=1))
+    trained = train_lib.train(cfg, str(tmp_path))
+    perceiver, params = e2e.load(str(tmp_path))
+    assert perceiver.cfg == cfg
+    jax.tree.map(lambda a, b: np.testing.assert_array_equal(np.asarray(a), np.asarray(b)),
+                 params, jax.device_get(trained.params))
+    camera, lidar, action = _inputs(2, 1, seed=3)
+    _, out = perceiver.step(params, perceiver.init(2), camera[:, 0], lidar[:, 0], action[:, 0])
+    assert out["det_cls"].shape == (2, R, R, 1) and out["pose"].shape == (2, 5)
+
+
+def test_boxes_recover_the_cars_behind_pixor_maps():
+    """Maps made from known boxes: every positive pixel decodes to its car; NMS leaves one box per car."""
+    perceiver = e2e.Perceiver(CFG)
+    cars = np.array([[6.0, 4.0, 0.3, 4.6, 1.9], [-5.0, -6.0, -1.2, 5.5, 2.2]], np.float32)
+    det_cls, det_reg = pixor.targets(jnp.asarray(cars), R)
+    outputs = {"det_cls": jnp.stack([det_cls, jnp.zeros_like(det_cls)]), "det_reg": jnp.stack([det_reg, det_reg])}
+    (boxes, scores), (none, _) = perceiver.boxes(outputs)
+    assert len(none) == 0
+    assert len(boxes) == 2 and np.all(scores == 1.0)
+    order = np.argsort(boxes[:, 0])[::-1]
+    np.testing.assert_allclose(boxes[order], cars, atol=1e-4)

@@ -1,0 +1,68 @@
+"""Seed sweeps on the tiny config: the same seed gives identical metrics, a rerun skips finished runs,
+and the summary is the mean ± std of the runs' own metrics."""
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.join(REPO, "experiments"))
+import sweep  # noqa: E402  (experiments/ is not a package)
+
+TINY = ["--config=tiny", "--train.num_steps=4", "--train.checkpoint_every=2", "--eval.num_steps=20"]
+
+
+def _sweep(sweep_dir, *argv):
+    cmd = [sys.executable, os.path.join(REPO, "experiments", "sweep.py"), f"--sweep_dir={sweep_dir}", *TINY, *argv]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=1200)
+
+
+def _metrics(sweep_dir, name):
+    with open(os.path.join(sweep_dir, name, "eval", "metrics.json")) as f:
+        return json.load(f)
+
+
+@pytest.fixture(scope="module")
+def sweeps(tmp_path_factory):
+    a, b = tmp_path_factory.mktemp("a"), tmp_path_factory.mktemp("b")
+    first = _sweep(a, "--seeds=0,1", "--variants=full", "--parallel=2")
+    assert first.returncode == 0, first.stdout + first.stderr
+    again = _sweep(b, "--seeds=0", "--variants=full")
+    assert again.returncode == 0, again.stdout + again.stderr
+    return a, b
+
+
+def test_same_seed_gives_identical_metrics(sweeps):
+    a, b = sweeps
+    m_a, m_b = _metrics(a, "full-seed0"), _metrics(b, "full-seed0")
+    assert sweep.summary_metrics(m_a) == sweep.summary_metrics(m_b)
+    assert m_a["detection"]["pr_curves"] == m_b["detection"]["pr_curves"]
+    assert sweep.summary_metrics(m_a) != sweep.summary_metrics(_metrics(a, "full-seed1"))  # seeds matter
+
+
+def test_rerun_skips_finished_runs(sweeps):
+    a, _ = sweeps
+    before = os.path.getmtime(os.path.join(a, "full-seed0", "eval", "metrics.json"))
+    rerun = _sweep(a, "--seeds=0,1", "--variants=full")
+    assert rerun.returncode == 0 and "2 already finished" in rerun.stdout
+    assert os.path.getmtime(os.path.join(a, "full-seed0", "eval", "metrics.json")) == before
+
+
+def test_summary_is_mean_and_std_of_the_runs(sweeps):
+    a, _ = sweeps
+    with open(os.path.join(a, "summary.json")) as f:
+        summary = json.load(f)["summary"]["full"]
+    rows = [sweep.summary_metrics(_metrics(a, f"full-seed{s}")) for s in (0, 1)]
+    loc = np.array([r["location mean (m)"] for r in rows])
+    np.testing.assert_allclose(summary["location mean (m)"][:2], [loc.mean(), loc.std()], rtol=1e-12)
+    assert os.path.exists(os.path.join(a, "summary.md"))
+
+
+def test_bad_sweep_flags_are_named(tmp_path):
+    for argv, flag in ((["--seeds=0,x"], "--seeds"), (["--variants=full,bogus"], "--variants"),
+                       (["--parallel=0"], "--parallel"), (["--data.image_size=48"], "--data.image_size")):
+        result = _sweep(tmp_path, *argv)
+        assert result.returncode == 1 and result.stderr.strip().startswith(f"error: {flag}"), result.stderr
