@@ -120,12 +120,15 @@ def nms(boxes, scores, iou_threshold):
     """
     boxes = _as_boxes(boxes)
     order = np.argsort(-np.asarray(scores, dtype=np.float64), kind="stable")
+    # One IoU matrix (one vectorised call), then the greedy pass over it: per-row IoU calls cost
+    # ~0.4 ms each in NumPy overhead, which dominated the evaluation's host time.
+    overlaps = rotated_iou(boxes[order], boxes[order]) > iou_threshold  # [M, M], by rank
+    suppressed = np.zeros(len(order), dtype=bool)
     kept = []
-    # One IoU row per kept box: cheap when many decoded boxes cover few objects.
-    while order.size:
-        best, order = order[0], order[1:]
-        kept.append(best)
-        order = order[rotated_iou(boxes[best][None], boxes[order])[0] <= iou_threshold]
+    for rank in range(len(order)):
+        if not suppressed[rank]:
+            kept.append(order[rank])
+            suppressed |= overlaps[rank]
     return np.asarray(kept, dtype=np.int64)
 
 

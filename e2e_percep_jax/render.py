@@ -76,7 +76,7 @@ class TopDown:
         for i, (box, color) in enumerate(zip(boxes, colors)):
             ego = i == 0
             self._box(img, box, tuple(int(c) for c in color), outline=_EGO_RGB if ego else (0, 0, 0),
-                      thickness=3 if ego else 1)
+                      thickness=2 if ego else 1)
             nose = box[:2] + 0.4 * box[3] * np.array([np.cos(box[2]), np.sin(box[2])])
             cv2.line(img, tuple(self._px(box[:2])), tuple(self._px(nose)), (0, 0, 0), 1, cv2.LINE_AA, _SHIFT)
         return img

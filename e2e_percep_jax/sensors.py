@@ -24,6 +24,7 @@ masked sums rather than gathers; each image is produced by one fused pass (the c
 channels into one uint32 per pixel), with the few values that many consumers need computed by a
 reduction so that XLA materialises them once instead of recomputing them in every consumer.
 """
+import functools
 from typing import NamedTuple
 
 import jax
@@ -32,8 +33,8 @@ import numpy as np
 
 from e2e_percep_jax import geometry as geo
 from e2e_percep_jax import pixor
-from e2e_percep_jax.town import (NUM_SEM_CLASSES, SEM_CENTRE_YELLOW, SEM_COLORS, SEM_LANE_WHITE, SEM_OFFROAD,
-                                 SEM_ROAD, SEM_SIDEWALK, SEM_STOP_LINE, Town)
+from e2e_percep_jax.town import (MAP_RES_M, NUM_SEM_CLASSES, SEM_CENTRE_YELLOW, SEM_COLORS, SEM_LANE_WHITE,
+                                 SEM_OFFROAD, SEM_ROAD, SEM_SIDEWALK, SEM_STOP_LINE, Town)
 from e2e_percep_jax.world import EGO, WorldState
 
 # Camera (frame contract): front pinhole, level, square image, focal length from the horizontal FOV.
@@ -398,15 +399,43 @@ def render_lidar(obstacles: Obstacles, image_size):
 # ----------------------------------------------------------------------------- roadmap
 
 
+# The roadmap ranks the lane markings above the ground classes, and among themselves, by their SEM_* values.
+_FIRST_MARKING = SEM_LANE_WHITE
+assert SEM_LANE_WHITE < SEM_CENTRE_YELLOW < SEM_STOP_LINE and max(SEM_OFFROAD, SEM_ROAD, SEM_SIDEWALK) < _FIRST_MARKING
+_ROADMAP_RGB = np.concatenate([SEM_COLORS, [[255, 0, 0]]]).astype(np.uint8)  # SEM_* classes, then the ego box
+
+
+def roadmap_samples_per_side(image_size):
+    """S: a roadmap pixel looks for lane markings at S x S points, at most one map cell (town.MAP_RES_M) apart."""
+    return int(np.ceil(geo.bev_metres_per_px(image_size) / MAP_RES_M - 1e-6))
+
+
 def render_roadmap(town: Town, ego_xy, ego_yaw_rad, ego_length_m, ego_width_m, image_size):
-    """Semantic BEV crop uint8 [R, R, 3]: town.sem_map (nearest cell) in SEM_COLORS, ego box in red."""
+    """Semantic BEV crop uint8 [R, R, 3] in SEM_COLORS, ego box in red.
+
+    A pixel shows the highest marking class (stop line > yellow > white) found at any of S x S points spread
+    evenly over it (:func:`roadmap_samples_per_side`), else the class of the map cell under its centre.
+    Markings are 1-2 map cells wide, thinner than a pixel at R <= 128: sampled at pixel centres alone, a
+    solid line breaks into dashes.
+    """
     centres = geo.bev_pixel_centres(image_size)
     x, y = centres[:, :1, 0], centres[:1, :, 1]  # ego x per row [R, 1], ego y per column [1, R]
-    tx, ty = _rotate_xy(x, y, jnp.cos(ego_yaw_rad), jnp.sin(ego_yaw_rad))
-    cls, _, _ = sem_classes_at(town, tx + ego_xy[0], ty + ego_xy[1])
+    cos, sin = jnp.cos(ego_yaw_rad), jnp.sin(ego_yaw_rad)
+
+    def class_at(dx_m, dy_m):  # of the points offset by (dx_m, dy_m) from the pixel centres (ego frame)
+        tx, ty = _rotate_xy(x + dx_m, y + dy_m, cos, sin)
+        return sem_classes_at(town, tx + ego_xy[0], ty + ego_xy[1])[0]
+
+    n = roadmap_samples_per_side(image_size)
+    offsets = geo.bev_metres_per_px(image_size) * ((np.arange(n) + 0.5) / n - 0.5)
+    # The centre's class, or the samples' highest marking lifted above every class.
+    lift = NUM_SEM_CLASSES
+    samples = [class_at(dx, dy) for dx in offsets for dy in offsets]
+    best = functools.reduce(jnp.maximum, [jnp.where(c >= _FIRST_MARKING, c + lift, 0) for c in samples],
+                            class_at(0.0, 0.0))
     ego = (jnp.abs(x) <= 0.5 * ego_length_m) & (jnp.abs(y) <= 0.5 * ego_width_m)  # geometry.points_in_boxes at yaw 0
-    return _pack_rgb([jnp.where(ego, float(c == 0) * 255.0, _pick(cls, [jnp.float32(v) for v in SEM_COLORS[:, c]]))
-                      for c in range(3)])
+    # A gather of whole RGB rows computes each pixel's class once (per-channel selects would repeat the look-ups).
+    return jnp.asarray(_ROADMAP_RGB)[jnp.where(ego, NUM_SEM_CLASSES, jnp.where(best >= lift, best - lift, best))]
 
 
 # ----------------------------------------------------------------------------- culling and the frame

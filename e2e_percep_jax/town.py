@@ -86,6 +86,7 @@ SIGNAL_SHARE = 0.3  # of interior junctions between local roads; all on an arter
 RING_RADIUS_M = 15.0  # centre line of the roundabout's lane
 RING_TURN_RADIUS_M = 12.0  # of the turns onto and off the ring
 SPAWN_SPACING_M = 12.0  # reset slots on road lanes; > the longest vehicle plus a gap
+STOP_BAR_M = 0.5  # depth of a painted stop line
 MAP_RES_M = 0.2
 MAP_MARGIN_M = 50.0  # offroad beyond the outermost building belt, so sensors at the edge read valid cells
 BUILDING_BELT_M = 30.0  # buildings also stand this far outside the perimeter road
@@ -662,8 +663,10 @@ def _rasterise(node_xy, node_kind, roads, lanes_per_dir, mouth_m, L):
         across = 0.5 * LANE_WIDTH_M * _right_of(heading)
         stop_ends.append([end - across, end + across])  # the line not to cross: the lane's end
         stop_lane.append(lane)
-        bar = end - 0.3 * heading  # the painted bar lies just before it
-        R.line(sem, [bar - across, bar + across], SEM_STOP_LINE, 0.6)
+        # The painted bar: STOP_BAR_M deep, just before the line; a vehicle that stops comes to rest with its
+        # front at the bar's near edge (world.STOP_SHORT_M).
+        back = STOP_BAR_M * heading
+        R.poly(sem, [end - across, end + across, end + across - back, end - across - back], SEM_STOP_LINE)
     return sem, lo, np.array(stop_ends), np.array(stop_lane)
 
 

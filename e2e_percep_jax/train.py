@@ -30,11 +30,9 @@ import optax
 import orbax.checkpoint as ocp
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from e2e_percep_jax import batch as batch_lib
 from e2e_percep_jax import loss as loss_lib
 from e2e_percep_jax import model as model_lib
-from e2e_percep_jax import town as town_lib
-from e2e_percep_jax.config import Config, validate
+from e2e_percep_jax.config import Config, TrainConfig, validate
 
 MODEL_STREAM = 2**32 - 1  # fold_in data for the model's keys; data uses fold_in(root, step), step < this
 MAX_CHECKPOINTS_KEPT = 3
@@ -131,9 +129,22 @@ def shard_batch(batch: dict, mesh: Mesh) -> dict:
     return jax.tree.map(lambda x: jax.make_array_from_callback(x.shape, sharding, lambda i: x[i]), host)
 
 
-@functools.cache  # the same jitted object for the same (cfg, mesh), so its compilation is reused
+def step_config(cfg: Config) -> Config:
+    """``cfg`` with every field :func:`train_step` does not read set to its default (the batch's
+    shapes come from the batch), so runs that differ only in those share one compilation."""
+    t = cfg.train
+    return dataclasses.replace(
+        Config(), model=cfg.model, data=dataclasses.replace(Config().data, image_size=cfg.data.image_size),
+        train=TrainConfig(learning_rate=t.learning_rate, max_nonfinite_in_a_row=t.max_nonfinite_in_a_row))
+
+
 def make_train_step(cfg: Config, mesh: Mesh):
     """:func:`train_step` jitted for ``mesh``: state and key replicated, batch sharded along B."""
+    return _jitted_train_step(step_config(cfg), mesh)
+
+
+@functools.cache  # the same jitted object for the same (step config, mesh), so its compilation is reused
+def _jitted_train_step(cfg: Config, mesh: Mesh):
     replicated, sharded = NamedSharding(mesh, PartitionSpec()), NamedSharding(mesh, PartitionSpec("data"))
     return jax.jit(lambda state, batch, key: train_step(state, batch, key, cfg),
                    in_shardings=(replicated, sharded, replicated), out_shardings=replicated,
@@ -142,8 +153,15 @@ def make_train_step(cfg: Config, mesh: Mesh):
 
 def world_batches(cfg: Config) -> Batches:
     """The world's batch stream for ``cfg`` (town built once)."""
+    # Imported here: the world's modules build JAX constants at import, and the launcher's checks
+    # (check_run) must compile nothing.
+    from e2e_percep_jax import batch as batch_lib
+    from e2e_percep_jax import town as town_lib
     town = town_lib.build_town(cfg.world.town_seed)
-    return lambda start: batch_lib.batch_stream(town, cfg, cfg.train.seed, start_step=start)
+    # Batches read only the world and data sections: the rest reset, so runs that differ in training
+    # fields share one compilation of the batch.
+    world_cfg = Config(world=cfg.world, data=cfg.data)
+    return lambda start: batch_lib.batch_stream(town, world_cfg, cfg.train.seed, start_step=start)
 
 
 def _flat_config(cfg: Config) -> dict:

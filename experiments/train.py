@@ -14,7 +14,6 @@ import jax
 from absl import app, flags, logging
 
 from e2e_percep_jax import config as config_lib
-from e2e_percep_jax import train as train_lib
 
 config_lib.define_flags()
 flags.DEFINE_string("workdir", None, "run directory: config.json, metrics.jsonl, checkpoints/")
@@ -41,6 +40,8 @@ def main(argv):
         if not FLAGS.workdir:
             raise ValueError("--workdir is required")
         cfg = config_lib.from_flags()
+        # Imported once the flags are valid: a bad flag fails before the slow imports (orbax, distrax).
+        from e2e_percep_jax import train as train_lib
         if FLAGS.coordinator_address:
             jax.distributed.initialize(FLAGS.coordinator_address, FLAGS.num_processes, FLAGS.process_id)
         train_lib.check_run(cfg, FLAGS.workdir)

@@ -45,6 +45,20 @@ def test_same_key_same_batch_other_key_other_batch(town, first_batch):
     assert not np.array_equal(np.asarray(other["pose"]), first_batch["pose"])
 
 
+def test_successive_batches_are_decorrelated(town, first_batch):
+    # Each sequence starts from its own reset, so the sequences of successive batch keys neither continue one
+    # another nor start near one another, and their traffic differs.
+    batches = [first_batch] + [jax.tree.map(np.asarray, batch.make_batch(batch.batch_key(0, s), town, CFG))
+                               for s in (1, 2)]
+    starts = np.concatenate([b["pose"][:, 0, :2] for b in batches])  # [3B, 2], town metres
+    gaps_m = np.linalg.norm(starts[:, None] - starts[None], axis=-1) + np.diag(np.full(len(starts), np.inf))
+    assert gaps_m.min() > 5.0
+    for before, after in zip(batches, batches[1:]):
+        jumps_m = np.linalg.norm(before["pose"][:, None, -1, :2] - after["pose"][None, :, 0, :2], axis=-1)
+        assert jumps_m.min() > 5.0  # not the next step of any sequence of the batch before (< 2 m at dt = 0.1 s)
+        assert not np.array_equal(before["boxes"], after["boxes"])
+
+
 def test_stream_resumes_at_the_same_data(town):
     steps = list(itertools.islice(batch.batch_stream(town, CFG, seed=3), 3))
     assert [s for s, _ in steps] == [0, 1, 2]

@@ -1,6 +1,7 @@
 """Model tests: shapes at every size, the paper's parameter count by hand, layers against a NumPy
 re-implementation of the torch peer's layers, and the filtering recursion (scan = streaming)."""
 import dataclasses
+import functools
 
 import distrax
 import flax.linen as nn
@@ -9,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from e2e_percep_jax import config, model
+from e2e_percep_jax import config, loss, model
 from e2e_percep_jax.model import PerceptionModel
 
 TINY = config.get_config("tiny")
@@ -35,6 +36,12 @@ def synthetic_batch(seed, cfg, batch_size=None):
             "det_reg": det_reg.astype(np.float32),
             "pose": pose.astype(np.float32),
             "action": rng.uniform(-0.3, 0.3, (b, t1, 2)).astype(np.float32)}
+
+
+@functools.partial(jax.jit, static_argnames="cfg")
+def loss_and_grads(params, batch, key, cfg):
+    """((total, metrics), gradients) of the loss; one jitted object shared by the loss and training tests."""
+    return jax.value_and_grad(loss.loss_fn, has_aux=True)(params, batch, key, cfg)
 
 
 # ----------------------------------------------------------------------------- shapes and counts

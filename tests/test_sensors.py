@@ -2,6 +2,7 @@
 and the frame contract. Scenes are built by hand (a few boxes on a synthetic map) so the truth is known."""
 import functools
 
+import cv2
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -9,7 +10,7 @@ import pytest
 
 from e2e_percep_jax import geometry as geo
 from e2e_percep_jax import sensors
-from e2e_percep_jax.town import SEM_COLORS, SEM_OFFROAD, SEM_ROAD, SEM_STOP_LINE, Town
+from e2e_percep_jax.town import SEM_CENTRE_YELLOW, SEM_COLORS, SEM_OFFROAD, SEM_ROAD, SEM_STOP_LINE, Town
 from e2e_percep_jax.world import WorldState
 
 MAP_RES_M = 0.2
@@ -218,16 +219,25 @@ def blocky_sem_map(seed):
 
 
 def numpy_roadmap(sem, ego_xy, yaw, r):
-    """Independent crop: rotate every pixel centre to the town and take the nearest map cell."""
-    centres = cell_centres(r)
+    """Independent crop: rotate every pixel centre to the town and take the nearest map cell, unless a lane
+    marking (classes 3..5, the highest wins) lies under any of n x n points spread over the pixel, n being
+    the fewest that keeps them at most one map cell apart."""
+    px = 32.0 / r
+    n = int(np.ceil(px / MAP_RES_M - 1e-6))
     c, s = np.cos(yaw), np.sin(yaw)
-    tx = ego_xy[0] + c * centres[..., 0] - s * centres[..., 1]
-    ty = ego_xy[1] + s * centres[..., 0] + c * centres[..., 1]
-    col = np.floor((tx - MAP_ORIGIN_M[0]) / MAP_RES_M).astype(int)
-    row = np.floor((ty - MAP_ORIGIN_M[1]) / MAP_RES_M).astype(int)
-    inside = (row >= 0) & (row < sem.shape[0]) & (col >= 0) & (col < sem.shape[1])
-    return SEM_COLORS[np.where(inside, sem[np.clip(row, 0, sem.shape[0] - 1), np.clip(col, 0, sem.shape[1] - 1)],
-                               SEM_OFFROAD)]
+
+    def classes(offset):
+        points = cell_centres(r) + offset
+        tx = ego_xy[0] + c * points[..., 0] - s * points[..., 1]
+        ty = ego_xy[1] + s * points[..., 0] + c * points[..., 1]
+        col = np.floor((tx - MAP_ORIGIN_M[0]) / MAP_RES_M).astype(int)
+        row = np.floor((ty - MAP_ORIGIN_M[1]) / MAP_RES_M).astype(int)
+        inside = (row >= 0) & (row < sem.shape[0]) & (col >= 0) & (col < sem.shape[1])
+        return np.where(inside, sem[np.clip(row, 0, sem.shape[0] - 1), np.clip(col, 0, sem.shape[1] - 1)], SEM_OFFROAD)
+
+    sub = (np.arange(n) + 0.5) / n * px - px / 2
+    marking = np.max([classes(np.array([dx, dy])) for dx in sub for dy in sub], axis=0)
+    return SEM_COLORS[np.where(marking >= 3, marking, classes(np.zeros(2)))]
 
 
 def roadmap(town, ego_xy, yaw, r=128, length_m=4.6, width_m=1.9):
@@ -263,6 +273,32 @@ def test_roadmap_rotates_with_the_heading():
         truth = numpy_roadmap(sem, ego_xy, yaw, 128)
         ego = np.all(image == [255, 0, 0], -1)
         assert np.all(image == truth, -1)[~ego].mean() > 0.995
+
+
+@pytest.mark.parametrize("r", [32, 64, 128])
+def test_roadmap_keeps_thin_solid_lines_solid(r):
+    # A solid yellow line two map cells (0.4 m) wide, thinner than a pixel at R <= 64, crossing the view
+    # obliquely: every pixel its centre line passes through shows it, and no pixel far from it does.
+    sem = np.full((600, 600), SEM_ROAD, np.uint8)
+    a, b = np.array([-40.0, -25.0]), np.array([40.0, 8.0])  # town metres
+    to_cell = lambda p: tuple(int(v) for v in np.round((p - MAP_ORIGIN_M) / MAP_RES_M - 0.5))
+    cv2.line(sem, to_cell(a), to_cell(b), int(SEM_CENTRE_YELLOW), 2)
+    direction = (b - a) / np.linalg.norm(b - a)
+    ego_xy = np.array([1.0, -3.0])
+    ego_box = (np.abs(cell_centres(r)[..., 0]) <= 2.3) & (np.abs(cell_centres(r)[..., 1]) <= 0.95)
+    for yaw in (0.0, 0.9):
+        yellow = np.all(roadmap(make_town(sem), ego_xy, yaw, r) == SEM_COLORS[SEM_CENTRE_YELLOW], -1)
+        to_town = lambda p: ego_xy + np.asarray(geo.rotate(p, yaw))
+        to_ego = lambda p: np.asarray(geo.rotate(p - ego_xy, -yaw))
+        on_line = to_ego(a + np.linspace(0.0, 1.0, 5000)[:, None] * (b - a))  # every 2 cm of the centre line
+        rowcol = np.floor(np.asarray(geo.ego_to_bev_px(on_line, r))).astype(int)
+        rowcol = rowcol[np.all((rowcol >= 0) & (rowcol < r), -1)]
+        rowcol = rowcol[~ego_box[rowcol[:, 0], rowcol[:, 1]]]  # the ego box is drawn over the map
+        assert len(rowcol) > r // 2
+        assert yellow[rowcol[:, 0], rowcol[:, 1]].all()
+        rel = to_town(cell_centres(r)) - a
+        dist_m = np.abs(direction[0] * rel[..., 1] - direction[1] * rel[..., 0])  # pixel centre to the centre line
+        assert np.all(dist_m[yellow] <= 0.2 + 32.0 / r * np.sqrt(0.5) + MAP_RES_M)
 
 
 # ----------------------------------------------------------------------------- the frame
@@ -308,3 +344,48 @@ def test_observe_vmaps_like_single_frames():
         single = observe(s, town, 32)
         for key in single:
             np.testing.assert_array_equal(np.asarray(frames[key][i]), np.asarray(single[key]), err_msg=key)
+
+
+def marched_lidar_hits(boxes_ego, heights_m, reach_m):
+    """Independent lidar: march each of the contract's 32 x 360 beams from (0, 0, 2.1 m) in 10 cm steps up to
+    ``reach_m`` (beyond every box) and count, per box [M, 5] (ego frame, heights [M]), the beams whose first
+    sample inside a box or under the ground lies in that box."""
+    elev = np.deg2rad(np.linspace(10.0, -30.0, 32, dtype=np.float32))[:, None, None]
+    az = np.deg2rad(np.arange(360, dtype=np.float32))[None, :, None]
+    t = np.arange(0.0, reach_m, 0.1, dtype=np.float32)[None, None, :]
+    x, y, z = t * np.cos(elev) * np.cos(az), t * np.cos(elev) * np.sin(az), 2.1 + t * np.sin(elev)
+    first = np.where(np.any(z <= 0.0, -1), np.argmax(z <= 0.0, -1), t.size)  # ground sample index [32, 360]
+    which = np.full(first.shape, -1)
+    for i, ((bx, by, yaw, length, width), h) in enumerate(zip(boxes_ego, heights_m)):
+        u = np.cos(yaw) * (x - bx) + np.sin(yaw) * (y - by)  # box-local coordinates of every sample
+        v = -np.sin(yaw) * (x - bx) + np.cos(yaw) * (y - by)
+        inside = (np.abs(u) <= length / 2) & (np.abs(v) <= width / 2) & (z <= h)
+        hit_at = np.where(inside.any(-1), np.argmax(inside, -1), t.size)
+        which = np.where(hit_at < first, i, which)
+        first = np.minimum(first, hit_at)
+    return np.bincount(which[which >= 0], minlength=len(boxes_ego))
+
+
+def test_boxes_occluded_means_no_lidar_return_on_the_box():
+    # Two walls with a car right behind each (hidden from the sensor), and cars scattered over the view.
+    walls = [([13.0, 9.0, 0.3, 2.0, 9.0], 6.0, [120, 110, 100]), ([-7.0, -9.0, 1.0, 1.0, 7.0], 4.0, [90, 90, 90])]
+    vehicles = [([18.0, 12.5, 0.2, 4.5, 1.9], 2.0, [0, 0, 200]), ([-10.5, -13.5, -1.0, 4.2, 1.8], 1.6, [0, 200, 0])]
+    placed = [np.array([0.0, 0.0, 0.0, 4.6, 1.9])] + [np.array(b) for b, _, _ in walls + vehicles]
+    rng = np.random.default_rng(5)
+    while len(vehicles) < 10:  # bounding circles disjoint: nothing overlaps
+        box = np.array([rng.uniform(-11, 19), rng.uniform(-15, 15), rng.uniform(-np.pi, np.pi), rng.uniform(3.8, 5.0),
+                        rng.uniform(1.7, 2.1)])
+        if all(np.linalg.norm(box[:2] - p[:2]) > 0.5 * (np.hypot(*box[3:]) + np.hypot(*p[3:])) + 0.3 for p in placed):
+            placed.append(box)
+            vehicles.append((list(box), rng.uniform(1.4, 2.4), [100, 100, 100]))
+    town, state = make_town(blocky_sem_map(3), walls), make_state([0.0, 0.0, 0.0, 4.6, 1.9], vehicles)
+    frame = observe(state, town, 64)
+    occluded, valid = np.asarray(frame["boxes_occluded"]), np.asarray(frame["boxes_valid"])
+    obstacles = vehicles + walls
+    hits = marched_lidar_hits(np.array([b for b, _, _ in obstacles]), np.array([h for _, h, _ in obstacles]), 28.0)
+    hits = hits[:len(vehicles)]
+    assert valid.all() and occluded[:2].all() and not occluded.all()
+    # A box some beams end on is not occluded; an occluded box gets no beam. Beams that only graze a corner
+    # may fall between 10 cm samples, hence the margin of 2 beams.
+    assert not np.any(occluded & (hits > 2)), hits[occluded]
+    assert np.all(hits[~occluded] > 0), hits[~occluded]

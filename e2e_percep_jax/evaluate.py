@@ -1,0 +1,632 @@
+"""Online evaluation (DESIGN §5): drive held-out worlds, filter the latent, decode, score, report.
+
+Protocol (the paper's §V-C): not a stored test set. ``E = cfg.eval.num_worlds`` worlds of town
+``cfg.eval.town_seed`` start from held-out keys (``PRNGKey(cfg.eval.seed)``, a root the training data,
+``PRNGKey(cfg.train.seed)`` folded with the step, does not use), warm their traffic up for
+``cfg.data.warmup_steps`` steps, then drive ``N = cfg.eval.num_steps`` frames in total (``N / E`` per
+world). The latent is filtered online from each drive's first frame (posterior mean, or samples with
+``sample=True``) and every frame is decoded: frame t's latent sees camera/lidar up to t and is scored
+against frame t's ground truth (no lag).
+
+Device / host split. One jitted chunk function (:func:`make_chunk_fn`) runs ``cfg.eval.chunk_steps``
+frames as a ``lax.scan`` of observe -> filter_step -> decode -> world.step, vmapped over the E worlds,
+carrying (world state, filter state); memory is flat in N. Per frame it returns only what the metrics
+need: the ground-truth boxes and poses, the predicted pose, and ``top_k`` detection candidates:
+
+1. every pixel's box is decoded from the PIXOR maps (:func:`pixor.decode_dense`);
+2. centre-cell de-duplication: pixels whose predicted box centres fall into the same
+   ``DEDUP_CELL_M`` cell keep only the highest-scoring one (ties: the lowest pixel index). Every pixel
+   of one vehicle predicts the same centre, so this collapses a vehicle's ~40-150 pixels to a few
+   candidates before the top-k (a plain top-k over pixels would cover 1-2 vehicles only). Two boxes
+   whose centres are within one cell would almost always be suppressed by NMS anyway;
+3. the ``top_k`` highest scores (and their boxes). ``topk_saturated_frac`` in the metrics says how
+   often the k-th candidate still scored above ``score_floor`` (then candidates were cut).
+
+The host then keeps candidates with score >= ``score_floor`` whose centre lies in the BEV view (the
+same rule that makes a ground truth valid, ``sensors.in_bev_view``), runs greedy NMS on exact rotated
+IoU (``nms_iou``), and matches against the world's ground-truth boxes (:class:`metrics.DetectionAccumulator`).
+
+Score threshold. ``cfg.eval.score_threshold`` (0.5) is the operating point: the pictures and video
+show boxes above it, and precision / recall at it are reported. AP and the PR curves, however,
+accumulate every candidate down to ``score_floor`` (default 0.05): AP is the area under the curve
+swept over the score threshold, and cutting at 0.5 would end every curve at the recall reached at
+0.5 and count the missing area as zero precision. The floor (not 0) keeps the host's NMS cheap;
+the curve is exact above it.
+
+Ego pose: location error (m, x-y distance), heading error (rad, wrapped to [0, pi]) and speed error
+(m/s), mean and median, and mean location error binned by steps since the drive's start. Baseline
+row: a constant pose, the mean of the evaluation drive's own true poses (x, y and speed averaged,
+heading the circular mean; an oracle constant that knows where the drives went, so a model must beat
+it to show it localises), and no boxes (AP 0).
+
+Outputs in ``out_dir`` (:func:`evaluate`): metrics.json, report.md (the paper's Tables I and II with
+this run, the baseline and the paper's rows), pr_curves.png (cv2), examples.png (the paper's Fig. 6
+layout: world 0's frames with the most vehicles in view, one per part of the pictured window) and
+drive.mp4 (the same panels for world 0's first ``video_frames`` frames). Memory is flat in N: the host
+keeps per-frame pose errors and true poses (~30 bytes a frame) and at most ``num_examples`` pictures.
+"""
+import dataclasses
+import functools
+import json
+import math
+import os
+import time
+
+import cv2
+import jax
+import jax.numpy as jnp
+import numpy as np
+import orbax.checkpoint as ocp
+
+from e2e_percep_jax import config as config_lib
+from e2e_percep_jax import geometry as geo
+from e2e_percep_jax import metrics as metrics_lib
+from e2e_percep_jax import model as model_lib
+from e2e_percep_jax import panels
+from e2e_percep_jax import pixor
+from e2e_percep_jax import sensors
+from e2e_percep_jax import town as town_lib
+from e2e_percep_jax import world
+from e2e_percep_jax.config import Config
+
+IOU_THRESHOLDS = (0.1, 0.3, 0.5, 0.7)
+DEDUP_CELL_M = 0.5
+TOP_K = 64
+SCORE_FLOOR = 0.05
+NMS_IOU = 0.3
+RESET_STREAM, SAMPLE_STREAM = 0, 1  # fold_in data of PRNGKey(cfg.eval.seed)
+_COMPILED = {}  # compiled chunk programs by everything they depend on
+
+# The paper's Tables I and II (CARLA Town03), one row per variant.
+PAPER_AP = {  # AP (%) at IoU 0.1 / 0.3 / 0.5 / 0.7
+    "Inputs and roadmap (full)": (79.4, 72.0, 56.5, 16.8),
+    "No inputs reconstruction (no_input_recon)": (78.4, 74.4, 61.0, 22.1),
+    "No roadmap reconstruction (no_roadmap_recon)": (57.4, 45.3, 7.8, 0.3),
+}
+PAPER_POSE = {  # location (m), heading (rad)
+    "Inputs and roadmap (full)": (11.4, 0.33),
+    "No inputs reconstruction (no_input_recon)": (8.6, 0.17),
+    "No roadmap reconstruction (no_roadmap_recon)": (7.1, 0.42),
+}
+PAPER_VARIANT_ROW = {"full": "Inputs and roadmap (full)",
+                     "no_input_recon": "No inputs reconstruction (no_input_recon)",
+                     "no_roadmap_recon": "No roadmap reconstruction (no_roadmap_recon)"}
+
+
+# ----------------------------------------------------------------------------- restoring a run
+
+
+def restore_params(workdir: str, cfg: Config | None = None, step: int | None = None):
+    """(cfg, params, step) of the run in ``workdir``: its config.json (unless ``cfg`` is given) and the
+    params of checkpoint ``step`` (default: the latest), restored with the same abstract train state
+    that ``train.train`` saves. Raises FileNotFoundError if there is no checkpoint."""
+    from e2e_percep_jax import train as train_lib  # imported lazily: evaluation itself needs no optax
+    workdir = os.path.abspath(workdir)
+    if cfg is None:
+        with open(os.path.join(workdir, "config.json")) as f:
+            cfg = Config.from_json(f.read())
+    options = ocp.CheckpointManagerOptions(read_only=True, create=False)
+    with ocp.CheckpointManager(os.path.join(workdir, "checkpoints"), options=options) as manager:
+        step = manager.latest_step() if step is None else step
+        if step is None:
+            raise FileNotFoundError(f"no checkpoint in {workdir}/checkpoints")
+        sharding = jax.sharding.SingleDeviceSharding(jax.devices()[0])
+        abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding),
+                                jax.eval_shape(lambda: train_lib.init_state(cfg)))
+        state = manager.restore(step, args=ocp.args.StandardRestore(abstract))
+    return cfg, state.params, step
+
+
+# ----------------------------------------------------------------------------- device side
+
+
+def start_keys(cfg: Config):
+    """The E held-out world reset keys."""
+    return jax.random.split(jax.random.fold_in(jax.random.PRNGKey(cfg.eval.seed), RESET_STREAM),
+                            cfg.eval.num_worlds)
+
+
+@functools.partial(jax.jit, static_argnames="cfg")
+def start_worlds(keys, town, cfg: Config):
+    """E worlds reset from ``keys`` (their traffic is warmed up by the chunk function's first frames)."""
+    return jax.vmap(lambda k: world.reset(k, town, cfg.world))(keys)
+
+
+def detection_candidates(det_cls, det_reg, top_k: int, floor: float):
+    """Device-side reduction of PIXOR maps ``[..., R, R, 1]`` / ``[..., R, R, 6]`` to ``top_k`` candidates.
+
+    Returns boxes ``[..., k, 5]`` (ego frame), scores ``[..., k]`` (-1 for no candidate) and whether the
+    k-th candidate scored >= ``floor`` (bool ``[...]``: candidates may have been cut). See the module
+    docstring for the centre-cell de-duplication.
+    """
+    boxes, scores = pixor.decode_dense(det_cls, det_reg)  # [..., R, R, 5], [..., R, R]
+    prefix, r = scores.shape[:-2], scores.shape[-1]
+    boxes, scores = boxes.reshape(prefix + (r * r, 5)), scores.reshape(prefix + (r * r,))
+    cells = int(round(geo.BEV_SPAN_M / DEDUP_CELL_M)) + 2  # +1 border cell each side for outside centres
+    row = jnp.clip(jnp.floor((geo.BEV_AHEAD_M - boxes[..., 0]) / DEDUP_CELL_M) + 1, 0, cells - 1)
+    col = jnp.clip(jnp.floor((geo.BEV_SIDE_M - boxes[..., 1]) / DEDUP_CELL_M) + 1, 0, cells - 1)
+    cell = (row * cells + col).astype(jnp.int32)
+    finite = jnp.all(jnp.isfinite(boxes), -1) & jnp.isfinite(scores)
+    scores = jnp.where(finite, scores, -1.0)
+    pixel = jnp.arange(r * r, dtype=jnp.int32)
+
+    def dedup(cell, score):  # one frame: [P] -> is the pixel its cell's best?
+        best = jax.ops.segment_max(score, cell, num_segments=cells * cells)
+        first = jax.ops.segment_min(jnp.where(score >= best[cell], pixel, r * r), cell, num_segments=cells * cells)
+        return first[cell] == pixel
+
+    flat = lambda x, tail: x.reshape((-1, r * r) + tail)
+    keep = jax.vmap(dedup)(flat(cell, ()), flat(scores, ())).reshape(scores.shape)
+    top, idx = jax.lax.top_k(jnp.where(keep, scores, -1.0), top_k)
+    top_boxes = jnp.take_along_axis(boxes, idx[..., None], axis=-2)
+    return top_boxes, top, top[..., -1] >= floor
+
+
+def _to_uint8(image):
+    return (jnp.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(jnp.uint8)
+
+
+def make_chunk_fn(cfg: Config, town, sample: bool, top_k: int = TOP_K, floor: float = SCORE_FLOOR, heads=None):
+    """Jitted ``chunk(params, world_state, filter_state, key, warm, with_images) -> (world_state,
+    filter_state, out)``: ``cfg.eval.chunk_steps`` frames of all E worlds.
+
+    ``warm`` (int32 []): the chunk's first ``warm`` frames only step the worlds (traffic warm-up: no
+    observation, no filtering; their outputs are zeros). ``with_images`` (bool []): also return world
+    0's images. One compiled program serves warm-up, image and plain chunks (``lax.cond``), so the
+    evaluation compiles once. ``out`` holds per frame [C, E, ...]: cand_boxes [k, 5], cand_scores [k],
+    saturated, gt boxes / boxes_valid / boxes_occluded, pose (truth) and pose_pred (metres); and
+    [C, R, R, 3] uint8: world 0's camera, lidar, roadmap and reconstructions ``recon_<name>``.
+
+    ``heads(decoded, frame) -> decoded``, traced inside the program, may replace the model's decoded
+    det_cls / det_reg / pose (normalised) before scoring: tests feed the world's own targets through
+    the same candidate / NMS / matching path (an oracle).
+    """
+    image_size = cfg.data.image_size
+    observe = jax.vmap(lambda s: sensors.observe(s, town, image_size))
+    step = jax.vmap(lambda s: world.step(s, town))
+    recon_keys = model_lib.reconstructed_images(cfg.model.variant)
+
+    def perceive(params, wstate, fstate, key, with_images):
+        frame = observe(wstate)
+        # state t's ego_action is the action applied from t-1 to t (ignored on a drive's first frame).
+        fstate, post = model_lib.filter_step(params, fstate, frame["camera"], frame["lidar"], wstate.ego_action,
+                                             key if sample else None, cfg)
+        z = jnp.concatenate([post["z1"], post["z2"]], -1)
+        decoded = model_lib.decode(params, z, cfg)  # image heads unused here: compiled away
+        if heads is not None:
+            decoded = heads(decoded, frame)
+        cand_boxes, cand_scores, saturated = detection_candidates(decoded["det_cls"], decoded["det_reg"], top_k, floor)
+        out = {"cand_boxes": cand_boxes, "cand_scores": cand_scores, "saturated": saturated,
+               "boxes": frame["boxes"], "boxes_valid": frame["boxes_valid"],
+               "boxes_occluded": frame["boxes_occluded"], "pose": frame["pose"],
+               "pose_pred": model_lib.pose_to_metres(decoded["pose"])}
+        out.update({k: frame[k][0] for k in ("camera", "lidar", "roadmap")})
+
+        def images(z0):
+            dec0 = model_lib.decode(params, z0, cfg)
+            return {f"recon_{k}": _to_uint8(dec0[k][0]) for k in recon_keys}
+
+        blank = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), jax.eval_shape(images, z[:1]))
+        out.update(jax.lax.cond(with_images, images, lambda _: blank, z[:1]))
+        return fstate, out
+
+    def chunk(params, wstate, fstate, key, warm, with_images):
+        shapes = jax.eval_shape(lambda: perceive(params, wstate, fstate, key, with_images)[1])
+        zeros = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)
+
+        def body(carry, xs):
+            wstate, fstate = carry
+            k, warming = xs
+            fstate, out = jax.lax.cond(warming, lambda: (fstate, zeros),
+                                       lambda: perceive(params, wstate, fstate, k, with_images))
+            return (step(wstate), fstate), out
+
+        xs = (jax.random.split(key, cfg.eval.chunk_steps), jnp.arange(cfg.eval.chunk_steps) < warm)
+        (wstate, fstate), out = jax.lax.scan(body, (wstate, fstate), xs)
+        return wstate, fstate, out
+
+    return jax.jit(chunk)
+
+
+# ----------------------------------------------------------------------------- host side
+
+
+def frame_detections(cand_boxes, cand_scores, floor=SCORE_FLOOR, nms_iou=NMS_IOU):
+    """One frame's candidates ``[k, 5]``, ``[k]`` (NumPy) -> (boxes ``[M, 5]``, scores ``[M]``) after the
+    score floor, the BEV-view rule (``sensors.in_bev_view``, in NumPy) and greedy rotated NMS at
+    ``nms_iou``, highest score first."""
+    cand_boxes, cand_scores = np.asarray(cand_boxes), np.asarray(cand_scores)
+    keep = (cand_scores >= floor) & _in_view_np(cand_boxes[:, :2]) & (cand_boxes[:, 3] > 0) & (cand_boxes[:, 4] > 0)
+    boxes, scores = cand_boxes[keep].astype(np.float64), np.clip(cand_scores[keep].astype(np.float64), 0.0, 1.0)
+    if len(boxes) == 0:
+        return boxes.reshape(0, 5), scores
+    kept = metrics_lib.nms(boxes, scores, nms_iou)
+    return boxes[kept], scores[kept]
+
+
+def _in_view_np(xy):
+    return ((xy[..., 0] >= -geo.BEV_BEHIND_M) & (xy[..., 0] < geo.BEV_AHEAD_M) & (np.abs(xy[..., 1]) < geo.BEV_SIDE_M))
+
+
+def _curve_summary(curve, max_points=200):
+    """A PRCurve as JSON: AP, num_gt and the curve subsampled to <= max_points (ends kept)."""
+    n = len(curve.precision)
+    idx = np.unique(np.linspace(0, n - 1, min(n, max_points)).round().astype(int)) if n else np.zeros(0, int)
+    clean = lambda a: [None if not np.isfinite(v) else round(float(v), 5) for v in a[idx]]
+    return {"ap": None if not np.isfinite(curve.ap) else curve.ap, "num_gt": curve.num_gt,
+            "precision": clean(curve.precision), "recall": clean(curve.recall), "score": clean(curve.score)}
+
+
+def _at_threshold(curve, threshold):
+    """(precision, recall) of a PR curve when detections need score >= ``threshold``."""
+    above = curve.score >= threshold - 1e-9
+    if not np.any(above):
+        return None, 0.0 if curve.num_gt else None
+    i = np.nonzero(above)[0][-1]
+    recall = curve.recall[i]
+    return float(curve.precision[i]), (None if not np.isfinite(recall) else float(recall))
+
+
+def mean_pose(poses):
+    """The constant pose closest on average to ``poses [N, 5]``: mean x, y, speed; circular mean heading."""
+    poses = np.asarray(poses, np.float64)
+    heading = math.atan2(poses[:, 3].mean(), poses[:, 2].mean())
+    return np.array([poses[:, 0].mean(), poses[:, 1].mean(), math.cos(heading), math.sin(heading), poses[:, 4].mean()])
+
+
+def _pose_summary(acc):
+    res = acc.results()
+    by_step = res.pop("location_m_by_step")
+    res["location_m_by_step"] = {"bin_edges": [int(v) for v in by_step["bin_edges"]],
+                                 "mean": [None if not np.isfinite(v) else float(v) for v in by_step["mean"]],
+                                 "count": [int(v) for v in by_step["count"]]}
+    return res
+
+
+def _eta(seconds):
+    m, s = divmod(int(seconds), 60)
+    h, m = divmod(m, 60)
+    return f"{h}h{m:02d}m" if h else f"{m}m{s:02d}s"
+
+
+# ----------------------------------------------------------------------------- pictures
+
+
+def _title(view, text):
+    for colour, thick in (((0, 0, 0), 3), ((255, 255, 255), 1)):
+        cv2.putText(view, text, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, colour, thick, cv2.LINE_AA)
+    return view
+
+
+_SHIFT = 4  # cv2 fractional bits, as panels.draw_boxes
+
+
+def _draw_boxes_np(view, boxes, image_size, colour, thickness):
+    """``panels.draw_boxes`` (outline and heading tick of ego-frame boxes [M, 5] over a BEV view) in
+    NumPy. panels' version goes through jax.numpy geometry: every new box count compiles its ops
+    (~0.1 s) and every call dispatches them (~3 ms), which made the video the evaluation's bottleneck."""
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 5)
+    if len(boxes) == 0:
+        return view
+    c, s = np.cos(boxes[:, 2])[:, None], np.sin(boxes[:, 2])[:, None]
+    local = metrics_lib._CORNER_SIGNS[None] * 0.5 * boxes[:, None, 3:5]  # [M, 4, 2]
+    x = boxes[:, None, 0] + c * local[..., 0] - s * local[..., 1]
+    y = boxes[:, None, 1] + s * local[..., 0] + c * local[..., 1]
+    scale = view.shape[0] / geo.BEV_SPAN_M  # view pixels per metre
+    pts = np.round(np.stack([(geo.BEV_SIDE_M - y) * scale, (geo.BEV_AHEAD_M - x) * scale], -1)
+                   * (1 << _SHIFT)).astype(np.int32)  # cv2 (x = col, y = row)
+    cv2.polylines(view, list(pts), True, colour, thickness, cv2.LINE_AA, _SHIFT)
+    front, centre = (pts[:, 0] + pts[:, 1]) // 2, (pts[:, 0] + pts[:, 2]) // 2
+    for a, b in zip(centre, front):
+        cv2.line(view, tuple(int(v) for v in a), tuple(int(v) for v in b), colour, thickness, cv2.LINE_AA, _SHIFT)
+    return view
+
+
+def _draw_predictions(view, boxes, scores, image_size):
+    """panels.frame_panel's predicted-box style: cyan, brighter for higher scores."""
+    boxes, scores = np.asarray(boxes).reshape(-1, 5), np.asarray(scores).reshape(-1)
+    thickness = max(1, view.shape[0] // 160)
+    for box, score in zip(boxes, scores):
+        colour = tuple(int(c * (0.4 + 0.6 * float(score))) for c in panels.PREDICTED_RGB)
+        _draw_boxes_np(view, box[None], image_size, colour, thickness)
+    return view
+
+
+def _draw_ground_truth(view, frame, image_size):
+    """panels.frame_panel's ground-truth style: green where the lidar sees the box, orange where not."""
+    boxes, valid, occluded = (np.asarray(frame[k]) for k in ("boxes", "boxes_valid", "boxes_occluded"))
+    thickness = max(1, view.shape[0] // 160)
+    _draw_boxes_np(view, boxes[valid & occluded], image_size, panels.OCCLUDED_RGB, thickness)
+    _draw_boxes_np(view, boxes[valid & ~occluded], image_size, panels.VISIBLE_RGB, thickness)
+    return view
+
+
+def example_rows(frame, pred_boxes, pred_scores, panel_px=192):
+    """The paper's Fig. 6 layout for one frame: uint8 [2 * panel_px, 4 * panel_px, 3].
+
+    Row 1: camera, lidar, ground-truth roadmap, ground-truth boxes (green visible / orange occluded).
+    Row 2: reconstructed camera, lidar, roadmap (black where the variant does not reconstruct it), and
+    the decoded boxes (cyan, brighter for higher scores) over the reconstructed (else true) roadmap.
+    """
+    r = frame["camera"].shape[0]
+    no_boxes = dict(boxes=np.zeros((0, 5), np.float32), boxes_valid=np.zeros(0, bool), boxes_occluded=np.zeros(0, bool))
+    top = panels.frame_panel(dict(frame, **no_boxes), panel_px, titles=False)  # boxes drawn here, in NumPy
+    _draw_ground_truth(top[:, 3 * panel_px:], frame, r)
+    blank = np.zeros((r, r, 3), np.uint8)
+    recon = {k: frame.get(f"recon_{k}", blank) for k in ("camera", "lidar", "roadmap")}
+    recon_frame = dict(recon, **no_boxes)
+    if "recon_roadmap" not in frame:  # boxes drawn over the true roadmap, dimmed
+        recon_frame["roadmap"] = frame["roadmap"]
+    bottom = panels.frame_panel(recon_frame, panel_px, titles=False)
+    _draw_predictions(bottom[:, 3 * panel_px:], pred_boxes, pred_scores, r)
+    if "recon_roadmap" not in frame:
+        bottom[:, 2 * panel_px:3 * panel_px] = 0
+    for i, name in enumerate(("camera", "lidar", "GT roadmap", "GT boxes")):
+        _title(top[:, i * panel_px:(i + 1) * panel_px], name)
+    for i, (key, name) in enumerate((("camera", "recon. camera"), ("lidar", "recon. lidar"),
+                                     ("roadmap", "recon. roadmap"), (None, "decoded boxes"))):
+        view = bottom[:, i * panel_px:(i + 1) * panel_px]
+        _title(view, name if key is None or f"recon_{key}" in frame else f"{name}: not decoded")
+    return np.concatenate([top, bottom], 0)
+
+
+def pr_curves_image(results, size=360):
+    """uint8 BGR picture of the PR curves: one panel per subset (all / visible / occluded), one curve per IoU."""
+    colours = {0.1: (200, 120, 30), 0.3: (40, 160, 40), 0.5: (30, 110, 230), 0.7: (160, 40, 160)}  # BGR
+    margin_l, margin_b, margin_t, margin_r = 48, 40, 28, 12
+    views = []
+    for subset in metrics_lib.SUBSETS:
+        img = np.full((size + margin_t + margin_b, size + margin_l + margin_r, 3), 255, np.uint8)
+        px = lambda rec, prec: (int(round(margin_l + rec * size)), int(round(margin_t + (1 - prec) * size)))
+        for v in np.linspace(0, 1, 6):
+            cv2.line(img, px(v, 0), px(v, 1), (225, 225, 225), 1)
+            cv2.line(img, px(0, v), px(1, v), (225, 225, 225), 1)
+            cv2.putText(img, f"{v:.1f}", (px(v, 0)[0] - 9, px(v, 0)[1] + 14), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
+            cv2.putText(img, f"{v:.1f}", (4, px(0, v)[1] + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
+        cv2.rectangle(img, px(0, 1), px(1, 0), (0, 0, 0), 1)
+        cv2.putText(img, "recall", (margin_l + size // 2 - 20, size + margin_t + 32), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+        cv2.putText(img, f"precision vs recall: {subset} GT", (margin_l, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+        for j, thr in enumerate(sorted(results)):
+            curve = results[thr][subset]
+            colour = colours.get(thr, (0, 0, 0))
+            if curve.num_gt and len(curve.recall):
+                rec = np.concatenate([[0.0], curve.recall])
+                prec = np.concatenate([[curve.precision[0]], curve.precision])
+                pts = np.array([px(a, b) for a, b in zip(rec, prec)], np.int32)
+                cv2.polylines(img, [pts], False, colour, 2, cv2.LINE_AA)
+            ap = "n/a" if not np.isfinite(curve.ap) else f"{100 * curve.ap:.1f}%"
+            y = margin_t + 16 + 16 * j
+            cv2.line(img, (margin_l + size - 150, y - 4), (margin_l + size - 130, y - 4), colour, 2)
+            cv2.putText(img, f"IoU {thr:.1f}: AP {ap}", (margin_l + size - 125, y), cv2.FONT_HERSHEY_SIMPLEX, 0.38, (0, 0, 0), 1, cv2.LINE_AA)
+        views.append(img)
+    return np.concatenate(views, 1)
+
+
+# ----------------------------------------------------------------------------- report
+
+
+def _fmt(v, pct=False, digits=1):
+    if v is None or (isinstance(v, float) and not np.isfinite(v)):
+        return "n/a"
+    return f"{100 * v:.{digits}f}%" if pct else f"{v:.{digits}f}"
+
+
+def report_markdown(m: dict) -> str:
+    """report.md: the paper's Table I and Table II with this run's row, the baseline and the paper's rows."""
+    det, pose, base = m["detection"], m["pose"], m["baseline"]
+    variant = m["config"]["model"]["variant"]
+    thr = [f"{t:g}" for t in IOU_THRESHOLDS]
+    lines = [f"# Evaluation report: {m['workdir'] or '(library call)'}", "",
+             f"Checkpoint step {m['checkpoint_step']}, variant `{variant}`, preset image size "
+             f"{m['config']['data']['image_size']}. Online drive: {m['num_frames']} frames "
+             f"({m['num_worlds']} worlds x {m['frames_per_world']} frames, town seed {m['config']['eval']['town_seed']}, "
+             f"start keys from eval.seed {m['config']['eval']['seed']}, {m['config']['data']['warmup_steps']} warm-up steps), "
+             f"latent = {'posterior samples' if m['sample'] else 'posterior mean'}. "
+             f"{m['frames_per_s']:.1f} frames/s ({m['seconds']:.0f} s, compile {m['compile_s']:.0f} s).", "",
+             "## Table I: average precision of surrounding-vehicle boxes", "",
+             "| | " + " | ".join(f"AP<sub>{t}</sub>" for t in thr) + " |", "|---|" + "---|" * len(thr)]
+    ap = det["ap"]
+    lines.append(f"| **this run ({variant})** | " + " | ".join(_fmt(ap[t]["all"], True) for t in thr) + " |")
+    lines.append("| this run, visible GT | " + " | ".join(_fmt(ap[t]["visible"], True) for t in thr) + " |")
+    lines.append("| this run, occluded GT | " + " | ".join(_fmt(ap[t]["occluded"], True) for t in thr) + " |")
+    lines.append("| baseline: no boxes | " + " | ".join("0.0%" for _ in thr) + " |")
+    for row, vals in PAPER_AP.items():
+        mark = " (same variant)" if PAPER_VARIANT_ROW[variant] == row else ""
+        lines.append(f"| paper: {row}{mark} | " + " | ".join(f"{v:.1f}%" for v in vals) + " |")
+    lines += ["", f"Ground truths: {det['num_gt']['all']} ({det['num_gt']['visible']} visible, "
+              f"{det['num_gt']['occluded']} occluded: no lidar return). Detections: PIXOR class map -> "
+              f"boxes, top {det['top_k']} centre-cell candidates per frame (cut in "
+              f"{100 * det['topk_saturated_frac']:.1f}% of frames), score >= {det['score_floor']} "
+              f"(AP sweeps the score over this range), centre in the BEV view, greedy NMS at rotated IoU "
+              f"{det['nms_iou']}. Greedy matching by score, each ground truth at most once; all-point AP. "
+              "Occluded / visible rows: recall over that subset, a detection matched to the other subset "
+              "ignored, unmatched detections false positives in both.", "",
+              f"At the operating threshold {det['score_threshold']}: " + ", ".join(
+                  f"IoU {t}: precision {_fmt(det['at_threshold'][t]['precision'], True)}, recall "
+                  f"{_fmt(det['at_threshold'][t]['recall'], True)}" for t in thr) + ".", "",
+              "## Table II: ego global pose error", "",
+              "| | Location (m) | Heading (rad) | Speed (m/s) |", "|---|---|---|---|",
+              f"| **this run ({variant}), mean** | {_fmt(pose['location_m']['mean'], digits=2)} | "
+              f"{_fmt(pose['heading_rad']['mean'], digits=3)} | {_fmt(pose['speed_mps']['mean'], digits=2)} |",
+              f"| this run, median | {_fmt(pose['location_m']['median'], digits=2)} | "
+              f"{_fmt(pose['heading_rad']['median'], digits=3)} | {_fmt(pose['speed_mps']['median'], digits=2)} |",
+              f"| baseline: constant mean pose, mean | {_fmt(base['pose']['location_m']['mean'], digits=2)} | "
+              f"{_fmt(base['pose']['heading_rad']['mean'], digits=3)} | {_fmt(base['pose']['speed_mps']['mean'], digits=2)} |"]
+    for row, (loc, head) in PAPER_POSE.items():
+        mark = " (same variant)" if PAPER_VARIANT_ROW[variant] == row else ""
+        lines.append(f"| paper: {row}{mark} | {loc} | {head} | - |")
+    by = pose["location_m_by_step"]
+    edges = by["bin_edges"] + [None]
+    lines += ["", "Baseline: always the mean of this drive's true poses (x, y, speed averaged; heading the "
+              "circular mean) and no boxes, an oracle constant that knows where the evaluation drove.",
+              "Heading error wrapped to [0, pi]. The paper's best per column: AP 79.4 / 74.4 / 61.0 / 22.1 %, "
+              "location 7.1 m, heading 0.17 rad.", "",
+              "Location error by time since the start of a drive (does filtering converge?):", "",
+              "| steps since start | frames | mean location error (m) |", "|---|---|---|"]
+    for i, (count, mean) in enumerate(zip(by["count"], by["mean"])):
+        if count:
+            hi = edges[i + 1]
+            lines.append(f"| {edges[i]}-{hi - 1 if hi is not None else ''} | {count} | {_fmt(mean, digits=2)} |")
+    lines += ["", "Pictures: `pr_curves.png` (PR curves per IoU; all / visible / occluded), `examples.png` "
+              "(the paper's Fig. 6 layout, world 0), `drive.mp4` (the same panels over world 0's drive)."]
+    return "\n".join(lines) + "\n"
+
+
+# ----------------------------------------------------------------------------- the evaluation
+
+
+def evaluate(cfg: Config, params, out_dir: str, *, sample: bool = False, video_frames: int = 300,
+             num_examples: int = 2, top_k: int = TOP_K, score_floor: float = SCORE_FLOOR,
+             nms_iou: float = NMS_IOU, workdir: str | None = None, checkpoint_step: int | None = None,
+             heads=None, log=print) -> dict:
+    """Runs the online evaluation of ``params`` under ``cfg`` and writes the report into ``out_dir``.
+
+    ``video_frames``: frames of world 0 recorded into drive.mp4 (0: no video); the examples are taken
+    from the same frames. ``heads``: see :func:`make_chunk_fn` (None: the model's). ``log`` gets one
+    progress line per chunk. Returns the metrics dict (also written to metrics.json).
+    """
+    config_lib.validate(cfg)
+    ev = cfg.eval
+    os.makedirs(out_dir, exist_ok=True)
+    e, c = ev.num_worlds, ev.chunk_steps
+    warmup = cfg.data.warmup_steps
+    per_world = np.array([ev.num_steps // e + (w < ev.num_steps % e) for w in range(e)])  # frames to score
+    num_chunks = math.ceil((warmup + per_world.max()) / c)
+    shown_frames = max(1, min(video_frames, per_world[0]))  # world 0's frames with pictures
+    town = town_lib.build_town(ev.town_seed)
+    params = jax.device_put(params)
+    t0 = time.perf_counter()
+    wstate = start_worlds(start_keys(cfg), town, cfg)
+    fstate = model_lib.init_filter_state(e, cfg)
+    sample_root = jax.random.fold_in(jax.random.PRNGKey(ev.seed), SAMPLE_STREAM)
+    cache_key = (cfg.world, cfg.data.image_size, cfg.model, ev.chunk_steps, e, ev.town_seed, sample, top_k,
+                 score_floor, heads, jax.tree.structure(params), tuple(x.shape for x in jax.tree.leaves(params)))
+    if cache_key not in _COMPILED:  # one compile per program, reused by later evaluations in the process
+        _COMPILED[cache_key] = make_chunk_fn(cfg, town, sample, top_k, score_floor, heads).lower(
+            params, wstate, fstate, sample_root, jnp.int32(0), jnp.bool_(False)).compile()
+    compiled = _COMPILED[cache_key]
+    compile_s = time.perf_counter() - t0
+    log(f"eval: {ev.num_steps} frames = {e} worlds x {per_world.max()} frames after {warmup} warm-up steps, "
+        f"{num_chunks} chunks of {c}; compiled in {compile_s:.1f} s")
+
+    det_acc = metrics_lib.DetectionAccumulator(IOU_THRESHOLDS)
+    pose_acc = metrics_lib.PoseErrorAccumulator()
+    true_poses, saturated, done = [], 0, 0
+    images, video = [], None
+    video_path = os.path.join(out_dir, "drive.mp4")
+    panel_px = 192
+    tick = time.perf_counter()
+
+    def dispatch(i, wstate, fstate):
+        first = i * c - warmup  # drive frame index of the chunk's first frame (negative: warm-up)
+        return compiled(params, wstate, fstate, jax.random.fold_in(sample_root, i),
+                        jnp.int32(np.clip(-first, 0, c)), jnp.bool_(first < shown_frames and first + c > 0))
+
+    pending = dispatch(0, wstate, fstate)
+    for i in range(num_chunks):
+        wstate, fstate, out = pending
+        if i + 1 < num_chunks:  # queue the next chunk before the host works on this one
+            pending = dispatch(i + 1, wstate, fstate)
+        out = jax.tree.map(np.asarray, out)
+        for t in range(c):
+            frame_index = i * c + t - warmup
+            if frame_index < 0:
+                continue
+            for w in range(e):
+                if frame_index >= per_world[w]:
+                    continue
+                boxes, scores = frame_detections(out["cand_boxes"][t, w], out["cand_scores"][t, w], score_floor, nms_iou)
+                det_acc.add_frame(boxes, scores, out["boxes"][t, w], out["boxes_valid"][t, w], out["boxes_occluded"][t, w])
+                saturated += bool(out["saturated"][t, w])
+                done += 1
+                if w == 0 and frame_index < shown_frames:
+                    frame = {k: np.array(out[k][t]) for k in out if k in ("camera", "lidar", "roadmap") or k.startswith("recon_")}
+                    frame.update({k: np.array(out[k][t, 0]) for k in ("boxes", "boxes_valid", "boxes_occluded")})
+                    shown = scores >= ev.score_threshold
+                    if frame_index < video_frames:
+                        picture = example_rows(frame, boxes[shown], scores[shown], panel_px)
+                        cv2.putText(picture, f"world 0, frame {frame_index}", (4 * panel_px - 150, 2 * panel_px - 8),
+                                    cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
+                        if video is None:
+                            video = cv2.VideoWriter(video_path, cv2.VideoWriter_fourcc(*"mp4v"), 10,
+                                                    (picture.shape[1], picture.shape[0]))
+                        video.write(cv2.cvtColor(picture, cv2.COLOR_RGB2BGR))
+                    images.append((frame_index, frame, boxes[shown], scores[shown]))
+                    images = _example_candidates(images, shown_frames, num_examples)  # flat memory
+            valid = frame_index < per_world
+            pose_acc.add(metrics_lib.pose_errors(out["pose_pred"][t][valid], out["pose"][t][valid]), frame_index)
+            true_poses.append(out["pose"][t][valid])
+        if done == 0:
+            log(f"eval: warming up the traffic, step {min((i + 1) * c, warmup)}/{warmup}")
+            tick = time.perf_counter()  # frames/s counts driven frames only
+            continue
+        now = time.perf_counter()
+        rate = done / max(now - tick, 1e-9)
+        log(f"eval: {done}/{ev.num_steps} frames ({100 * done / ev.num_steps:.0f}%)  {rate:.1f} frames/s  "
+            f"ETA {_eta((ev.num_steps - done) / max(rate, 1e-9))}")
+    if video is not None:
+        video.release()
+    seconds = time.perf_counter() - tick
+
+    # Baseline: a constant pose, the mean of the drive's true poses, and no boxes (AP 0).
+    true_poses = np.concatenate(true_poses)
+    constant = mean_pose(true_poses)
+    base_acc = metrics_lib.PoseErrorAccumulator()
+    base_acc.add(metrics_lib.pose_errors(np.broadcast_to(constant, true_poses.shape), true_poses), 0)
+
+    results = det_acc.results()
+    key = lambda t: f"{t:g}"
+    metrics = {
+        "workdir": workdir, "checkpoint_step": checkpoint_step, "config": dataclasses.asdict(cfg),
+        "sample": sample, "num_frames": done, "num_worlds": e, "frames_per_world": int(per_world.max()),
+        "seconds": seconds, "frames_per_s": done / max(seconds, 1e-9), "compile_s": compile_s,
+        "detection": {
+            "iou_thresholds": list(IOU_THRESHOLDS), "score_threshold": ev.score_threshold,
+            "score_floor": score_floor, "nms_iou": nms_iou, "top_k": top_k, "dedup_cell_m": DEDUP_CELL_M,
+            "topk_saturated_frac": saturated / max(done, 1),
+            "num_gt": {s: results[IOU_THRESHOLDS[0]][s].num_gt for s in metrics_lib.SUBSETS},
+            "ap": {key(t): {s: (None if not np.isfinite(results[t][s].ap) else results[t][s].ap)
+                            for s in metrics_lib.SUBSETS} for t in IOU_THRESHOLDS},
+            "at_threshold": {key(t): dict(zip(("precision", "recall"), _at_threshold(results[t]["all"], ev.score_threshold)))
+                             for t in IOU_THRESHOLDS},
+            "pr_curves": {key(t): {s: _curve_summary(results[t][s]) for s in metrics_lib.SUBSETS} for t in IOU_THRESHOLDS},
+        },
+        "pose": _pose_summary(pose_acc),
+        "baseline": {"description": "constant pose = mean of the drive's true poses (circular mean heading); no boxes",
+                     "mean_pose": [float(v) for v in constant], "pose": _pose_summary(base_acc),
+                     "ap": {key(t): 0.0 for t in IOU_THRESHOLDS}},
+        "paper": {"ap_percent": {k: dict(zip(map(key, IOU_THRESHOLDS), v)) for k, v in PAPER_AP.items()},
+                  "pose": {k: {"location_m": v[0], "heading_rad": v[1]} for k, v in PAPER_POSE.items()}},
+    }
+    with open(os.path.join(out_dir, "metrics.json"), "w") as f:
+        json.dump(metrics, f, indent=1)
+    with open(os.path.join(out_dir, "report.md"), "w") as f:
+        f.write(report_markdown(metrics))
+    cv2.imwrite(os.path.join(out_dir, "pr_curves.png"), pr_curves_image(results))
+    chosen = _example_candidates(images, shown_frames, num_examples)
+    if chosen:
+        sep = np.full((6, 4 * panel_px, 3), 255, np.uint8)
+        rows = []
+        for index, frame, boxes, scores in chosen:
+            rows += [example_rows(frame, boxes, scores, panel_px), sep]
+        cv2.imwrite(os.path.join(out_dir, "examples.png"), cv2.cvtColor(np.concatenate(rows[:-1], 0), cv2.COLOR_RGB2BGR))
+    log(f"eval: wrote {out_dir}: AP@0.5 {_fmt(metrics['detection']['ap']['0.5']['all'], True)}, "
+        f"location error {_fmt(metrics['pose']['location_m']['mean'], digits=2)} m, "
+        f"heading error {_fmt(metrics['pose']['heading_rad']['mean'], digits=3)} rad")
+    return metrics
+
+
+def _example_candidates(images, window, num_examples):
+    """The kept (frame_index, frame, boxes, scores) entries: the window of pictured frames is cut into
+    ``num_examples`` equal parts and each keeps its frame with the most ground-truth vehicles in view
+    (ties: the later frame, where the filter has run longer). Called after every new frame, so at
+    most ``num_examples`` frames are held."""
+    if num_examples <= 0:
+        return []
+    best = {}
+    for entry in images:
+        part = min(num_examples - 1, entry[0] * num_examples // max(window, 1))
+        crowd = int(np.sum(entry[1]["boxes_valid"]))
+        if part not in best or crowd >= best[part][0]:
+            best[part] = (crowd, entry)
+    return [best[p][1] for p in sorted(best)]

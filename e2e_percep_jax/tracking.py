@@ -1,0 +1,532 @@
+"""Classical modular baselines (issue 8), in NumPy on the host: a bird-eye Kalman tracker and dead reckoning.
+
+Tracker (AB3DMOT style, :class:`Tracker`)
+- State per track, town frame: ``(x_m, y_m, yaw_rad, length_m, width_m, vx_mps, vy_mps)``, constant velocity.
+- Ego motion: detections arrive in the ego frame of their frame together with that frame's ego pose
+  ``[5] = (x_m, y_m, cos psi, sin psi, speed_mps)`` (frame contract, DESIGN §2). They are moved to the town
+  frame with that pose, tracked there, and the tracks are moved back into the current ego frame for output.
+  With the true pose this compensates ego motion exactly (a static car stays static in the filter). With an
+  estimated pose (the model's, or dead reckoning) the pose error enters as a detection error in the town frame
+  that the filter does not model: the tracker then sees apparent motion of static cars.
+- Association: rotated IoU (``metrics.rotated_iou``) between the predicted tracks and the detections, solved
+  by an exact maximum-total-IoU assignment (:func:`hungarian`, Jonker-Volgenant style shortest augmenting
+  paths; ``scipy`` is not a dependency) or greedily, highest IoU first (:func:`greedy_assignment`). Pairs under
+  ``iou_threshold`` never match. IoU is blind to a heading flip (a rectangle turned by pi is the same set), so
+  flips do not disturb association. Tracks and detections left over are then matched by the Mahalanobis
+  distance of their centres (:func:`associate_by_centre`, ``centre_gate``). Before the update a matched
+  detection's yaw is folded to within pi/2 of the track's (:func:`fold_heading`), and the yaw innovation is
+  wrapped.
+- Track life: a detection that matches no track opens a tentative track. It is born (confirmed, reported)
+  once it has ``min_hits`` consecutive hits; a tentative track dies at its first miss. A confirmed track coasts
+  (predict only) while unmatched and is still reported, with score ``last detection score * score_decay **
+  misses``; it dies on its ``max_age + 1``-th consecutive miss (so it is reported through ``max_age`` missed
+  frames, SORT's convention). The reported score is what AP ranks.
+
+Dead reckoning (:func:`dead_reckon`, :class:`DeadReckoner`)
+- Integrates the ego pose from measured speeds and yaw rates, given the true start pose, with the world's own
+  kinematic bicycle update (``world._drive_ego``): the rear axle moves along the mid-step heading, the centre
+  sits half a wheelbase ahead of it. With exact measurements (:func:`odometry_from_poses`) it reproduces the
+  world's path up to float rounding; :func:`noisy_odometry` adds white Gaussian noise from an explicit
+  ``np.random.Generator``.
+
+Everything is float64 NumPy: per-frame host logic with small varying sizes, where JAX dispatch and
+per-shape compilation would dominate (as in ``metrics``).
+"""
+import dataclasses
+from typing import NamedTuple
+
+import numpy as np
+
+from e2e_percep_jax import metrics
+from e2e_percep_jax.world import DT_S, WHEELBASE_M
+
+STATE_DIM = 7  # x, y, yaw, length, width, vx, vy
+MEAS_DIM = 5  # x, y, yaw, length, width (a box)
+_POS, _YAW, _SIZE, _VEL = [0, 1], 2, [3, 4], [5, 6]
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Frames (NumPy twins of geometry's jnp functions; per-frame calls would pay JAX dispatch otherwise)
+
+
+def wrap_angle(angle_rad):
+    """Wraps angles to [-pi, pi) (twin of ``geometry.wrap_angle``)."""
+    return (np.asarray(angle_rad) + np.pi) % (2 * np.pi) - np.pi
+
+
+def pose_yaw(pose):
+    """Ego yaw (rad) from poses ``[..., 5] = (x, y, cos psi, sin psi, speed)`` -> ``[...]``."""
+    pose = np.asarray(pose, dtype=np.float64)
+    return np.arctan2(pose[..., 3], pose[..., 2])
+
+
+def boxes_ego_to_town(boxes_ego, pose):
+    """Ego-frame boxes ``[N, 5]`` of a frame with ego pose ``[5]`` -> town-frame boxes ``[N, 5]``."""
+    boxes_ego = np.asarray(boxes_ego, dtype=np.float64).reshape(-1, 5)
+    pose = np.asarray(pose, dtype=np.float64)
+    psi = pose_yaw(pose)
+    c, s = np.cos(psi), np.sin(psi)
+    x, y = boxes_ego[:, 0], boxes_ego[:, 1]
+    out = boxes_ego.copy()
+    out[:, 0] = c * x - s * y + pose[0]
+    out[:, 1] = s * x + c * y + pose[1]
+    out[:, 2] = wrap_angle(boxes_ego[:, 2] + psi)
+    return out
+
+
+def boxes_town_to_ego(boxes_town, pose):
+    """Inverse of :func:`boxes_ego_to_town`: town-frame boxes ``[N, 5]`` -> ego frame of pose ``[5]``."""
+    boxes_town = np.asarray(boxes_town, dtype=np.float64).reshape(-1, 5)
+    pose = np.asarray(pose, dtype=np.float64)
+    psi = pose_yaw(pose)
+    c, s = np.cos(psi), np.sin(psi)
+    dx, dy = boxes_town[:, 0] - pose[0], boxes_town[:, 1] - pose[1]
+    out = boxes_town.copy()
+    out[:, 0] = c * dx + s * dy
+    out[:, 1] = -s * dx + c * dy
+    out[:, 2] = wrap_angle(boxes_town[:, 2] - psi)
+    return out
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Assignment
+
+
+def hungarian(score):
+    """Maximum-total-score assignment of rows to columns of ``score [N, M]`` (rectangular allowed).
+
+    Shortest augmenting paths with dual potentials (the O(N^2 M) Hungarian / Jonker-Volgenant scheme), the
+    inner loop over columns vectorised. Every row is assigned when N <= M (every column when N > M), so
+    callers drop pairs they do not accept afterwards (e.g. IoU under a threshold: give those pairs score 0 so
+    they cannot displace an acceptable pair).
+
+    Returns:
+      rows, cols: int64 ``[min(N, M)]``, the assigned pairs, rows ascending.
+    """
+    score = np.asarray(score, dtype=np.float64)
+    if score.ndim != 2:
+        raise ValueError(f"expected a [N, M] score matrix, got {score.shape}")
+    if not np.all(np.isfinite(score)):
+        raise ValueError("scores must be finite")
+    n, m = score.shape
+    if n == 0 or m == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    if n > m:
+        cols, rows = hungarian(score.T)
+        order = np.argsort(rows)
+        return rows[order], cols[order]
+    cost = -score
+    u = np.zeros(n + 1)  # row potentials (1-based, 0 unused)
+    v = np.zeros(m + 1)  # column potentials; column 0 is the virtual start
+    row_of_col = np.zeros(m + 1, np.int64)  # 1-based row assigned to each column, 0 = free
+    way = np.zeros(m + 1, np.int64)
+    for i in range(1, n + 1):
+        row_of_col[0] = i
+        j0 = 0
+        min_slack = np.full(m + 1, np.inf)
+        used = np.zeros(m + 1, dtype=bool)
+        while True:
+            used[j0] = True
+            i0 = row_of_col[j0]
+            slack = cost[i0 - 1] - u[i0] - v[1:]
+            free = ~used[1:]
+            better = free & (slack < min_slack[1:])
+            min_slack[1:][better] = slack[better]
+            way[1:][better] = j0
+            j1 = int(np.argmin(np.where(free, min_slack[1:], np.inf))) + 1
+            delta = min_slack[j1]
+            u[row_of_col[used]] += delta
+            v[used] -= delta
+            min_slack[~used] -= delta
+            j0 = j1
+            if row_of_col[j0] == 0:
+                break
+        while j0:  # augment along the path
+            j1 = way[j0]
+            row_of_col[j0] = row_of_col[j1]
+            j0 = j1
+    cols = np.nonzero(row_of_col[1:])[0]
+    rows = row_of_col[1:][cols] - 1
+    order = np.argsort(rows)
+    return rows[order].astype(np.int64), cols[order].astype(np.int64)
+
+
+def greedy_assignment(score, min_score=0.0):
+    """Greedy assignment: pairs of ``score [N, M]`` taken by decreasing score (ties: row-major order) while
+    both ends are free and the score is ``>= min_score``. Returns rows, cols int64 ``[K]``, rows ascending."""
+    score = np.asarray(score, dtype=np.float64)
+    n, m = score.shape
+    order = np.argsort(-score, axis=None, kind="stable")
+    row_used, col_used = np.zeros(n, bool), np.zeros(m, bool)
+    rows, cols = [], []
+    for flat in order:
+        r, c = divmod(int(flat), m)
+        if score[r, c] < min_score:
+            break
+        if not row_used[r] and not col_used[c]:
+            row_used[r] = col_used[c] = True
+            rows.append(r)
+            cols.append(c)
+    rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
+    order = np.argsort(rows)
+    return rows[order], cols[order]
+
+
+def associate(track_boxes, det_boxes, iou_threshold, method="hungarian"):
+    """Matches predicted track boxes ``[T, 5]`` to detections ``[D, 5]`` (same frame) by rotated IoU.
+
+    Args:
+      iou_threshold: pairs with IoU below this never match (must be > 0).
+      method: "hungarian" (maximum total IoU) or "greedy" (highest IoU first).
+    Returns:
+      matches int64 ``[K, 2]`` (track index, detection index); unmatched tracks ``[T - K]``; unmatched
+      detections ``[D - K]``; all ascending.
+    """
+    if iou_threshold <= 0.0:
+        raise ValueError("iou_threshold must be > 0 (IoU 0 means the boxes do not touch)")
+    num_tracks, num_dets = len(track_boxes), len(det_boxes)
+    if num_tracks and num_dets:
+        iou = metrics.rotated_iou(track_boxes, det_boxes)
+        gain = np.where(iou >= iou_threshold, iou, 0.0)  # an unacceptable pair gains nothing
+        if method == "hungarian":
+            rows, cols = hungarian(gain)
+        elif method == "greedy":
+            rows, cols = greedy_assignment(gain, min_score=iou_threshold)
+        else:
+            raise ValueError(f"unknown association method {method!r}")
+        keep = iou[rows, cols] >= iou_threshold
+        rows, cols = rows[keep], cols[keep]
+    else:
+        rows = cols = np.zeros(0, np.int64)
+    matches = np.stack([rows, cols], axis=1)
+    return (matches, np.setdiff1d(np.arange(num_tracks), rows).astype(np.int64),
+            np.setdiff1d(np.arange(num_dets), cols).astype(np.int64))
+
+
+def associate_by_centre(track_xy, track_cov_xy, det_xy, meas_cov_xy, gate, method="hungarian"):
+    """Matches track centres ``[T, 2]`` (covariances ``[T, 2, 2]``) to detection centres ``[D, 2]`` (noise
+    ``[2, 2]``) by Mahalanobis distance ``d2 = y^T (P + R)^-1 y`` below ``gate``, minimising the total d2 of
+    the matched pairs (as gains ``gate - d2``). Returns matches int64 ``[K, 2]`` (track, detection)."""
+    if len(track_xy) == 0 or len(det_xy) == 0 or gate <= 0.0:
+        return np.zeros((0, 2), np.int64)
+    y = det_xy[None, :, :] - track_xy[:, None, :]  # [T, D, 2]
+    s_inv = np.linalg.inv(track_cov_xy + meas_cov_xy)  # [T, 2, 2]
+    d2 = np.einsum("tdi,tij,tdj->td", y, s_inv, y)
+    gain = np.where(d2 < gate, gate - d2, 0.0)
+    if method == "hungarian":
+        rows, cols = hungarian(gain)
+    else:
+        rows, cols = greedy_assignment(gain, min_score=np.finfo(np.float64).tiny)
+    keep = d2[rows, cols] < gate
+    return np.stack([rows[keep], cols[keep]], axis=1)
+
+
+def fold_heading(det_yaw_rad, track_yaw_rad):
+    """Detection yaws ``[...]`` turned by pi where they differ from the track's by more than pi/2, wrapped.
+
+    The result lies within pi/2 of the track's yaw (up to wrapping), so a flipped detection updates the
+    track's heading by its small true difference instead of spinning it round.
+    """
+    det_yaw_rad = np.asarray(det_yaw_rad, dtype=np.float64)
+    flipped = np.abs(wrap_angle(det_yaw_rad - track_yaw_rad)) > 0.5 * np.pi
+    return wrap_angle(np.where(flipped, det_yaw_rad + np.pi, det_yaw_rad))
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Kalman filter
+
+
+@dataclasses.dataclass(frozen=True)
+class TrackerConfig:
+    """Tracker parameters (defaults for the synthetic world at 10 Hz; tune on training data).
+
+    dt_s: frame interval (the world's DT_S).
+    accel_std_mps2: process noise, white acceleration per axis, constant over a step (the discrete white
+      noise acceleration model: Q of (x, vx) is ``sigma^2 [[dt^4/4, dt^3/2], [dt^3/2, dt^2]]``). 3 m/s^2
+      covers the world's braking (NPCs up to 6 m/s^2) and lateral acceleration in turns (v^2 / r ~ 3-5 m/s^2).
+    yaw_rate_std_rps: process noise of the yaw, a random walk of std ``yaw_rate_std_rps * dt_s`` per step;
+      1 rad/s covers turning at junctions (v / r ~ 0.7 rad/s) without a turn rate in the state.
+    size_std_m: random-walk std per step of length and width: real sizes are constant, a small value lets
+      the filter keep averaging noisy detected sizes instead of freezing them.
+    meas_pos_std_m, meas_yaw_std_rad, meas_size_std_m: detection noise. PIXOR regresses boxes on a
+      0.25 m grid; 0.3 m / 0.15 rad / 0.3 m is the order of its box errors at IoU 0.5-0.7.
+    init_speed_std_mps: prior std of each velocity component of a new track (velocity prior mean 0):
+      the world's speed limits are around 8-14 m/s.
+    iou_threshold: minimum rotated IoU of a (predicted track, detection) pair to match. At 10 Hz a car moves
+      <= 1.5 m a step and the prediction carries velocity, so true pairs overlap well; a low threshold also
+      keeps a new track (zero velocity) matched in its second frame.
+    min_hits: consecutive hits to confirm (born, reported) a track (AB3DMOT's default 3).
+    max_age: missed frames a confirmed track survives (coasting, reported); it dies at the next miss.
+      1 s at 10 Hz outlasts short occlusions without spawning many stale false positives.
+    score_decay: reported score of a coasting track is the last detection score times this per missed frame.
+    association: "hungarian" or "greedy".
+    centre_gate: second association stage (0 disables it): tracks and detections left unmatched by IoU are
+      matched (same method) by the Mahalanobis distance of the centre innovation, ``y^T S^-1 y`` with
+      ``S = P_xy + R_xy``, when it is below this (9.21: the 99% quantile of chi-square with 2 degrees of
+      freedom). It catches young tracks whose first velocity estimate (from two noisy boxes: ~4 m/s error
+      at 0.3 m noise) carries the prediction off its car (IoU 0); their wide covariance gives a wide gate,
+      while a settled track's gate is tight, so it rarely takes a neighbour's detection.
+    """
+    dt_s: float = DT_S
+    accel_std_mps2: float = 3.0
+    yaw_rate_std_rps: float = 1.0
+    size_std_m: float = 0.02
+    meas_pos_std_m: float = 0.3
+    meas_yaw_std_rad: float = 0.15
+    meas_size_std_m: float = 0.3
+    init_speed_std_mps: float = 10.0
+    iou_threshold: float = 0.05
+    min_hits: int = 3
+    max_age: int = 10
+    score_decay: float = 0.9
+    association: str = "hungarian"
+    centre_gate: float = 9.21
+
+
+def transition_matrix(dt_s):
+    """Constant-velocity transition ``F [7, 7]``: x += vx dt, y += vy dt, everything else kept."""
+    f = np.eye(STATE_DIM)
+    f[0, 5] = f[1, 6] = dt_s
+    return f
+
+
+def process_noise(cfg: TrackerConfig):
+    """Process noise covariance ``Q [7, 7]`` per step (see :class:`TrackerConfig`)."""
+    dt, q = cfg.dt_s, np.zeros((STATE_DIM, STATE_DIM))
+    var_a = cfg.accel_std_mps2 ** 2
+    for p, vel in ((0, 5), (1, 6)):
+        q[p, p] = var_a * dt ** 4 / 4
+        q[p, vel] = q[vel, p] = var_a * dt ** 3 / 2
+        q[vel, vel] = var_a * dt ** 2
+    q[2, 2] = (cfg.yaw_rate_std_rps * dt) ** 2
+    q[3, 3] = q[4, 4] = cfg.size_std_m ** 2
+    return q
+
+
+def measurement_noise(cfg: TrackerConfig):
+    """Detection noise covariance ``R [5, 5]`` of a box (x, y, yaw, length, width)."""
+    return np.diag([cfg.meas_pos_std_m, cfg.meas_pos_std_m, cfg.meas_yaw_std_rad, cfg.meas_size_std_m,
+                    cfg.meas_size_std_m]).astype(np.float64) ** 2
+
+
+def initial_state(det_boxes, cfg: TrackerConfig):
+    """New tracks from town-frame boxes ``[N, 5]``: means ``[N, 7]`` (zero velocity), covariances ``[N, 7, 7]``
+    (the measurement noise on the box, ``init_speed_std_mps^2`` on each velocity)."""
+    det_boxes = np.asarray(det_boxes, dtype=np.float64).reshape(-1, 5)
+    mean = np.concatenate([det_boxes, np.zeros((len(det_boxes), 2))], axis=1)
+    cov0 = np.zeros((STATE_DIM, STATE_DIM))
+    cov0[:5, :5] = measurement_noise(cfg)
+    cov0[5, 5] = cov0[6, 6] = cfg.init_speed_std_mps ** 2
+    return mean, np.broadcast_to(cov0, (len(det_boxes), STATE_DIM, STATE_DIM)).copy()
+
+
+def kf_predict(mean, cov, f, q):
+    """Prediction of tracks ``mean [T, 7], cov [T, 7, 7]`` with transition ``f [7, 7]`` and noise ``q [7, 7]``."""
+    mean = mean @ f.T
+    mean[:, 2] = wrap_angle(mean[:, 2])
+    return mean, f @ cov @ f.T + q
+
+
+def kf_update(mean, cov, boxes, r):
+    """Kalman update of tracks ``mean [T, 7], cov [T, 7, 7]`` with matched boxes ``[T, 5]`` (same frame; yaws
+    already folded, see :func:`fold_heading`), noise ``r [5, 5]``. The yaw innovation is wrapped; the
+    covariance uses the Joseph form (stays symmetric positive definite). Returns the new mean, cov."""
+    innovation = boxes - mean[:, :5]
+    innovation[:, 2] = wrap_angle(innovation[:, 2])
+    s = cov[:, :5, :5] + r  # H P H^T + R with H = [I_5 | 0]
+    gain = np.linalg.solve(s, cov[:, :5, :]).transpose(0, 2, 1)  # P H^T S^-1  [T, 7, 5]  (S, P symmetric)
+    mean = mean + np.einsum("tij,tj->ti", gain, innovation)
+    mean[:, 2] = wrap_angle(mean[:, 2])
+    i_kh = np.broadcast_to(np.eye(STATE_DIM), cov.shape).copy()
+    i_kh[:, :, :5] -= gain
+    cov = i_kh @ cov @ i_kh.transpose(0, 2, 1) + gain @ r @ gain.transpose(0, 2, 1)
+    return mean, 0.5 * (cov + cov.transpose(0, 2, 1))
+
+
+class TrackerOutput(NamedTuple):
+    """Reported (confirmed) tracks of one frame: boxes float64 ``[M, 5]`` in that frame's ego frame, scores
+    ``[M]`` in [0, 1] (the AP score), track_ids int64 ``[M]``; ordered by track id."""
+    boxes: np.ndarray
+    scores: np.ndarray
+    track_ids: np.ndarray
+
+
+class Tracker:
+    """Bird-eye multi-object Kalman tracker (see the module docstring). One instance per drive.
+
+    Per-track arrays (rows = live tracks, tentative and confirmed, ordered by id), public for inspection:
+    mean ``[T, 7]`` and cov ``[T, 7, 7]`` (town frame), ids ``[T]``, hit_streak ``[T]`` (consecutive hits),
+    misses ``[T]`` (consecutive missed frames), confirmed ``[T]`` bool, det_score ``[T]`` (score of the last
+    matched detection).
+    """
+
+    def __init__(self, cfg: TrackerConfig = TrackerConfig()):
+        if cfg.min_hits < 1 or cfg.max_age < 0:
+            raise ValueError("need min_hits >= 1 and max_age >= 0")
+        self.cfg = cfg
+        self._f = transition_matrix(cfg.dt_s)
+        self._q = process_noise(cfg)
+        self._r = measurement_noise(cfg)
+        self.reset()
+
+    def reset(self):
+        """Drops every track; ids restart from 0."""
+        self.mean = np.zeros((0, STATE_DIM))
+        self.cov = np.zeros((0, STATE_DIM, STATE_DIM))
+        self.ids = np.zeros(0, np.int64)
+        self.hit_streak = np.zeros(0, np.int64)
+        self.misses = np.zeros(0, np.int64)
+        self.confirmed = np.zeros(0, bool)
+        self.det_score = np.zeros(0)
+        self._next_id = 0
+        self.num_frames = 0
+
+    def _keep(self, keep):
+        for name in ("mean", "cov", "ids", "hit_streak", "misses", "confirmed", "det_score"):
+            setattr(self, name, getattr(self, name)[keep])
+
+    def update(self, det_boxes, det_scores, ego_pose):
+        """Advances one frame.
+
+        Args:
+          det_boxes: ``[D, 5]`` this frame's detections in its ego frame (after NMS; ``[0, 5]`` for none).
+          det_scores: ``[D]`` detection scores in [0, 1].
+          ego_pose: ``[5] = (x_m, y_m, cos psi, sin psi, speed_mps)``, this frame's ego pose in the town frame
+            (true or estimated; see the module docstring).
+        Returns:
+          :class:`TrackerOutput` of the confirmed tracks, in this frame's ego frame.
+        """
+        cfg = self.cfg
+        det_town = boxes_ego_to_town(det_boxes, ego_pose)
+        det_scores = np.asarray(det_scores, dtype=np.float64).reshape(-1)
+        if det_scores.shape != (len(det_town),):
+            raise ValueError(f"expected {len(det_town)} scores, got shape {det_scores.shape}")
+        if self.num_frames > 0 and len(self.ids):
+            self.mean, self.cov = kf_predict(self.mean, self.cov, self._f, self._q)
+        self.num_frames += 1
+
+        matches, unmatched_tracks, unmatched_dets = associate(
+            self.mean[:, :5], det_town, cfg.iou_threshold, cfg.association)
+        second = associate_by_centre(self.mean[unmatched_tracks, :2], self.cov[unmatched_tracks, :2, :2],
+                                     det_town[unmatched_dets, :2], self._r[:2, :2], cfg.centre_gate,
+                                     cfg.association)
+        if len(second):
+            matches = np.concatenate([matches, np.stack([unmatched_tracks[second[:, 0]],
+                                                         unmatched_dets[second[:, 1]]], axis=1)])
+            unmatched_tracks = np.setdiff1d(unmatched_tracks, matches[:, 0])
+            unmatched_dets = np.setdiff1d(unmatched_dets, matches[:, 1])
+        t_idx, d_idx = matches[:, 0], matches[:, 1]
+        if len(matches):
+            z = det_town[d_idx].copy()
+            z[:, 2] = fold_heading(z[:, 2], self.mean[t_idx, 2])
+            self.mean[t_idx], self.cov[t_idx] = kf_update(self.mean[t_idx], self.cov[t_idx], z, self._r)
+            self.hit_streak[t_idx] += 1
+            self.misses[t_idx] = 0
+            self.det_score[t_idx] = det_scores[d_idx]
+        self.hit_streak[unmatched_tracks] = 0
+        self.misses[unmatched_tracks] += 1
+        self.confirmed |= self.hit_streak >= cfg.min_hits
+        # Tentative tracks die at their first miss; confirmed ones after max_age misses.
+        self._keep(np.where(self.confirmed, self.misses <= cfg.max_age, self.misses == 0))
+
+        # Births: every unmatched detection opens a track (born at once when min_hits == 1).
+        mean, cov = initial_state(det_town[unmatched_dets], cfg)
+        num_new = len(unmatched_dets)
+        self.mean = np.concatenate([self.mean, mean])
+        self.cov = np.concatenate([self.cov, cov])
+        self.ids = np.concatenate([self.ids, self._next_id + np.arange(num_new, dtype=np.int64)])
+        self._next_id += num_new
+        self.hit_streak = np.concatenate([self.hit_streak, np.ones(num_new, np.int64)])
+        self.misses = np.concatenate([self.misses, np.zeros(num_new, np.int64)])
+        self.confirmed = np.concatenate([self.confirmed, np.full(num_new, cfg.min_hits <= 1)])
+        self.det_score = np.concatenate([self.det_score, det_scores[unmatched_dets]])
+
+        shown = self.confirmed
+        scores = np.clip(self.det_score[shown] * cfg.score_decay ** self.misses[shown], 0.0, 1.0)
+        return TrackerOutput(boxes_town_to_ego(self.mean[shown, :5], ego_pose), scores, self.ids[shown].copy())
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Privileged dead reckoning
+
+
+def odometry_from_poses(poses, dt_s=DT_S):
+    """Exact odometry of a pose sequence ``[T+1, 5]``: (speed_mps ``[T]``, yaw_rate_rps ``[T]``).
+
+    speed_mps[k] is the speed at frame k+1 (a wheel-speed sample); yaw_rate_rps[k] the mean yaw rate over the
+    step k -> k+1 (a gyro integrated over the step), ``wrap(psi[k+1] - psi[k]) / dt``.
+    """
+    poses = np.asarray(poses, dtype=np.float64)
+    return poses[1:, 4].copy(), wrap_angle(np.diff(pose_yaw(poses))) / dt_s
+
+
+def noisy_odometry(poses, speed_noise_std_mps, yaw_rate_noise_std_rps, rng: np.random.Generator, dt_s=DT_S):
+    """:func:`odometry_from_poses` plus independent zero-mean Gaussian noise of the given stds per sample
+    (unclipped: a noisy speed may be negative, so the noise stays unbiased at standstill)."""
+    speed, yaw_rate = odometry_from_poses(poses, dt_s)
+    return (speed + speed_noise_std_mps * rng.standard_normal(speed.shape),
+            yaw_rate + yaw_rate_noise_std_rps * rng.standard_normal(yaw_rate.shape))
+
+
+def dead_reckon(start_pose, speed_mps, yaw_rate_rps, dt_s=DT_S, wheelbase_m=WHEELBASE_M):
+    """Integrates the ego pose from odometry with the world's bicycle kinematics (``world._drive_ego``).
+
+    Per step k: arc ``ds = (v_k + v_{k+1}) / 2 * dt`` (v_0 from the start pose, v_{k+1} = speed_mps[k]),
+    yaw change ``dpsi = yaw_rate_rps[k] * dt``; the rear axle (half a wheelbase behind the centre) advances
+    ``ds`` along the mid-step heading ``psi + dpsi / 2``, and the centre is half a wheelbase ahead of the new
+    rear axle along the new heading. Vectorised with cumulative sums.
+
+    Args:
+      start_pose: ``[5] = (x_m, y_m, cos psi, sin psi, speed_mps)``, the true pose at frame 0.
+      speed_mps: ``[T]`` measured speeds at frames 1..T. yaw_rate_rps: ``[T]`` measured mean yaw rates of
+        steps 0->1 .. T-1->T.
+    Returns:
+      poses float64 ``[T+1, 5]`` (frame 0 is the start pose), speed = the measured one.
+    """
+    start_pose = np.asarray(start_pose, dtype=np.float64)
+    speed_mps = np.asarray(speed_mps, dtype=np.float64)
+    yaw_rate_rps = np.asarray(yaw_rate_rps, dtype=np.float64)
+    if speed_mps.shape != yaw_rate_rps.shape or speed_mps.ndim != 1:
+        raise ValueError("speed_mps and yaw_rate_rps must both be [T]")
+    psi0 = pose_yaw(start_pose)
+    speeds = np.concatenate([start_pose[4:5], speed_mps])  # [T+1]
+    ds = 0.5 * (speeds[:-1] + speeds[1:]) * dt_s
+    dpsi = yaw_rate_rps * dt_s
+    psi = psi0 + np.concatenate([[0.0], np.cumsum(dpsi)])  # [T+1], unwrapped
+    mid = psi[:-1] + 0.5 * dpsi
+    half = 0.5 * wheelbase_m
+    rear0 = start_pose[:2] - half * np.array([np.cos(psi0), np.sin(psi0)])
+    step = ds[:, None] * np.stack([np.cos(mid), np.sin(mid)], axis=1)
+    rear = rear0 + np.concatenate([np.zeros((1, 2)), np.cumsum(step, axis=0)])
+    heading = np.stack([np.cos(psi), np.sin(psi)], axis=1)
+    centre = rear + half * heading
+    return np.concatenate([centre, heading, speeds[:, None]], axis=1)
+
+
+class DeadReckoner:
+    """Streaming :func:`dead_reckon` for online evaluation: one odometry sample per frame, O(1) memory.
+
+    ``DeadReckoner(start_pose).step(speed_mps, yaw_rate_rps)`` returns the pose ``[5]`` of the next frame.
+    """
+
+    def __init__(self, start_pose, dt_s=DT_S, wheelbase_m=WHEELBASE_M):
+        start_pose = np.asarray(start_pose, dtype=np.float64)
+        self.dt_s, self.half_wheelbase_m = dt_s, 0.5 * wheelbase_m
+        self.yaw_rad = float(pose_yaw(start_pose))
+        self.speed_mps = float(start_pose[4])
+        self.rear_xy = start_pose[:2] - self.half_wheelbase_m * np.array([np.cos(self.yaw_rad), np.sin(self.yaw_rad)])
+
+    def step(self, speed_mps, yaw_rate_rps):
+        ds = 0.5 * (self.speed_mps + speed_mps) * self.dt_s
+        dpsi = yaw_rate_rps * self.dt_s
+        mid = self.yaw_rad + 0.5 * dpsi
+        self.rear_xy = self.rear_xy + ds * np.array([np.cos(mid), np.sin(mid)])
+        self.yaw_rad = float(wrap_angle(self.yaw_rad + dpsi))
+        self.speed_mps = float(speed_mps)
+        return self.pose
+
+    @property
+    def pose(self):
+        heading = np.array([np.cos(self.yaw_rad), np.sin(self.yaw_rad)])
+        centre = self.rear_xy + self.half_wheelbase_m * heading
+        return np.array([centre[0], centre[1], heading[0], heading[1], self.speed_mps])

@@ -1,0 +1,72 @@
+"""Evaluates a trained run online (DESIGN §5) and writes RUN/eval/: metrics.json, report.md,
+pr_curves.png, examples.png, drive.mp4.
+
+    python experiments/evaluate.py --workdir=runs/demo [--eval.num_steps=2000 --sample --video_frames=300]
+
+The run's config.json is the config; ``--eval.<field>`` flags override its evaluation section
+(number of frames, worlds, start-key seed, town, chunk size, score threshold). Other sections are the
+trained model's and cannot change. A bad flag prints one line and exits with status 1.
+"""
+import os
+import sys
+
+from absl import app, flags, logging
+
+from e2e_percep_jax import config as config_lib
+
+config_lib.define_flags()
+flags.DEFINE_string("workdir", None, "run directory holding config.json and checkpoints/")
+flags.DEFINE_string("out_dir", None, "where the report goes (default: WORKDIR/eval)")
+flags.DEFINE_integer("step", None, "checkpoint step to evaluate (default: the latest)")
+flags.DEFINE_boolean("sample", False, "filter with posterior samples instead of the posterior mean")
+flags.DEFINE_integer("video_frames", 300, "frames of world 0 in drive.mp4 (0: no video)")
+flags.DEFINE_integer("num_examples", 2, "example frames in examples.png")
+flags.DEFINE_integer("top_k", None, "detection candidates per frame kept on the device")
+flags.DEFINE_float("score_floor", None, "lowest detection score accumulated into the PR curves")
+flags.DEFINE_float("nms_iou", None, "rotated-IoU threshold of the greedy NMS")
+FLAGS = flags.FLAGS
+
+
+def parse_flags(argv):
+    try:
+        return FLAGS(argv)
+    except flags.Error as e:
+        sys.exit(f"error: {e}")
+
+
+def main(argv):
+    if not FLAGS["verbosity"].present:
+        logging.set_verbosity(logging.WARNING)
+    from e2e_percep_jax import evaluate as eval_lib
+    try:
+        if len(argv) > 1:
+            raise ValueError(f"unexpected arguments {argv[1:]}; every setting is a --flag")
+        if not FLAGS.workdir:
+            raise ValueError("--workdir is required")
+        config_path = os.path.join(FLAGS.workdir, "config.json")
+        if not os.path.exists(config_path):
+            raise ValueError(f"--workdir={FLAGS.workdir}: no config.json (not a training run)")
+        if FLAGS["config"].present:
+            raise ValueError("--config: the run's config.json is the config; only --eval.* may change")
+        for section, name, _ in config_lib._fields():
+            if section != "eval" and FLAGS[f"{section}.{name}"].present:
+                raise ValueError(f"--{section}.{name}: only --eval.* may change at evaluation (the model is trained)")
+        with open(config_path) as f:
+            cfg = config_lib.Config.from_json(f.read())
+        overrides = {name: FLAGS[f"eval.{name}"].value for section, name, _ in config_lib._fields()
+                     if section == "eval" and FLAGS[f"eval.{name}"].present}
+        cfg = config_lib.validate(config_lib.replace(cfg, eval=overrides))
+        if FLAGS.video_frames < 0 or FLAGS.num_examples < 0:
+            raise ValueError("--video_frames and --num_examples must be >= 0")
+        cfg, params, step = eval_lib.restore_params(FLAGS.workdir, cfg, FLAGS.step)
+    except (ValueError, FileNotFoundError) as e:
+        sys.exit(f"error: {e}")
+    extra = {k: FLAGS[k].value for k in ("top_k", "score_floor", "nms_iou") if FLAGS[k].value is not None}
+    eval_lib.evaluate(cfg, params, FLAGS.out_dir or os.path.join(FLAGS.workdir, "eval"), sample=FLAGS.sample,
+                      video_frames=FLAGS.video_frames, num_examples=FLAGS.num_examples,
+                      workdir=os.path.abspath(FLAGS.workdir), checkpoint_step=step,
+                      log=lambda s: print(s, flush=True), **extra)
+
+
+if __name__ == "__main__":
+    app.run(main, flags_parser=parse_flags)
