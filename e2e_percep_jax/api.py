@@ -21,9 +21,7 @@ import numpy as np
 from e2e_percep_jax import metrics, pixor
 from e2e_percep_jax import model as model_lib
 from e2e_percep_jax.config import Config
-from e2e_percep_jax.evaluate import restore_params
-
-NMS_IOU = 0.1  # vehicles never overlap, so any real overlap between two detections is a duplicate
+from e2e_percep_jax.evaluate import NMS_IOU, restore_params
 
 
 def _check(name, x, shape, dtype):

@@ -162,7 +162,7 @@ def validate(cfg: Config) -> Config:
 # ----------------------------------------------------------------------------- command line
 
 
-def _fields():
+def fields():
     """(section, field, default type) for every leaf of Config."""
     for section in dataclasses.fields(Config):
         for f in dataclasses.fields(section.default):
@@ -176,7 +176,7 @@ def define_flags(flag_values=None) -> None:
     flags.DEFINE_string("config", "cpu", f"preset, one of {sorted(PRESETS)}", flag_values=fv)
     definers = {int: flags.DEFINE_integer, float: flags.DEFINE_float, str: flags.DEFINE_string,
                 bool: flags.DEFINE_boolean}
-    for section, name, typ in _fields():
+    for section, name, typ in fields():
         if typ is tuple:
             flags.DEFINE_list(f"{section}.{name}", None, "comma-separated integers", flag_values=fv)
         else:
@@ -189,7 +189,7 @@ def from_flags(flag_values=None) -> Config:
     fv = flags.FLAGS if flag_values is None else flag_values
     cfg = get_config(fv["config"].value)
     overrides: dict[str, dict[str, Any]] = {}
-    for section, name, typ in _fields():
+    for section, name, typ in fields():
         value = fv[f"{section}.{name}"].value
         if value is None:
             continue
@@ -200,3 +200,25 @@ def from_flags(flag_values=None) -> Config:
                 raise ValueError(f"--{section}.{name}={','.join(value)}: expected comma-separated integers")
         overrides.setdefault(section, {})[name] = value
     return validate(replace(cfg, **overrides))
+
+
+def parse_flags(argv):
+    """The launchers' absl ``flags_parser``: a bad flag exits with one line, not absl's usage text."""
+    from absl import flags
+    try:
+        return flags.FLAGS(argv)
+    except flags.Error as e:
+        raise SystemExit(f"error: {e}")
+
+
+def check_launch(argv, required: tuple = ("workdir",)) -> None:
+    """A launcher's first checks: no positional arguments, each flag named in ``required`` given.
+    Raises ValueError naming the flag. Also quietens the routine INFO lines jax and orbax log."""
+    from absl import flags, logging
+    if not flags.FLAGS["verbosity"].present:
+        logging.set_verbosity(logging.WARNING)
+    if len(argv) > 1:
+        raise ValueError(f"unexpected arguments {argv[1:]}; every setting is a --flag")
+    for name in required:
+        if not flags.FLAGS[name].value:
+            raise ValueError(f"--{name} is required")

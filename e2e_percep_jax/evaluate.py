@@ -26,6 +26,10 @@ The host then keeps candidates with score >= ``score_floor`` whose centre lies i
 same rule that makes a ground truth valid, ``sensors.in_bev_view``), runs greedy NMS on exact rotated
 IoU (``nms_iou``), and matches against the world's ground-truth boxes (:class:`metrics.DetectionAccumulator`).
 
+Baselines (``baselines.py``) go through the same protocol with two hooks: ``frame_fn`` replaces the
+model's per-frame perception inside the chunk, and ``host_fn`` post-processes each drive's detections
+and pose on the host before scoring (a tracker, dead reckoning).
+
 Score threshold. ``cfg.eval.score_threshold`` (0.5) is the operating point: the pictures and video
 show boxes above it, and precision / recall at it are reported. AP and the PR curves, however,
 accumulate every candidate down to ``score_floor`` (default 0.05): AP is the area under the curve
@@ -96,10 +100,11 @@ PAPER_VARIANT_ROW = {"full": "Inputs and roadmap (full)",
 # ----------------------------------------------------------------------------- restoring a run
 
 
-def restore_params(workdir: str, cfg: Config | None = None, step: int | None = None):
+def restore_params(workdir: str, cfg: Config | None = None, step: int | None = None, objective=None):
     """(cfg, params, step) of the run in ``workdir``: its config.json (unless ``cfg`` is given) and the
     params of checkpoint ``step`` (default: the latest), restored with the same abstract train state
-    that ``train.train`` saves. Raises FileNotFoundError if there is no checkpoint."""
+    that ``train.train`` saves for ``objective`` (a ``train.Objective``; default: the perception
+    model). Raises FileNotFoundError if there is no checkpoint."""
     from e2e_percep_jax import train as train_lib  # imported lazily: evaluation itself needs no optax
     workdir = os.path.abspath(workdir)
     if cfg is None:
@@ -112,7 +117,7 @@ def restore_params(workdir: str, cfg: Config | None = None, step: int | None = N
             raise FileNotFoundError(f"no checkpoint in {workdir}/checkpoints")
         sharding = jax.sharding.SingleDeviceSharding(jax.devices()[0])
         abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding),
-                                jax.eval_shape(lambda: train_lib.init_state(cfg)))
+                                jax.eval_shape(lambda: train_lib.init_state(cfg, objective or train_lib.PERCEPTION)))
         state = manager.restore(step, args=ocp.args.StandardRestore(abstract))
     return cfg, state.params, step
 
@@ -166,7 +171,29 @@ def _to_uint8(image):
     return (jnp.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(jnp.uint8)
 
 
-def make_chunk_fn(cfg: Config, town, sample: bool, top_k: int = TOP_K, floor: float = SCORE_FLOOR, heads=None):
+def model_frame_fn(cfg: Config, sample: bool):
+    """The perception model's ``frame_fn`` (see :func:`make_chunk_fn`): one filtering step and its decoding,
+    plus world 0's reconstructions when ``with_images``."""
+    recon_keys = model_lib.reconstructed_images(cfg.model.variant)
+
+    def frame_fn(params, fstate, frame, prev_action, key, with_images):
+        fstate, post = model_lib.filter_step(params, fstate, frame["camera"], frame["lidar"], prev_action,
+                                             key if sample else None, cfg)
+        z = jnp.concatenate([post["z1"], post["z2"]], -1)
+        decoded = model_lib.decode(params, z, cfg)  # image heads unused here: compiled away
+
+        def images(z0):
+            dec0 = model_lib.decode(params, z0, cfg)
+            return {f"recon_{k}": _to_uint8(dec0[k][0]) for k in recon_keys}
+
+        blank = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), jax.eval_shape(images, z[:1]))
+        return fstate, decoded, jax.lax.cond(with_images, images, lambda _: blank, z[:1])
+
+    return frame_fn
+
+
+def make_chunk_fn(cfg: Config, town, sample: bool, top_k: int = TOP_K, floor: float = SCORE_FLOOR, heads=None,
+                  frame_fn=None):
     """Jitted ``chunk(params, world_state, filter_state, key, warm, with_images) -> (world_state,
     filter_state, out)``: ``cfg.eval.chunk_steps`` frames of all E worlds.
 
@@ -180,19 +207,22 @@ def make_chunk_fn(cfg: Config, town, sample: bool, top_k: int = TOP_K, floor: fl
     ``heads(decoded, frame) -> decoded``, traced inside the program, may replace the model's decoded
     det_cls / det_reg / pose (normalised) before scoring: tests feed the world's own targets through
     the same candidate / NMS / matching path (an oracle).
+
+    ``frame_fn(params, fstate, frame, prev_action, key, with_images) -> (fstate, decoded, recon)``
+    perceives one frame of the E worlds (default: :func:`model_frame_fn`, the filtered model): frame is
+    the frame contract [E, ...], prev_action [E, 2] the action from t-1 to t, decoded as the model's
+    ``decode`` (det_cls, det_reg, normalised pose), recon world 0's reconstructed images (may be empty).
+    A baseline's memoryless model passes ``fstate`` through untouched.
     """
     image_size = cfg.data.image_size
     observe = jax.vmap(lambda s: sensors.observe(s, town, image_size))
     step = jax.vmap(lambda s: world.step(s, town))
-    recon_keys = model_lib.reconstructed_images(cfg.model.variant)
+    frame_fn = frame_fn or model_frame_fn(cfg, sample)
 
     def perceive(params, wstate, fstate, key, with_images):
         frame = observe(wstate)
         # state t's ego_action is the action applied from t-1 to t (ignored on a drive's first frame).
-        fstate, post = model_lib.filter_step(params, fstate, frame["camera"], frame["lidar"], wstate.ego_action,
-                                             key if sample else None, cfg)
-        z = jnp.concatenate([post["z1"], post["z2"]], -1)
-        decoded = model_lib.decode(params, z, cfg)  # image heads unused here: compiled away
+        fstate, decoded, recon = frame_fn(params, fstate, frame, wstate.ego_action, key, with_images)
         if heads is not None:
             decoded = heads(decoded, frame)
         cand_boxes, cand_scores, saturated = detection_candidates(decoded["det_cls"], decoded["det_reg"], top_k, floor)
@@ -200,14 +230,7 @@ def make_chunk_fn(cfg: Config, town, sample: bool, top_k: int = TOP_K, floor: fl
                "boxes": frame["boxes"], "boxes_valid": frame["boxes_valid"],
                "boxes_occluded": frame["boxes_occluded"], "pose": frame["pose"],
                "pose_pred": model_lib.pose_to_metres(decoded["pose"])}
-        out.update({k: frame[k][0] for k in ("camera", "lidar", "roadmap")})
-
-        def images(z0):
-            dec0 = model_lib.decode(params, z0, cfg)
-            return {f"recon_{k}": _to_uint8(dec0[k][0]) for k in recon_keys}
-
-        blank = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), jax.eval_shape(images, z[:1]))
-        out.update(jax.lax.cond(with_images, images, lambda _: blank, z[:1]))
+        out.update({k: frame[k][0] for k in ("camera", "lidar", "roadmap")}, **recon)
         return fstate, out
 
     def chunk(params, wstate, fstate, key, warm, with_images):
@@ -414,7 +437,7 @@ def _fmt(v, pct=False, digits=1):
 def report_markdown(m: dict) -> str:
     """report.md: the paper's Table I and Table II with this run's row, the baseline and the paper's rows."""
     det, pose, base = m["detection"], m["pose"], m["baseline"]
-    variant = m["config"]["model"]["variant"]
+    variant, label = m["config"]["model"]["variant"], m["label"]
     thr = [f"{t:g}" for t in IOU_THRESHOLDS]
     lines = [f"# Evaluation report: {m['workdir'] or '(library call)'}", "",
              f"Checkpoint step {m['checkpoint_step']}, variant `{variant}`, preset image size "
@@ -426,7 +449,7 @@ def report_markdown(m: dict) -> str:
              "## Table I: average precision of surrounding-vehicle boxes", "",
              "| | " + " | ".join(f"AP<sub>{t}</sub>" for t in thr) + " |", "|---|" + "---|" * len(thr)]
     ap = det["ap"]
-    lines.append(f"| **this run ({variant})** | " + " | ".join(_fmt(ap[t]["all"], True) for t in thr) + " |")
+    lines.append(f"| **this run ({label})** | " + " | ".join(_fmt(ap[t]["all"], True) for t in thr) + " |")
     lines.append("| this run, visible GT | " + " | ".join(_fmt(ap[t]["visible"], True) for t in thr) + " |")
     lines.append("| this run, occluded GT | " + " | ".join(_fmt(ap[t]["occluded"], True) for t in thr) + " |")
     lines.append("| baseline: no boxes | " + " | ".join("0.0%" for _ in thr) + " |")
@@ -446,7 +469,7 @@ def report_markdown(m: dict) -> str:
                   f"{_fmt(det['at_threshold'][t]['recall'], True)}" for t in thr) + ".", "",
               "## Table II: ego global pose error", "",
               "| | Location (m) | Heading (rad) | Speed (m/s) |", "|---|---|---|---|",
-              f"| **this run ({variant}), mean** | {_fmt(pose['location_m']['mean'], digits=2)} | "
+              f"| **this run ({label}), mean** | {_fmt(pose['location_m']['mean'], digits=2)} | "
               f"{_fmt(pose['heading_rad']['mean'], digits=3)} | {_fmt(pose['speed_mps']['mean'], digits=2)} |",
               f"| this run, median | {_fmt(pose['location_m']['median'], digits=2)} | "
               f"{_fmt(pose['heading_rad']['median'], digits=3)} | {_fmt(pose['speed_mps']['median'], digits=2)} |",
@@ -478,12 +501,17 @@ def report_markdown(m: dict) -> str:
 def evaluate(cfg: Config, params, out_dir: str, *, sample: bool = False, video_frames: int = 300,
              num_examples: int = 2, top_k: int = TOP_K, score_floor: float = SCORE_FLOOR,
              nms_iou: float = NMS_IOU, workdir: str | None = None, checkpoint_step: int | None = None,
-             heads=None, log=print) -> dict:
+             heads=None, frame_fn=None, host_fn=None, label: str | None = None, log=print) -> dict:
     """Runs the online evaluation of ``params`` under ``cfg`` and writes the report into ``out_dir``.
 
     ``video_frames``: frames of world 0 recorded into drive.mp4 (0: no video); the examples are taken
-    from the same frames. ``heads``: see :func:`make_chunk_fn` (None: the model's). ``log`` gets one
-    progress line per chunk. Returns the metrics dict (also written to metrics.json).
+    from the same frames. ``heads``, ``frame_fn``: see :func:`make_chunk_fn` (None: the model's).
+    ``host_fn(w)``, called once per world w before its drive, returns a function ``(boxes [M, 5],
+    scores [M], pose_pred [5], pose [5]) -> (boxes, scores, pose_pred)`` that post-processes each of
+    that drive's frames in order, after NMS and before scoring (pose: the frame's true ego pose; e.g.
+    a tracker, or dead reckoning in place of the predicted pose). ``label`` names what is evaluated in
+    the report (default: the model variant). ``log`` gets one progress line per chunk. Returns the
+    metrics dict (also written to metrics.json).
     """
     config_lib.validate(cfg)
     ev = cfg.eval
@@ -500,15 +528,16 @@ def evaluate(cfg: Config, params, out_dir: str, *, sample: bool = False, video_f
     fstate = model_lib.init_filter_state(e, cfg)
     sample_root = jax.random.fold_in(jax.random.PRNGKey(ev.seed), SAMPLE_STREAM)
     cache_key = (cfg.world, cfg.data.image_size, cfg.model, ev.chunk_steps, e, ev.town_seed, sample, top_k,
-                 score_floor, heads, jax.tree.structure(params), tuple(x.shape for x in jax.tree.leaves(params)))
+                 score_floor, heads, frame_fn, jax.tree.structure(params), tuple(x.shape for x in jax.tree.leaves(params)))
     if cache_key not in _COMPILED:  # one compile per program, reused by later evaluations in the process
-        _COMPILED[cache_key] = make_chunk_fn(cfg, town, sample, top_k, score_floor, heads).lower(
+        _COMPILED[cache_key] = make_chunk_fn(cfg, town, sample, top_k, score_floor, heads, frame_fn).lower(
             params, wstate, fstate, sample_root, jnp.int32(0), jnp.bool_(False)).compile()
     compiled = _COMPILED[cache_key]
     compile_s = time.perf_counter() - t0
     log(f"eval: {ev.num_steps} frames = {e} worlds x {per_world.max()} frames after {warmup} warm-up steps, "
         f"{num_chunks} chunks of {c}; compiled in {compile_s:.1f} s")
 
+    hosts = None if host_fn is None else [host_fn(w) for w in range(e)]
     det_acc = metrics_lib.DetectionAccumulator(IOU_THRESHOLDS)
     pose_acc = metrics_lib.PoseErrorAccumulator()
     true_poses, saturated, done = [], 0, 0
@@ -528,6 +557,7 @@ def evaluate(cfg: Config, params, out_dir: str, *, sample: bool = False, video_f
         if i + 1 < num_chunks:  # queue the next chunk before the host works on this one
             pending = dispatch(i + 1, wstate, fstate)
         out = jax.tree.map(np.asarray, out)
+        pose_pred = np.array(out["pose_pred"])  # writable: a host_fn may replace poses
         for t in range(c):
             frame_index = i * c + t - warmup
             if frame_index < 0:
@@ -536,6 +566,8 @@ def evaluate(cfg: Config, params, out_dir: str, *, sample: bool = False, video_f
                 if frame_index >= per_world[w]:
                     continue
                 boxes, scores = frame_detections(out["cand_boxes"][t, w], out["cand_scores"][t, w], score_floor, nms_iou)
+                if hosts is not None:
+                    boxes, scores, pose_pred[t, w] = hosts[w](boxes, scores, pose_pred[t, w], out["pose"][t, w])
                 det_acc.add_frame(boxes, scores, out["boxes"][t, w], out["boxes_valid"][t, w], out["boxes_occluded"][t, w])
                 saturated += bool(out["saturated"][t, w])
                 done += 1
@@ -554,7 +586,7 @@ def evaluate(cfg: Config, params, out_dir: str, *, sample: bool = False, video_f
                     images.append((frame_index, frame, boxes[shown], scores[shown]))
                     images = _example_candidates(images, shown_frames, num_examples)  # flat memory
             valid = frame_index < per_world
-            pose_acc.add(metrics_lib.pose_errors(out["pose_pred"][t][valid], out["pose"][t][valid]), frame_index)
+            pose_acc.add(metrics_lib.pose_errors(pose_pred[t][valid], out["pose"][t][valid]), frame_index)
             true_poses.append(out["pose"][t][valid])
         if done == 0:
             log(f"eval: warming up the traffic, step {min((i + 1) * c, warmup)}/{warmup}")
@@ -577,7 +609,8 @@ def evaluate(cfg: Config, params, out_dir: str, *, sample: bool = False, video_f
     results = det_acc.results()
     key = lambda t: f"{t:g}"
     metrics = {
-        "workdir": workdir, "checkpoint_step": checkpoint_step, "config": dataclasses.asdict(cfg),
+        "label": label or cfg.model.variant, "workdir": workdir, "checkpoint_step": checkpoint_step,
+        "config": dataclasses.asdict(cfg),
         "sample": sample, "num_frames": done, "num_worlds": e, "frames_per_world": int(per_world.max()),
         "seconds": seconds, "frames_per_s": done / max(seconds, 1e-9), "compile_s": compile_s,
         "detection": {

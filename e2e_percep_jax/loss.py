@@ -45,6 +45,37 @@ def gaussian_kl(q_loc, q_scale, p_loc, p_scale):
     return distrax.MultivariateNormalDiag(q_loc, q_scale).kl_divergence(distrax.MultivariateNormalDiag(p_loc, p_scale))
 
 
+def per_sequence(x, batch_size: int):
+    """A term's values [B, T+1, ...] summed, per sequence: the module docstring's normalisation."""
+    return jnp.sum(x) / batch_size
+
+
+def detection_terms(pred: dict, batch: dict) -> dict:
+    """``det_cls`` and ``det_reg`` of decoded PIXOR maps ``pred["det_logit"]`` [B, T+1, R, R, 1] and
+    ``pred["det_reg"]`` [B, T+1, R, R, 6] against the batch's targets, per sequence."""
+    b = batch["det_cls"].shape[0]
+    terms = {"det_cls": per_sequence(focal_loss(pred["det_logit"], batch["det_cls"]), b)}
+    # Regression targets are defined at positive pixels only (elsewhere they may be anything, even
+    # non-finite): select them with `where` on both sides so no NaN reaches the value or the gradient.
+    positive = batch["det_cls"] > 0.5
+    reg_target = jnp.where(positive, batch["det_reg"], 0.0)
+    reg_error = jnp.where(positive, optax.huber_loss(pred["det_reg"], reg_target), 0.0)  # smooth-L1, beta 1
+    terms["det_reg"] = DET_REG_WEIGHT * per_sequence(reg_error, b)
+    return terms
+
+
+def pose_term(pred_pose, pose):
+    """Smooth-L1 pose loss, per sequence: pose head output [B, T+1, 5] (normalised units) against the
+    frame contract's pose [B, T+1, 5]."""
+    return per_sequence(optax.huber_loss(pred_pose, model_lib.normalise_pose(pose)), pose.shape[0])
+
+
+def with_total(terms: dict) -> tuple:
+    """(total, terms with ``total`` added): the objective is the plain sum of its terms."""
+    total = sum(terms.values())
+    return total, dict(terms, total=total)
+
+
 @functools.partial(jax.jit, static_argnames="cfg")
 def loss_fn(params, batch, key, cfg: Config):
     """-ELBO + detection + pose loss of a batch, per sequence (see the module docstring).
@@ -57,21 +88,12 @@ def loss_fn(params, batch, key, cfg: Config):
     out = model_lib.filter_sequence(params, batch["camera"], batch["lidar"], batch["action"], key, cfg)
     z = jnp.concatenate([out["z1"], out["z2"]], -1).reshape(b * t1, -1)
     pred = jax.tree.map(lambda x: x.reshape((b, t1) + x.shape[1:]), model_lib.decode(params, z, cfg))
-    per_sequence = lambda x: jnp.sum(x) / b
 
     metrics = {}
     for k in model_lib.reconstructed_images(cfg.model.variant):
         target = batch[k].astype(jnp.float32) / 255.0
-        metrics[f"recon_{k}"] = per_sequence((pred[k] - target) ** 2) / (2.0 * RECON_VAR)
-    metrics["kl"] = per_sequence(gaussian_kl(out["q_z1_loc"], out["q_z1_scale"], out["p_z1_loc"], out["p_z1_scale"]))
-    metrics["det_cls"] = per_sequence(focal_loss(pred["det_logit"], batch["det_cls"]))
-    # Regression targets are defined at positive pixels only (elsewhere they may be anything, even
-    # non-finite): select them with `where` on both sides so no NaN reaches the value or the gradient.
-    positive = batch["det_cls"] > 0.5
-    reg_target = jnp.where(positive, batch["det_reg"], 0.0)
-    reg_error = jnp.where(positive, optax.huber_loss(pred["det_reg"], reg_target), 0.0)  # smooth-L1, beta 1
-    metrics["det_reg"] = DET_REG_WEIGHT * per_sequence(reg_error)
-    metrics["pose"] = per_sequence(optax.huber_loss(pred["pose"], model_lib.normalise_pose(batch["pose"])))
-    total = sum(metrics.values())
-    metrics["total"] = total
-    return total, metrics
+        metrics[f"recon_{k}"] = per_sequence((pred[k] - target) ** 2, b) / (2.0 * RECON_VAR)
+    metrics["kl"] = per_sequence(gaussian_kl(out["q_z1_loc"], out["q_z1_scale"], out["p_z1_loc"], out["p_z1_scale"]), b)
+    metrics.update(detection_terms(pred, batch))
+    metrics["pose"] = pose_term(pred["pose"], batch["pose"])
+    return with_total(metrics)

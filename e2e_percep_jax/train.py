@@ -1,5 +1,8 @@
 """Training: Adam on :func:`~e2e_percep_jax.loss.loss_fn`, data-parallel, checkpointed, resumable.
 
+What is trained is an :class:`Objective` (params init and loss), the perception model by default; the
+single-frame baselines (``baselines.py``) plug in their own and keep everything else.
+
 Randomness, all from ``cfg.train.seed``: the batch of step s is the world's
 ``make_batch(batch_key(seed, s))`` with ``batch_key = fold_in(PRNGKey(seed), s)``; the model's root is ``fold_in(PRNGKey(seed), 2**32 - 1)`` (a step the
 data stream never reaches), split into the init key and the noise root, and step s samples its
@@ -13,14 +16,16 @@ Outputs in ``workdir``: ``config.json`` (the resolved config), ``metrics.jsonl``
 ``log_every`` steps: mean of each loss term over those steps, gradient norm, steps/s, non-finite
 counters), ``checkpoints/<step>`` (orbax; every ``checkpoint_every`` steps and at exit).
 """
+import contextlib
 import dataclasses
 import functools
 import json
 import os
 import signal
+import sys
 import threading
 import time
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Iterator, NamedTuple
 
 import flax.struct
 import jax
@@ -41,6 +46,17 @@ RESUMABLE_CHANGES = ("train.num_steps", "train.log_every", "train.checkpoint_eve
                      "train.max_nonfinite_in_a_row")
 
 Batches = Callable[[int], Iterator[tuple[int, dict]]]  # start_step -> (step, batch) from start_step on
+
+
+class Objective(NamedTuple):
+    """What is trained: ``init_params(key, cfg) -> params`` and ``loss_fn(params, batch, key, cfg) ->
+    (total, metrics)`` (metrics hold ``total``). Hashable (module-level functions), so a train step is
+    compiled once per objective; the baselines plug their own in."""
+    init_params: Callable
+    loss_fn: Callable
+
+
+PERCEPTION = Objective(model_lib.init_params, loss_lib.loss_fn)  # the paper's model
 
 
 class TrainState(flax.struct.PyTreeNode):
@@ -70,6 +86,19 @@ class TrainingInterrupted(Exception):
         self.signum, self.step = signum, step
 
 
+@contextlib.contextmanager
+def exit_on_stop():
+    """For launchers: a run stopped by non-finite losses exits with one error line; one stopped by
+    SIGINT / SIGTERM (after its checkpoint) exits with status 128 + the signal."""
+    try:
+        yield
+    except NonFiniteLossError as e:
+        sys.exit(f"error: {e}")
+    except TrainingInterrupted as e:
+        print(e, file=sys.stderr)
+        sys.exit(128 + e.signum)
+
+
 def optimizer(cfg: Config) -> optax.GradientTransformation:
     return optax.adam(cfg.train.learning_rate)
 
@@ -80,20 +109,21 @@ def model_keys(seed: int) -> tuple[jax.Array, jax.Array]:
     return init_key, noise_root
 
 
-def init_state(cfg: Config) -> TrainState:
-    params = model_lib.init_params(model_keys(cfg.train.seed)[0], cfg)
+def init_state(cfg: Config, objective: Objective = PERCEPTION) -> TrainState:
+    params = objective.init_params(model_keys(cfg.train.seed)[0], cfg)
     zero = lambda: jnp.zeros((), jnp.int32)  # distinct buffers: the state is donated to the step
     return TrainState(step=zero(), params=params, opt_state=optimizer(cfg).init(params),
                       nonfinite_in_a_row=zero(), nonfinite_total=zero())
 
 
-def train_step(state: TrainState, batch: dict, key: jax.Array, cfg: Config) -> tuple[TrainState, dict]:
-    """One Adam step on ``batch`` ([B, T+1, ...] frame contract) with latent noise ``key``.
+def train_step(state: TrainState, batch: dict, key: jax.Array, cfg: Config,
+               objective: Objective = PERCEPTION) -> tuple[TrainState, dict]:
+    """One Adam step of ``objective`` on ``batch`` ([B, T+1, ...] frame contract) with latent noise ``key``.
 
     A non-finite loss or gradient norm skips the update (params and optimizer state unchanged) and
     counts it. Returns (state, metrics): the loss terms, ``grad_norm`` and the non-finite counters.
     """
-    (_, metrics), grads = jax.value_and_grad(loss_lib.loss_fn, has_aux=True)(state.params, batch, key, cfg)
+    (_, metrics), grads = jax.value_and_grad(objective.loss_fn, has_aux=True)(state.params, batch, key, cfg)
     grad_norm = jnp.sqrt(sum(jnp.sum(g ** 2) for g in jax.tree.leaves(grads)))
     finite = jnp.isfinite(metrics["total"]) & jnp.isfinite(grad_norm)  # a NaN / inf grad makes the norm so
     halted = state.nonfinite_in_a_row >= cfg.train.max_nonfinite_in_a_row
@@ -138,15 +168,15 @@ def step_config(cfg: Config) -> Config:
         train=TrainConfig(learning_rate=t.learning_rate, max_nonfinite_in_a_row=t.max_nonfinite_in_a_row))
 
 
-def make_train_step(cfg: Config, mesh: Mesh):
+def make_train_step(cfg: Config, mesh: Mesh, objective: Objective = PERCEPTION):
     """:func:`train_step` jitted for ``mesh``: state and key replicated, batch sharded along B."""
-    return _jitted_train_step(step_config(cfg), mesh)
+    return _jitted_train_step(step_config(cfg), mesh, objective)
 
 
-@functools.cache  # the same jitted object for the same (step config, mesh), so its compilation is reused
-def _jitted_train_step(cfg: Config, mesh: Mesh):
+@functools.cache  # the same jitted object for the same (step config, mesh, objective): compiled once
+def _jitted_train_step(cfg: Config, mesh: Mesh, objective: Objective):
     replicated, sharded = NamedSharding(mesh, PartitionSpec()), NamedSharding(mesh, PartitionSpec("data"))
-    return jax.jit(lambda state, batch, key: train_step(state, batch, key, cfg),
+    return jax.jit(lambda state, batch, key: train_step(state, batch, key, cfg, objective),
                    in_shardings=(replicated, sharded, replicated), out_shardings=replicated,
                    donate_argnums=0)
 
@@ -244,8 +274,10 @@ class _StopSignals:
             signal.signal(s, handler)
 
 
-def train(cfg: Config, workdir: str, batches: Batches | None = None) -> TrainState:
-    """Trains ``cfg`` in ``workdir`` up to ``cfg.train.num_steps``, resuming from its latest checkpoint.
+def train(cfg: Config, workdir: str, batches: Batches | None = None,
+          objective: Objective = PERCEPTION) -> TrainState:
+    """Trains ``objective`` (default: the perception model) under ``cfg`` in ``workdir`` up to
+    ``cfg.train.num_steps``, resuming from its latest checkpoint.
 
     ``batches`` (default: :func:`world_batches`) maps a start step to (step, batch) pairs. Every
     configuration error raises ValueError (:func:`check_run`) before anything is compiled. Raises
@@ -263,13 +295,13 @@ def train(cfg: Config, workdir: str, batches: Batches | None = None) -> TrainSta
         _truncate_metrics(metrics_path, start or 0)
 
     mesh = make_mesh()
-    state = jax.device_put(init_state(cfg), NamedSharding(mesh, PartitionSpec()))
+    state = jax.device_put(init_state(cfg, objective), NamedSharding(mesh, PartitionSpec()))
     if start is not None:
         abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=x.sharding), state)
         state = manager.restore(start, args=ocp.args.StandardRestore(abstract))
         print(f"resumed from step {start} in {workdir}", flush=True)
     start = start or 0
-    step_fn = make_train_step(cfg, mesh)
+    step_fn = make_train_step(cfg, mesh, objective)
     noise_root = model_keys(t.seed)[1]
     stream = (batches or world_batches(cfg))(start)
     compiled, pending, tick = None, [], time.perf_counter()

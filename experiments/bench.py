@@ -1,19 +1,21 @@
 """Benchmarks: every performance figure of BUILD_NOTES.md, measured the same way each time.
 
-    python experiments/bench.py                      # world, frames, batch, train (+ peer), infer, compile
+    python experiments/bench.py                      # every figure (world ... memory, see BENCHMARKS)
     python experiments/bench.py --what=train --train_sizes=8x10x64 --repeats=7
 
 Each figure is the median of ``--repeats`` timed runs after a warm-up (compilation excluded and
-reported separately). Each benchmark prints one JSON line and writes it to ``--out_dir/<name>.json``;
-a table of all of them closes the run. ``train`` also runs the eager PyTorch peer
-(``../shared/peer/torch_peer_bench.py``, with ``--peer_python``) at the same (B, T, R) right after
-ours and reports ``ratio_vs_peer`` = our frames/s over the peer's.
+reported separately); ``eval`` and ``memory`` are one run each (minutes long). Each benchmark prints
+one JSON line and writes it to ``--out_dir/<name>.json``; a table of all of them closes the run.
+``train`` also runs the eager PyTorch peer (``../shared/peer/torch_peer_bench.py``, with
+``--peer_python``) at the same (B, T, R) right after ours and reports ``ratio_vs_peer`` = our
+frames/s over the peer's.
 """
 import json
 import os
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 
 import jax
@@ -23,12 +25,13 @@ from absl import app, flags
 
 from e2e_percep_jax import batch as batch_lib
 from e2e_percep_jax import config as config_lib
+from e2e_percep_jax import evaluate as evaluate_lib
 from e2e_percep_jax import model as model_lib
 from e2e_percep_jax import sensors, world
 from e2e_percep_jax import train as train_lib
 from e2e_percep_jax.town import build_town
 
-BENCHMARKS = ("world", "frames", "batch", "train", "infer", "compile")
+BENCHMARKS = ("world", "frames", "batch", "train", "infer", "compile", "eval", "memory")
 _REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PEER_SCRIPT = os.path.join(_REPO, "..", "shared", "peer", "torch_peer_bench.py")
 
@@ -42,6 +45,7 @@ flags.DEFINE_integer("num_worlds", 32, "worlds stepped in parallel (world) / fra
 flags.DEFINE_integer("frames_image_size", 128, "R of the frames benchmark")
 flags.DEFINE_list("compile_seq_lens", ["10", "50"], "T values of the paper-config compile-time figure")
 flags.DEFINE_integer("infer_batch", 64, "batch of the inference throughput figure (latency is at batch 1)")
+flags.DEFINE_integer("memory_steps", 300, "training steps of the cpu-config run whose resident memory is sampled")
 FLAGS = flags.FLAGS
 
 
@@ -183,6 +187,47 @@ def bench_compile(town, repeats):
     return figure
 
 
+def bench_eval(town, repeats):
+    """Wall time of the whole online evaluation at the ``cpu`` config (15,000 frames; compile included,
+    no video), untrained parameters: the cost does not depend on their values."""
+    del town, repeats  # one run: it is minutes long, and it builds its own towns
+    cfg = config_lib.get_config("cpu")
+    params = model_lib.init_params(jax.random.PRNGKey(0), cfg)
+    with tempfile.TemporaryDirectory() as out_dir:
+        start = time.perf_counter()
+        evaluate_lib.evaluate(cfg, params, out_dir, video_frames=0, log=lambda _: None)
+        return {"config": "cpu", "eval_frames": cfg.eval.num_steps, "wall_s": time.perf_counter() - start}
+
+
+def _rss_mib(pid):
+    with open(f"/proc/{pid}/status") as f:
+        return next(int(line.split()[1]) for line in f if line.startswith("VmRSS:")) / 1024
+
+
+def bench_memory(town, repeats):
+    """Resident memory of ``experiments/train.py --config=cpu`` (a subprocess, sampled every second):
+    the peak, and the mean over each quarter of the run after compilation, which should stay flat."""
+    del town, repeats
+    with tempfile.TemporaryDirectory() as workdir:
+        cmd = [sys.executable, os.path.join(_REPO, "experiments", "train.py"), "--config=cpu",
+               f"--workdir={workdir}", f"--train.num_steps={FLAGS.memory_steps}"]
+        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        samples = []  # (seconds since start, RSS MiB)
+        start = time.perf_counter()
+        while proc.poll() is None:
+            try:
+                samples.append((time.perf_counter() - start, _rss_mib(proc.pid)))
+            except (FileNotFoundError, StopIteration):  # exiting
+                break
+            time.sleep(1.0)
+        if proc.wait() != 0:
+            raise RuntimeError(f"{' '.join(cmd)} failed with exit code {proc.returncode}")
+    rss = np.array([m for _, m in samples])
+    steady = np.array_split(rss[len(rss) // 5:], 4)  # skip start-up and compilation (the first fifth)
+    return {"config": "cpu", "train_steps": FLAGS.memory_steps, "wall_s": samples[-1][0],
+            "peak_rss_mib": float(rss.max()), "quarter_mean_rss_mib": [float(q.mean()) for q in steady]}
+
+
 def main(argv):
     del argv
     unknown = sorted(set(FLAGS.what) - set(BENCHMARKS))
@@ -209,6 +254,8 @@ def main(argv):
             for key, value in row.items():
                 if isinstance(value, float):
                     print(f"| {name} {label} | {key} | {value:.4g} |")
+                elif isinstance(value, list):
+                    print(f"| {name} {label} | {key} | {', '.join(f'{v:.4g}' for v in value)} |")
 
 
 if __name__ == "__main__":

@@ -10,7 +10,7 @@ trained model's and cannot change. A bad flag prints one line and exits with sta
 import os
 import sys
 
-from absl import app, flags, logging
+from absl import app, flags
 
 from e2e_percep_jax import config as config_lib
 
@@ -27,33 +27,22 @@ flags.DEFINE_float("nms_iou", None, "rotated-IoU threshold of the greedy NMS")
 FLAGS = flags.FLAGS
 
 
-def parse_flags(argv):
-    try:
-        return FLAGS(argv)
-    except flags.Error as e:
-        sys.exit(f"error: {e}")
-
 
 def main(argv):
-    if not FLAGS["verbosity"].present:
-        logging.set_verbosity(logging.WARNING)
     from e2e_percep_jax import evaluate as eval_lib
     try:
-        if len(argv) > 1:
-            raise ValueError(f"unexpected arguments {argv[1:]}; every setting is a --flag")
-        if not FLAGS.workdir:
-            raise ValueError("--workdir is required")
+        config_lib.check_launch(argv)
         config_path = os.path.join(FLAGS.workdir, "config.json")
         if not os.path.exists(config_path):
             raise ValueError(f"--workdir={FLAGS.workdir}: no config.json (not a training run)")
         if FLAGS["config"].present:
             raise ValueError("--config: the run's config.json is the config; only --eval.* may change")
-        for section, name, _ in config_lib._fields():
+        for section, name, _ in config_lib.fields():
             if section != "eval" and FLAGS[f"{section}.{name}"].present:
                 raise ValueError(f"--{section}.{name}: only --eval.* may change at evaluation (the model is trained)")
         with open(config_path) as f:
             cfg = config_lib.Config.from_json(f.read())
-        overrides = {name: FLAGS[f"eval.{name}"].value for section, name, _ in config_lib._fields()
+        overrides = {name: FLAGS[f"eval.{name}"].value for section, name, _ in config_lib.fields()
                      if section == "eval" and FLAGS[f"eval.{name}"].present}
         cfg = config_lib.validate(config_lib.replace(cfg, eval=overrides))
         if FLAGS.video_frames < 0 or FLAGS.num_examples < 0:
@@ -69,4 +58,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-    app.run(main, flags_parser=parse_flags)
+    app.run(main, flags_parser=config_lib.parse_flags)

@@ -11,7 +11,7 @@ import json
 import os
 import sys
 
-from absl import app, flags, logging
+from absl import app, flags
 
 from e2e_percep_jax import config as config_lib
 
@@ -20,13 +20,6 @@ flags.DEFINE_string("workdir", None, "run directory")
 flags.DEFINE_integer("video_frames", 300, "frames of the first evaluation drive in drive.mp4 (0: no video)")
 FLAGS = flags.FLAGS
 
-
-def parse_flags(argv):
-    """absl's parser, with its multi-line fatal message replaced by one line."""
-    try:
-        return FLAGS(argv)
-    except flags.Error as e:
-        sys.exit(f"error: {e}")
 
 
 def _evaluated_step(metrics_path):
@@ -55,29 +48,19 @@ def run(cfg: config_lib.Config, workdir: str, video_frames: int = 300, log=print
 
 
 def main(argv):
-    if not FLAGS["verbosity"].present:  # jax and orbax log routine INFO lines through absl
-        logging.set_verbosity(logging.WARNING)
     from e2e_percep_jax import train as train_lib
     try:
-        if len(argv) > 1:
-            raise ValueError(f"unexpected arguments {argv[1:]}; every setting is a --flag")
-        if not FLAGS.workdir:
-            raise ValueError("--workdir is required")
+        config_lib.check_launch(argv)
         if FLAGS.video_frames < 0:
             raise ValueError(f"--video_frames={FLAGS.video_frames}: must be >= 0")
         cfg = config_lib.from_flags()
         train_lib.check_run(cfg, FLAGS.workdir)
     except ValueError as e:
         sys.exit(f"error: {e}")
-    try:
+    with train_lib.exit_on_stop():
         run(cfg, FLAGS.workdir, FLAGS.video_frames, log=lambda s: print(s, flush=True))
-    except train_lib.NonFiniteLossError as e:
-        sys.exit(f"error: {e}")
-    except train_lib.TrainingInterrupted as e:
-        print(e, file=sys.stderr)
-        sys.exit(128 + e.signum)
     print(f"report: {os.path.join(FLAGS.workdir, 'eval', 'report.md')}")
 
 
 if __name__ == "__main__":
-    app.run(main, flags_parser=parse_flags)
+    app.run(main, flags_parser=config_lib.parse_flags)

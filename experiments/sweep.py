@@ -16,7 +16,7 @@ import sys
 import time
 
 import numpy as np
-from absl import app, flags, logging
+from absl import app, flags
 
 from e2e_percep_jax import config as config_lib
 
@@ -31,13 +31,6 @@ flags.DEFINE_integer("parallel", 1, "runs at once, as separate processes")
 flags.DEFINE_integer("video_frames", 0, "frames of drive.mp4 per run (0: none)")
 FLAGS = flags.FLAGS
 
-
-def parse_flags(argv):
-    """absl's parser, with its multi-line fatal message replaced by one line."""
-    try:
-        return FLAGS(argv)
-    except flags.Error as e:
-        sys.exit(f"error: {e}")
 
 
 def run_name(variant: str, seed: int) -> str:
@@ -79,7 +72,7 @@ def table_markdown(summary: dict, seeds) -> str:
 def _overrides():
     """The config flags given on this command line, to pass on to every run (seed and variant aside)."""
     passed = [f"--config={FLAGS.config}"]
-    for section, name, _ in config_lib._fields():
+    for section, name, _ in config_lib.fields():
         flag = FLAGS[f"{section}.{name}"]
         if flag.present and f"{section}.{name}" not in ("train.seed", "model.variant"):
             value = ",".join(map(str, flag.value)) if isinstance(flag.value, list) else flag.value
@@ -88,13 +81,8 @@ def _overrides():
 
 
 def main(argv):
-    if not FLAGS["verbosity"].present:
-        logging.set_verbosity(logging.WARNING)
     try:
-        if len(argv) > 1:
-            raise ValueError(f"unexpected arguments {argv[1:]}; every setting is a --flag")
-        if not FLAGS.sweep_dir:
-            raise ValueError("--sweep_dir is required")
+        config_lib.check_launch(argv, required=("sweep_dir",))
         try:
             seeds = [int(s) for s in FLAGS.seeds]
         except ValueError:
@@ -162,4 +150,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-    app.run(main, flags_parser=parse_flags)
+    app.run(main, flags_parser=config_lib.parse_flags)

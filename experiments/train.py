@@ -11,7 +11,7 @@ write a checkpoint and exit with 128 + the signal number.
 import sys
 
 import jax
-from absl import app, flags, logging
+from absl import app, flags
 
 from e2e_percep_jax import config as config_lib
 
@@ -23,22 +23,10 @@ flags.DEFINE_integer("process_id", None, "this process's index in a multi-proces
 FLAGS = flags.FLAGS
 
 
-def parse_flags(argv):
-    """absl's parser, with its multi-line fatal message replaced by one line."""
-    try:
-        return FLAGS(argv)
-    except flags.Error as e:
-        sys.exit(f"error: {e}")
-
 
 def main(argv):
-    if not FLAGS["verbosity"].present:  # jax and orbax log routine INFO lines through absl
-        logging.set_verbosity(logging.WARNING)
     try:
-        if len(argv) > 1:
-            raise ValueError(f"unexpected arguments {argv[1:]}; every setting is a --flag")
-        if not FLAGS.workdir:
-            raise ValueError("--workdir is required")
+        config_lib.check_launch(argv)
         cfg = config_lib.from_flags()
         # Imported once the flags are valid: a bad flag fails before the slow imports (orbax, distrax).
         from e2e_percep_jax import train as train_lib
@@ -47,14 +35,9 @@ def main(argv):
         train_lib.check_run(cfg, FLAGS.workdir)
     except ValueError as e:
         sys.exit(f"error: {e}")
-    try:
+    with train_lib.exit_on_stop():
         train_lib.train(cfg, FLAGS.workdir)
-    except train_lib.NonFiniteLossError as e:
-        sys.exit(f"error: {e}")
-    except train_lib.TrainingInterrupted as e:
-        print(e, file=sys.stderr)
-        sys.exit(128 + e.signum)
 
 
 if __name__ == "__main__":
-    app.run(main, flags_parser=parse_flags)
+    app.run(main, flags_parser=config_lib.parse_flags)

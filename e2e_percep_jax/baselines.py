@@ -1,0 +1,231 @@
+"""The modular pipeline the paper's model replaces (issue 8), on the same world, budget and protocol.
+
+Baselines (``BASELINES``), each run in ``<workdir>/<baseline>/``:
+
+- ``detector``: :class:`SingleFrameModel` with the ``detection`` head: the perception model's camera and
+  lidar encoders (``model.Encoder``) and PIXOR decoder (``model.PixorDecoder``), fed the 2F-d encoder
+  features of ONE frame (no latent, no memory). Trained on :func:`loss.detection_terms` only.
+- ``tracker``: the detector's trained run, its NMS'd detections fed to a ``tracking.Tracker`` per drive
+  (host side, :func:`tracker_host`). Ego motion is compensated with the TRUE ego pose of each frame:
+  AB3DMOT assumes known ego motion (KITTI's GPS/IMU), and it isolates what tracking adds to detection.
+  Track scores (last detection score, decayed while coasting) are what AP ranks; coasting tracks are
+  scored like any box.
+- ``pose``: the same encoders and the pose head (``model.MLP``), one frame, on :func:`loss.pose_term`.
+- ``dead_reckoning``: no network; ``tracking.DeadReckoner`` from each drive's true first pose,
+  integrating noisy speed and yaw rate (``tracking.noisy_odometry`` of consecutive true poses), scored
+  by the same pose errors (:func:`dead_reckoning_host`). Privileged: it is given the start pose.
+
+Training is ``train.train`` with :data:`OBJECTIVES` (same batches, optimiser, steps, checkpoints); the
+evaluation is ``evaluate.evaluate`` with a per-frame ``frame_fn`` (:func:`frame_fn`) and a per-drive
+``host_fn``. A head a baseline does not have reports nothing: no boxes (AP 0) or a NaN pose ("n/a").
+The loss's ``key`` is unused (nothing is sampled) and kept for ``train.Objective``'s signature.
+
+``evaluate`` and ``tracking`` are imported where used: they compile small constants at import, and
+the launcher's flag checks must compile nothing.
+"""
+import functools
+import json
+import os
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from e2e_percep_jax import config as config_lib
+from e2e_percep_jax import loss as loss_lib
+from e2e_percep_jax import model as model_lib
+from e2e_percep_jax import train as train_lib
+from e2e_percep_jax.config import Config, ModelConfig
+
+HEADS = ("detection", "pose")
+BASELINES = ("detector", "tracker", "pose", "dead_reckoning")
+TRAINED_RUN = {"detector": "detector", "tracker": "detector", "pose": "pose"}  # baseline -> its trained run
+RUN_HEAD = {"detector": "detection", "pose": "pose"}  # trained run -> its head
+LABELS = {"detector": "single-frame detector", "tracker": "single-frame detector + Kalman tracker",
+          "pose": "single-frame pose regressor"}
+
+
+class SingleFrameModel(nn.Module):
+    """uint8 camera, lidar [N, R, R, 3] -> the perception model's decoded dict for ``head``:
+    ``detection``: det_logit / det_cls [N, R, R, 1], det_reg [N, R, R, 6]; ``pose``: pose [N, 5]
+    (normalised units). Submodules are named as in ``model.PerceptionModel``."""
+    cfg: ModelConfig
+    image_size: int
+    head: str
+
+    def setup(self):
+        m, widths = self.cfg, model_lib.conv_widths(self.cfg, self.image_size)
+        self.camera_encoder = model_lib.Encoder(widths, m.feature_dim)
+        self.lidar_encoder = model_lib.Encoder(widths, m.feature_dim)
+        if self.head == "detection":
+            self.pixor_decoder = model_lib.PixorDecoder(widths, m.feature_dim)  # from [N, 2F] features
+        else:
+            self.pose_head = model_lib.MLP(m.hidden_dim, 5)
+
+    def __call__(self, camera, lidar):
+        features = jnp.concatenate([self.camera_encoder(camera), self.lidar_encoder(lidar)], -1)
+        if self.head == "pose":
+            return {"pose": self.pose_head(features)}
+        logit, reg = self.pixor_decoder(features)
+        return {"det_logit": logit, "det_cls": jax.nn.sigmoid(logit), "det_reg": reg}
+
+
+def build_model(cfg: Config, head: str) -> SingleFrameModel:
+    if head not in HEADS:
+        raise ValueError(f"unknown head {head!r}; choose one of {HEADS}")
+    return SingleFrameModel(cfg.model, cfg.data.image_size, head)
+
+
+def init_params(key, cfg: Config, head: str):
+    """The perception model's own initialisation (``model.init_params``: LeCun-normal kernels, zero
+    biases, drawn as one vector, fast to compile), of a perception model whose latent is as wide as the
+    features (z1 + z2 = 2F) so that its decoders fit them, restricted to the networks ``head`` uses."""
+    build_model(cfg, head)  # checks the head
+    wide = config_lib.replace(cfg, model=dict(z1_dim=cfg.model.feature_dim, z2_dim=cfg.model.feature_dim))
+    params = model_lib.init_params(key, wide)["params"]
+    used = ("camera_encoder", "lidar_encoder", "pixor_decoder" if head == "detection" else "pose_head")
+    return {"params": {k: params[k] for k in used}}
+
+
+@functools.partial(jax.jit, static_argnames=("cfg", "head"))
+def predict(params, camera, lidar, cfg: Config, head: str) -> dict:
+    """Each frame on its own: camera, lidar uint8 [..., R, R, 3] -> :class:`SingleFrameModel`'s dict [..., ...]."""
+    prefix, r = camera.shape[:-3], cfg.data.image_size
+    flat = lambda x: x.reshape((-1, r, r, 3))
+    out = build_model(cfg, head).apply(params, flat(camera), flat(lidar))
+    return jax.tree.map(lambda x: x.reshape(prefix + x.shape[1:]), out)
+
+
+@functools.partial(jax.jit, static_argnames=("cfg", "head"))
+def loss_fn(params, batch, key, cfg: Config, head: str):
+    """The perception loss's terms for ``head`` (``det_cls`` + ``det_reg``, or ``pose``), per sequence,
+    on a [B, T+1, ...] batch. ``key`` is unused. Returns (total, metrics with ``total``)."""
+    del key  # deterministic: nothing is sampled
+    pred = predict(params, batch["camera"], batch["lidar"], cfg, head)
+    if head == "detection":
+        return loss_lib.with_total(loss_lib.detection_terms(pred, batch))
+    return loss_lib.with_total({"pose": loss_lib.pose_term(pred["pose"], batch["pose"])})
+
+
+OBJECTIVES = {h: train_lib.Objective(functools.partial(init_params, head=h), functools.partial(loss_fn, head=h))
+              for h in HEADS}
+
+
+# ----------------------------------------------------------------------------- evaluation hooks
+
+
+@functools.cache  # one object per (cfg, head): evaluate's compiled programs are cached by it
+def frame_fn(cfg: Config, head: str | None):
+    """``evaluate``'s per-frame hook for ``head`` (None: no network, for dead reckoning): decoded maps and
+    pose of each frame on its own; a missing head gives empty maps (no boxes) or a NaN pose."""
+    def perceive(params, fstate, frame, prev_action, key, with_images):
+        out = {} if head is None else predict(params, frame["camera"], frame["lidar"], cfg, head)
+        decoded = {"det_cls": jnp.zeros_like(frame["det_cls"]), "det_reg": jnp.zeros_like(frame["det_reg"]),
+                   "pose": jnp.full_like(frame["pose"], jnp.nan), **out}
+        return fstate, decoded, {}  # no memory: the filter state passes through; no reconstructions
+
+    return perceive
+
+
+def tracker_host(tracker_cfg=None):
+    """``evaluate``'s ``host_fn``: a fresh ``tracking.Tracker`` per drive, fed each frame's NMS'd
+    detections and the frame's true ego pose (ego-motion compensation); its confirmed tracks, coasting
+    ones included, replace the detections."""
+    from e2e_percep_jax import tracking
+    tracker_cfg = tracker_cfg or tracking.TrackerConfig()
+
+    def per_drive(world_index):
+        tracker = tracking.Tracker(tracker_cfg)
+
+        def post(boxes, scores, pose_pred, pose):
+            tracks = tracker.update(boxes, scores, pose)
+            return tracks.boxes, tracks.scores, pose_pred
+
+        return post
+
+    return per_drive
+
+
+def dead_reckoning_host(speed_noise_std_mps: float, yaw_rate_noise_std_rps: float, seed: int):
+    """``evaluate``'s ``host_fn``: per drive, a ``tracking.DeadReckoner`` started at the drive's true first
+    pose and stepped with ``tracking.noisy_odometry`` of consecutive true poses (noise from
+    ``default_rng([seed, world])``); its pose replaces the predicted one."""
+    from e2e_percep_jax import tracking
+
+    def per_drive(world_index):
+        rng = np.random.default_rng([seed, world_index])
+        drive = {}  # the reckoner and the previous true pose, from the drive's first frame on
+
+        def post(boxes, scores, pose_pred, pose):
+            if not drive:
+                drive.update(reckoner=tracking.DeadReckoner(pose), previous=pose)
+                return boxes, scores, drive["reckoner"].pose
+            speed, yaw_rate = tracking.noisy_odometry(np.stack([drive["previous"], pose]), speed_noise_std_mps,
+                                                      yaw_rate_noise_std_rps, rng)
+            drive["previous"] = pose
+            return boxes, scores, drive["reckoner"].step(speed[0], yaw_rate[0])
+
+        return post
+
+    return per_drive
+
+
+# ----------------------------------------------------------------------------- runs
+
+
+def eval_dir(run: str, cfg: Config) -> str:
+    """``<run>/eval`` on the training town, ``<run>/eval_town<seed>`` on a held-out one."""
+    seed = cfg.eval.town_seed
+    return os.path.join(run, "eval" if seed == cfg.world.town_seed else f"eval_town{seed}")
+
+
+def check(baselines, cfg: Config, workdir: str) -> None:
+    """Every check that compiles nothing: the names, and that ``cfg`` fits each trained run already in
+    ``workdir``. Raises ValueError naming the flag."""
+    unknown = sorted(set(baselines) - set(BASELINES))
+    if unknown or not baselines:
+        raise ValueError(f"--baseline={','.join(baselines)}: choose from {','.join(BASELINES)}")
+    for run in sorted({TRAINED_RUN[b] for b in baselines if b in TRAINED_RUN}):
+        train_lib.check_run(cfg, os.path.join(workdir, run))
+
+
+def trained_params(cfg: Config, workdir: str, run: str, log=print):
+    """Trains ``<workdir>/<run>`` (resuming) unless it reached ``cfg.train.num_steps``; its final
+    (params, step)."""
+    from e2e_percep_jax import evaluate as eval_lib
+    path, objective = os.path.join(workdir, run), OBJECTIVES[RUN_HEAD[run]]
+    if train_lib.check_run(cfg, path) != cfg.train.num_steps:
+        log(f"{run}: training in {path}")
+        train_lib.train(cfg, path, objective=objective)
+    _, params, step = eval_lib.restore_params(path, cfg, cfg.train.num_steps, objective)
+    return params, step
+
+
+def run(baseline: str, cfg: Config, workdir: str, *, video_frames: int = 300, speed_noise_std_mps: float = 0.1,
+        yaw_rate_noise_std_rps: float = 0.01, log=print) -> dict:
+    """Trains ``baseline`` if it needs it (the tracker reuses the detector's run) and evaluates it into
+    :func:`eval_dir` of ``<workdir>/<baseline>``, unless that already holds this evaluation (same
+    label, checkpoint and config). Returns the evaluation's metrics."""
+    from e2e_percep_jax import evaluate as eval_lib
+    if baseline == "dead_reckoning":
+        label = (f"dead reckoning (odometry noise {speed_noise_std_mps:g} m/s, "
+                 f"{yaw_rate_noise_std_rps:g} rad/s)")
+        params, step, model_dir = {}, None, None
+        hooks = dict(frame_fn=frame_fn(cfg, None),
+                     host_fn=dead_reckoning_host(speed_noise_std_mps, yaw_rate_noise_std_rps, cfg.eval.seed))
+    else:
+        label, model_dir = LABELS[baseline], os.path.abspath(os.path.join(workdir, TRAINED_RUN[baseline]))
+        params, step = trained_params(cfg, workdir, TRAINED_RUN[baseline], log)
+        hooks = dict(frame_fn=frame_fn(cfg, RUN_HEAD[TRAINED_RUN[baseline]]),
+                     host_fn=tracker_host() if baseline == "tracker" else None)
+    out_dir = eval_dir(os.path.join(workdir, baseline), cfg)
+    metrics_path = os.path.join(out_dir, "metrics.json")
+    if os.path.exists(metrics_path):
+        with open(metrics_path) as f:
+            done = json.load(f)
+        if (done["label"], done["checkpoint_step"], done["config"]) == (label, step, json.loads(cfg.to_json())):
+            log(f"{metrics_path} already evaluates {label} at step {step}; nothing to do")
+            return done
+    return eval_lib.evaluate(cfg, params, out_dir, video_frames=video_frames, workdir=model_dir,
+                             checkpoint_step=step, label=label, log=log, **hooks)

@@ -1,0 +1,187 @@
+"""Modular baselines (e2e_percep_jax/baselines.py, experiments/baselines.py): no memory in the single-frame
+models, their losses against NumPy, the tracker and dead reckoning through the online evaluation with an
+oracle, and the launcher end to end.
+
+Cost: the launcher runs in a subprocess started first (it overlaps the in-process tests); in this process
+one evaluation program is compiled (the oracle) and reused by the tracker and dead-reckoning runs.
+"""
+import json
+import os
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from test_loss import np_focal, np_smooth_l1
+from test_model import TINY, synthetic_batch
+
+from e2e_percep_jax import baselines, config, model, tracking
+from e2e_percep_jax import evaluate as eval_lib
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+LAUNCHER = [sys.executable, os.path.join(ROOT, "experiments", "baselines.py"), "--config=tiny"]
+# The tracker trains the detector's run first; the pose regressor trains by the same code (its loss and
+# model are tested in this process), left out to save its two compilations.
+CLI_FLAGS = ["--baseline=tracker,dead_reckoning", "--train.num_steps=4", "--eval.num_steps=20", "--video_frames=0"]
+
+
+@pytest.fixture(scope="module")
+def cli_run(tmp_path_factory):
+    """The launcher, started at once; yields a function that waits for it and for a
+    second, identical command (which must find everything done)."""
+    workdir = str(tmp_path_factory.mktemp("baselines"))
+    proc = subprocess.Popen(LAUNCHER + CLI_FLAGS + [f"--workdir={workdir}"], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    result = {}
+
+    def wait():
+        if not result:
+            first, _ = proc.communicate(timeout=600)
+            assert proc.returncode == 0, first[-3000:]
+            again = subprocess.run(LAUNCHER + CLI_FLAGS + [f"--workdir={workdir}"], capture_output=True, text=True,
+                                   timeout=300)
+            assert again.returncode == 0, again.stdout + again.stderr
+            result.update(workdir=workdir, first=first, again=again.stdout)
+        return result
+
+    yield wait
+    if proc.poll() is None:
+        proc.kill()
+
+
+# ----------------------------------------------------------------------------- single-frame models
+
+
+def test_single_frame_output_ignores_other_frames_while_the_filter_remembers(cli_run):
+    """Frames other than t replaced by new random images: the baselines' outputs at t are unchanged (bit for
+    bit), the perception model's latent at t is not (it filters through time)."""
+    cfg, t = TINY, 2
+    batch, other = synthetic_batch(0, cfg), synthetic_batch(1, cfg)
+    keep_t = lambda k: np.where((np.arange(cfg.data.seq_len + 1) == t)[None, :, None, None, None], batch[k], other[k])
+    changed = {k: keep_t(k) for k in ("camera", "lidar")}
+    for head in baselines.HEADS:
+        params = baselines.init_params(jax.random.PRNGKey(0), cfg, head)
+        image = jax.ShapeDtypeStruct((1, 32, 32, 3), jnp.uint8)  # flax's own init: the same tree and shapes
+        flax_init = jax.eval_shape(lambda k, x: baselines.build_model(cfg, head).init(k, x, x), jax.random.PRNGKey(0), image)
+        assert jax.tree.map(np.shape, params) == jax.tree.map(lambda x: x.shape, flax_init)
+        before = baselines.predict(params, batch["camera"], batch["lidar"], cfg, head)
+        after = baselines.predict(params, changed["camera"], changed["lidar"], cfg, head)
+        for k in before:
+            np.testing.assert_array_equal(after[k][:, t], before[k][:, t], err_msg=f"{head} {k}")
+            assert not np.allclose(after[k][:, t + 1], before[k][:, t + 1]), (head, k)  # the inputs do matter
+    params = model.init_params(jax.random.PRNGKey(0), cfg)
+    z = jax.jit(lambda c, l: model.filter_sequence(params, c, l, batch["action"], None, cfg)["z2"][:, t])
+    assert np.max(np.abs(z(changed["camera"], changed["lidar"]) - z(batch["camera"], batch["lidar"]))) > 1e-3
+
+
+def test_baseline_losses_are_the_perception_loss_terms_in_numpy():
+    """Each head's loss is the perception loss's own terms (focal + 0.1 smooth-L1 at positives, or the
+    smooth-L1 pose loss in normalised units), per sequence, recomputed in NumPy from the predictions."""
+    cfg, batch = TINY, synthetic_batch(3, TINY)
+    b = batch["camera"].shape[0]
+    for head, names in (("detection", {"det_cls", "det_reg"}), ("pose", {"pose"})):
+        params = baselines.init_params(jax.random.PRNGKey(1), cfg, head)
+        total, metrics = baselines.loss_fn(params, batch, None, cfg, head)
+        pred = jax.tree.map(lambda x: np.asarray(x, np.float64),
+                            baselines.predict(params, batch["camera"], batch["lidar"], cfg, head))
+        if head == "detection":
+            positive = batch["det_cls"] > 0.5
+            want = {"det_cls": np.sum(np_focal(pred["det_logit"], batch["det_cls"])) / b,
+                    "det_reg": 0.1 * np.sum(np.where(positive, np_smooth_l1(pred["det_reg"] - batch["det_reg"]), 0)) / b}
+        else:
+            target = (batch["pose"] - [200, 200, 0, 0, 0]) / [100, 100, 1, 1, 10]
+            want = {"pose": np.sum(np_smooth_l1(pred["pose"] - target)) / b}
+        assert set(metrics) == names | {"total"}
+        for k, v in want.items():
+            np.testing.assert_allclose(metrics[k], v, rtol=2e-4, err_msg=k)
+        np.testing.assert_allclose(total, sum(want.values()), rtol=2e-4)
+        assert np.isfinite(total) and all(v > 0 for v in want.values())
+
+
+# ----------------------------------------------------------------------------- tracker and dead reckoning
+
+
+def oracle_frame_fn(params, fstate, frame, prev_action, key, with_images):
+    """The world's own PIXOR targets as detections (score 1 on every vehicle in view); no pose."""
+    decoded = {"det_cls": frame["det_cls"], "det_reg": frame["det_reg"], "pose": jnp.full_like(frame["pose"], jnp.nan)}
+    return fstate, decoded, {}
+
+
+ORACLE_CFG = config.replace(TINY, world=dict(num_vehicles=100), eval=dict(num_steps=160, num_worlds=2, chunk_steps=20))
+# Measurements trusted (the filter follows each detection) and every track born at once: the tracks'
+# boxes are the detections', and tracks coasting after a miss score below every detection (0.9^misses).
+TRUSTING = tracking.TrackerConfig(min_hits=1, meas_pos_std_m=1e-3, meas_yaw_std_rad=1e-3, meas_size_std_m=1e-3)
+
+
+@pytest.fixture(scope="module")
+def oracle_eval(tmp_path_factory):
+    """``evaluate`` with the oracle frame function (one compile) and any host function."""
+    def run(host_fn, name):
+        return eval_lib.evaluate(ORACLE_CFG, {}, str(tmp_path_factory.mktemp(name)), video_frames=0, num_examples=0,
+                                 frame_fn=oracle_frame_fn, host_fn=host_fn, log=lambda _: None)
+    return run
+
+
+def test_tracker_on_oracle_detections_keeps_their_ap(oracle_eval):
+    plain = oracle_eval(None, "plain")["detection"]
+    tracked = oracle_eval(baselines.tracker_host(TRUSTING), "tracked")["detection"]
+    assert tracked["num_gt"] == plain["num_gt"] and plain["num_gt"]["visible"] > 100
+    assert tracked["ap"]["0.5"]["visible"] >= 0.99, tracked["ap"]
+    for iou in ("0.1", "0.5", "0.7"):
+        for subset in ("all", "visible"):
+            assert tracked["ap"][iou][subset] >= plain["ap"][iou][subset] - 1e-3, (iou, subset, tracked["ap"], plain["ap"])
+
+
+def test_dead_reckoning_without_noise_follows_the_true_path(oracle_eval):
+    """Zero odometry noise: the reckoned pose is the true one up to float32 rounding of ~400 m
+    coordinates; with noise the error is positive and grows with time since the start."""
+    exact = oracle_eval(baselines.dead_reckoning_host(0.0, 0.0, seed=0), "exact")["pose"]
+    assert sum(exact["location_m_by_step"]["count"]) == 160
+    assert exact["location_m"]["mean"] < 1e-3 and exact["heading_rad"]["mean"] < 1e-4, exact
+    assert exact["speed_mps"]["mean"] < 1e-6
+    noisy = oracle_eval(baselines.dead_reckoning_host(0.5, 0.05, seed=0), "noisy")["pose"]
+    by_step = [m for m, n in zip(noisy["location_m_by_step"]["mean"], noisy["location_m_by_step"]["count"]) if n]
+    assert noisy["location_m"]["mean"] > 1e-2 and by_step[-1] > by_step[0], noisy
+
+
+# ----------------------------------------------------------------------------- launcher
+
+
+def test_cli_trains_evaluates_and_resumes(cli_run):
+    r = cli_run()
+    workdir = r["workdir"]
+    metrics = {}
+    for name in ("tracker", "dead_reckoning"):
+        with open(os.path.join(workdir, name, "eval", "metrics.json")) as f:
+            metrics[name] = json.load(f)
+        assert metrics[name]["num_frames"] == 20 and os.path.exists(os.path.join(workdir, name, "eval", "report.md"))
+    # The tracker evaluates the detector's run, trained on the detection terms; it trains nothing itself.
+    with open(os.path.join(workdir, "detector", "metrics.jsonl")) as f:
+        records = [json.loads(line) for line in f]
+    assert records[-1]["step"] == 4 and {"det_cls", "det_reg", "total"} <= set(records[-1])
+    assert not {"kl", "pose"} & set(records[-1])
+    assert os.path.isdir(os.path.join(workdir, "detector", "checkpoints", "4"))
+    assert metrics["tracker"]["workdir"] == os.path.join(workdir, "detector")
+    assert metrics["tracker"]["checkpoint_step"] == 4
+    assert not os.path.exists(os.path.join(workdir, "tracker", "checkpoints"))
+    assert not np.isfinite(metrics["tracker"]["pose"]["location_m"]["mean"])  # no pose head: n/a
+    assert metrics["dead_reckoning"]["detection"]["ap"]["0.5"]["all"] == 0.0  # no detection: no boxes
+    # 10 frames from the true start pose at 0.1 m/s, 0.01 rad/s noise: centimetres.
+    assert 0.0 < metrics["dead_reckoning"]["pose"]["location_m"]["mean"] < 0.5
+    assert r["again"].count("nothing to do") == 2 and "training" not in r["again"], r["again"]
+
+
+def test_bad_flags_fail_in_one_line_before_any_compile(tmp_path):
+    """JAX_LOG_COMPILES=1 logs every compilation to stderr: a one-line stderr means nothing compiled."""
+    cases = [(["--baseline=detector,kalman"], "--baseline=detector,kalman"),
+             (["--odometry_speed_std_mps=-1"], "--odometry_speed_std_mps=-1"),
+             (["--data.image_size=48"], "--data.image_size=48")]
+    procs = [subprocess.Popen(LAUNCHER + flags + [f"--workdir={tmp_path / str(i)}"], stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True, env=dict(os.environ, JAX_LOG_COMPILES="1"))
+             for i, (flags, _) in enumerate(cases)]
+    for (flags, text), proc in zip(cases, procs):
+        out, err = proc.communicate(timeout=120)
+        assert proc.returncode == 1 and err.count("\n") == 1 and err.startswith("error: ") and text in err, (
+            flags, out + err)
