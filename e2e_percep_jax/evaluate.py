@@ -321,49 +321,6 @@ def _title(view, text):
     return view
 
 
-_SHIFT = 4  # cv2 fractional bits, as panels.draw_boxes
-
-
-def _draw_boxes_np(view, boxes, image_size, colour, thickness):
-    """``panels.draw_boxes`` (outline and heading tick of ego-frame boxes [M, 5] over a BEV view) in
-    NumPy. panels' version goes through jax.numpy geometry: every new box count compiles its ops
-    (~0.1 s) and every call dispatches them (~3 ms), which made the video the evaluation's bottleneck."""
-    boxes = np.asarray(boxes, np.float64).reshape(-1, 5)
-    if len(boxes) == 0:
-        return view
-    c, s = np.cos(boxes[:, 2])[:, None], np.sin(boxes[:, 2])[:, None]
-    local = metrics_lib._CORNER_SIGNS[None] * 0.5 * boxes[:, None, 3:5]  # [M, 4, 2]
-    x = boxes[:, None, 0] + c * local[..., 0] - s * local[..., 1]
-    y = boxes[:, None, 1] + s * local[..., 0] + c * local[..., 1]
-    scale = view.shape[0] / geo.BEV_SPAN_M  # view pixels per metre
-    pts = np.round(np.stack([(geo.BEV_SIDE_M - y) * scale, (geo.BEV_AHEAD_M - x) * scale], -1)
-                   * (1 << _SHIFT)).astype(np.int32)  # cv2 (x = col, y = row)
-    cv2.polylines(view, list(pts), True, colour, thickness, cv2.LINE_AA, _SHIFT)
-    front, centre = (pts[:, 0] + pts[:, 1]) // 2, (pts[:, 0] + pts[:, 2]) // 2
-    for a, b in zip(centre, front):
-        cv2.line(view, tuple(int(v) for v in a), tuple(int(v) for v in b), colour, thickness, cv2.LINE_AA, _SHIFT)
-    return view
-
-
-def _draw_predictions(view, boxes, scores, image_size):
-    """panels.frame_panel's predicted-box style: cyan, brighter for higher scores."""
-    boxes, scores = np.asarray(boxes).reshape(-1, 5), np.asarray(scores).reshape(-1)
-    thickness = max(1, view.shape[0] // 160)
-    for box, score in zip(boxes, scores):
-        colour = tuple(int(c * (0.4 + 0.6 * float(score))) for c in panels.PREDICTED_RGB)
-        _draw_boxes_np(view, box[None], image_size, colour, thickness)
-    return view
-
-
-def _draw_ground_truth(view, frame, image_size):
-    """panels.frame_panel's ground-truth style: green where the lidar sees the box, orange where not."""
-    boxes, valid, occluded = (np.asarray(frame[k]) for k in ("boxes", "boxes_valid", "boxes_occluded"))
-    thickness = max(1, view.shape[0] // 160)
-    _draw_boxes_np(view, boxes[valid & occluded], image_size, panels.OCCLUDED_RGB, thickness)
-    _draw_boxes_np(view, boxes[valid & ~occluded], image_size, panels.VISIBLE_RGB, thickness)
-    return view
-
-
 def example_rows(frame, pred_boxes, pred_scores, panel_px=192):
     """The paper's Fig. 6 layout for one frame: uint8 [2 * panel_px, 4 * panel_px, 3].
 
@@ -373,15 +330,13 @@ def example_rows(frame, pred_boxes, pred_scores, panel_px=192):
     """
     r = frame["camera"].shape[0]
     no_boxes = dict(boxes=np.zeros((0, 5), np.float32), boxes_valid=np.zeros(0, bool), boxes_occluded=np.zeros(0, bool))
-    top = panels.frame_panel(dict(frame, **no_boxes), panel_px, titles=False)  # boxes drawn here, in NumPy
-    _draw_ground_truth(top[:, 3 * panel_px:], frame, r)
+    top = panels.frame_panel(frame, panel_px, titles=False)
     blank = np.zeros((r, r, 3), np.uint8)
     recon = {k: frame.get(f"recon_{k}", blank) for k in ("camera", "lidar", "roadmap")}
     recon_frame = dict(recon, **no_boxes)
     if "recon_roadmap" not in frame:  # boxes drawn over the true roadmap, dimmed
         recon_frame["roadmap"] = frame["roadmap"]
-    bottom = panels.frame_panel(recon_frame, panel_px, titles=False)
-    _draw_predictions(bottom[:, 3 * panel_px:], pred_boxes, pred_scores, r)
+    bottom = panels.frame_panel(recon_frame, panel_px, pred_boxes, pred_scores, titles=False)
     if "recon_roadmap" not in frame:
         bottom[:, 2 * panel_px:3 * panel_px] = 0
     for i, name in enumerate(("camera", "lidar", "GT roadmap", "GT boxes")):

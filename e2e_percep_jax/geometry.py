@@ -12,11 +12,14 @@ Every function works on any batch prefix (``()``, ``(B,)``, ``(B, T, N)``...) by
 accepts NumPy or JAX arrays (it uses ``jax.numpy``, so it is jit/vmap-able).
 """
 import jax.numpy as jnp
+import numpy as np
 
 BEV_AHEAD_M = 20.0
 BEV_BEHIND_M = 12.0
 BEV_SIDE_M = 16.0
 BEV_SPAN_M = BEV_AHEAD_M + BEV_BEHIND_M  # == 2 * BEV_SIDE_M: the view is square
+# A box's corners as signs of (length/2, width/2): front-right, front-left, rear-left, rear-right.
+BOX_CORNER_SIGNS = np.array([[1.0, -1.0], [1.0, 1.0], [-1.0, 1.0], [-1.0, -1.0]])
 
 
 def wrap_angle(angle_rad):
@@ -54,8 +57,7 @@ def box_corners(box):
     That order is counter-clockwise in a y-up frame (town and ego frames both are).
     """
     half = 0.5 * box[..., 3:5]  # (length/2, width/2)
-    signs = jnp.array([[1.0, -1.0], [1.0, 1.0], [-1.0, 1.0], [-1.0, -1.0]])
-    local = signs * half[..., None, :]  # [..., 4, 2]
+    local = jnp.asarray(BOX_CORNER_SIGNS, half.dtype) * half[..., None, :]  # [..., 4, 2]
     return rotate(local, box[..., None, 2]) + box[..., None, :2]
 
 

@@ -26,10 +26,6 @@ import numpy as np
 
 from e2e_percep_jax import geometry as geo
 
-# Corner order (front-right, front-left, rear-left, rear-right: counter-clockwise) as signs of
-# (length/2, width/2), taken from geometry.box_corners so the convention has one source.
-_CORNER_SIGNS = np.asarray(geo.box_corners(np.array([0.0, 0.0, 0.0, 2.0, 2.0])), dtype=np.float64)
-
 SUBSETS = ("all", "visible", "occluded")
 
 
@@ -100,7 +96,7 @@ def rotated_iou(boxes_a, boxes_b):
         return iou
     a, b = a[ia], b[ib]
     offset = _rotate(b[:, :2] - a[:, :2], -a[:, 2])  # b's centre in a's frame
-    quad = _rotate(_CORNER_SIGNS * 0.5 * b[:, None, 3:5], (b[:, 2] - a[:, 2])[:, None]) + offset[:, None]
+    quad = _rotate(geo.BOX_CORNER_SIGNS * 0.5 * b[:, None, 3:5], (b[:, 2] - a[:, 2])[:, None]) + offset[:, None]
     area_a, area_b = a[:, 3] * a[:, 4], b[:, 3] * b[:, 4]
     # Rounding can push a touching pair's area a hair below 0, or an identical pair's above the box area.
     inter = np.clip(_clipped_area(quad, 0.5 * a[:, 3:5]), 0.0, np.minimum(area_a, area_b))

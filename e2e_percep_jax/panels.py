@@ -17,20 +17,44 @@ _SHIFT = 4  # cv2 fractional bits: sub-pixel box corners
 _TITLES = ("camera", "lidar", "roadmap", "boxes")
 
 
-def draw_boxes(image, boxes, image_size, color, thickness=1):
-    """Draws ego-frame boxes [M, 5] as outlines with a heading tick onto ``image`` [H, W, 3] (in place),
-    a BEV of an R = ``image_size`` frame scaled to H pixels."""
+def draw_boxes(view, boxes, color, thickness=1):
+    """Draws ego-frame boxes [M, 5] as outlines with a heading tick onto a BEV ``view`` [H, H, 3] (in
+    place; any H, the view spans ``geometry.BEV_SPAN_M``). NumPy, not the jax.numpy geometry: that
+    compiled per box count and dispatched per call, which made the evaluation's video its bottleneck."""
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 5)
     if len(boxes) == 0:
-        return image
-    scale = image.shape[0] / image_size
-    corners = np.asarray(geo.ego_to_bev_px(geo.box_corners(np.asarray(boxes, np.float32)), image_size))  # (row, col)
-    pts = np.round(corners[..., ::-1] * scale * (1 << _SHIFT)).astype(np.int32)  # cv2 wants (x = col, y = row)
-    cv2.polylines(image, list(pts), True, color, thickness, cv2.LINE_AA, _SHIFT)
-    front = (pts[:, 0] + pts[:, 1]) // 2  # middle of the front edge
-    centre = (pts[:, 0] + pts[:, 2]) // 2
+        return view
+    c, s = np.cos(boxes[:, 2])[:, None], np.sin(boxes[:, 2])[:, None]
+    local = geo.BOX_CORNER_SIGNS[None] * 0.5 * boxes[:, None, 3:5]  # [M, 4, 2]
+    x = boxes[:, None, 0] + c * local[..., 0] - s * local[..., 1]
+    y = boxes[:, None, 1] + s * local[..., 0] + c * local[..., 1]
+    px_per_m = view.shape[0] / geo.BEV_SPAN_M
+    pts = np.round(np.stack([(geo.BEV_SIDE_M - y) * px_per_m, (geo.BEV_AHEAD_M - x) * px_per_m], -1)
+                   * (1 << _SHIFT)).astype(np.int32)  # cv2 wants (x = col, y = row)
+    cv2.polylines(view, list(pts), True, color, thickness, cv2.LINE_AA, _SHIFT)
+    front, centre = (pts[:, 0] + pts[:, 1]) // 2, (pts[:, 0] + pts[:, 2]) // 2  # front edge's middle
     for a, b in zip(centre, front):
-        cv2.line(image, tuple(int(v) for v in a), tuple(int(v) for v in b), color, thickness, cv2.LINE_AA, _SHIFT)
-    return image
+        cv2.line(view, tuple(int(v) for v in a), tuple(int(v) for v in b), color, thickness, cv2.LINE_AA, _SHIFT)
+    return view
+
+
+def draw_ground_truth(view, frame):
+    """A frame's true boxes onto a BEV ``view``: green where the lidar sees them, orange where not."""
+    boxes, valid, occluded = (np.asarray(frame[k]) for k in ("boxes", "boxes_valid", "boxes_occluded"))
+    thickness = max(1, view.shape[0] // 160)
+    draw_boxes(view, boxes[valid & occluded], OCCLUDED_RGB, thickness)
+    draw_boxes(view, boxes[valid & ~occluded], VISIBLE_RGB, thickness)
+    return view
+
+
+def draw_predictions(view, boxes, scores=None):
+    """Predicted ego-frame boxes [M, 5] onto a BEV ``view``: cyan, brighter for higher ``scores`` [M]."""
+    boxes = np.asarray(boxes).reshape(-1, 5)
+    scores = np.ones(len(boxes)) if scores is None else np.asarray(scores).reshape(-1)
+    thickness = max(1, view.shape[0] // 160)
+    for box, score in zip(boxes, scores):
+        draw_boxes(view, box, tuple(int(c * (0.4 + 0.6 * float(score))) for c in PREDICTED_RGB), thickness)
+    return view
 
 
 def frame_panel(frame, panel_px=256, pred_boxes=None, pred_scores=None, titles=True):
@@ -44,17 +68,9 @@ def frame_panel(frame, panel_px=256, pred_boxes=None, pred_scores=None, titles=T
     camera = up(frame["camera"], cv2.INTER_LINEAR)
     lidar = up(frame["lidar"], cv2.INTER_NEAREST)  # keep single returns crisp
     roadmap = up(frame["roadmap"], cv2.INTER_NEAREST)
-    boxes_view = (0.55 * roadmap).astype(np.uint8)
-    boxes, valid = np.asarray(frame["boxes"]), np.asarray(frame["boxes_valid"])
-    occluded = np.asarray(frame["boxes_occluded"])
-    thickness = max(1, panel_px // 160)
-    draw_boxes(boxes_view, boxes[valid & occluded], r, OCCLUDED_RGB, thickness)
-    draw_boxes(boxes_view, boxes[valid & ~occluded], r, VISIBLE_RGB, thickness)
+    boxes_view = draw_ground_truth((0.55 * roadmap).astype(np.uint8), frame)
     if pred_boxes is not None:
-        scores = np.ones(len(pred_boxes)) if pred_scores is None else np.asarray(pred_scores)
-        for box, score in zip(np.asarray(pred_boxes), scores):
-            color = tuple(int(c * (0.4 + 0.6 * float(score))) for c in PREDICTED_RGB)
-            draw_boxes(boxes_view, box[None], r, color, thickness)
+        draw_predictions(boxes_view, pred_boxes, pred_scores)
     views = [camera, lidar, roadmap, boxes_view]
     if titles:
         for view, title in zip(views, _TITLES):

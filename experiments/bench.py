@@ -8,7 +8,8 @@ reported separately); ``eval`` and ``memory`` are one run each (minutes long). E
 one JSON line and writes it to ``--out_dir/<name>.json``; a table of all of them closes the run.
 ``train`` also runs the eager PyTorch peer (``../shared/peer/torch_peer_bench.py``, with
 ``--peer_python``) at the same (B, T, R) right after ours and reports ``ratio_vs_peer`` = our
-frames/s over the peer's.
+frames/s over the peer's. ``frames_parts`` and ``train_parts`` are the profiles behind ``frames`` and
+``train``: the same work split into its parts.
 """
 import json
 import os
@@ -26,12 +27,13 @@ from absl import app, flags
 from e2e_percep_jax import batch as batch_lib
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import evaluate as evaluate_lib
+from e2e_percep_jax import geometry as geo
 from e2e_percep_jax import model as model_lib
-from e2e_percep_jax import sensors, world
+from e2e_percep_jax import pixor, sensors, world
 from e2e_percep_jax import train as train_lib
 from e2e_percep_jax.town import build_town
 
-BENCHMARKS = ("world", "frames", "batch", "train", "infer", "compile", "eval", "memory")
+BENCHMARKS = ("world", "frames", "frames_parts", "batch", "train", "train_parts", "infer", "compile", "eval", "memory")
 _REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PEER_SCRIPT = os.path.join(_REPO, "..", "shared", "peer", "torch_peer_bench.py")
 
@@ -93,6 +95,40 @@ def bench_frames(town, repeats):
     return {"image_size": r, "frames_at_once": FLAGS.num_worlds, "frames_per_s": FLAGS.num_worlds / median}
 
 
+def bench_frames_parts(town, repeats):
+    """Where a frame's time goes: each sensor of ``sensors.observe`` alone, vmapped over W states, as
+    core-microseconds per frame (wall time x cores / frames), so the parts add up to ``frames``."""
+    cfg, r = config_lib.get_config("paper"), FLAGS.frames_image_size
+    states = _warm_worlds(town, FLAGS.num_worlds, cfg)
+    town_j = jax.tree.map(jnp.asarray, town)
+
+    def in_ego_frame(state):
+        ego = state.veh_box[world.EGO]
+        return (ego, geo.box_to_ego(state.veh_box[1:], ego[:2], ego[2]),
+                geo.box_to_ego(town_j.building_box, ego[:2], ego[2]))
+
+    def lidar(state):
+        _, boxes, buildings = in_ego_frame(state)
+        return sensors.render_lidar(sensors.lidar_obstacles(state, town_j, buildings, boxes), r)
+
+    def camera(state):
+        ego, boxes, buildings = in_ego_frame(state)
+        return sensors.render_camera(sensors.camera_obstacles(state, town_j, buildings, boxes), town_j,
+                                     ego[:2], ego[2], r)
+
+    def roadmap(state):
+        ego = state.veh_box[world.EGO]
+        return sensors.render_roadmap(town_j, ego[:2], ego[2], ego[3], ego[4], r)
+
+    parts = {"lidar": lidar, "camera": camera, "roadmap": roadmap,
+             "pixor_targets": lambda state: pixor.targets(in_ego_frame(state)[1], r)}
+    figure = {"image_size": r, "frames_at_once": FLAGS.num_worlds}
+    for name, fn in parts.items():
+        run = jax.jit(jax.vmap(fn))
+        figure[f"{name}_core_us_per_frame"] = 1e6 * os.cpu_count() * _median_s(lambda: run(states), repeats) / FLAGS.num_worlds
+    return figure
+
+
 def _train_step_runner(cfg, batch):
     """(compile seconds, a zero-argument function running one compiled training step)."""
     mesh = train_lib.make_mesh()
@@ -147,6 +183,30 @@ def bench_train(town, repeats):
                           peer_threads=peer["threads"], ratio_vs_peer=figure["frames_per_s"] / peer["frames_per_s"])
         figures.append(figure)
     return {"sizes": figures}
+
+
+def bench_train_parts(town, repeats):
+    """Where a training step's time goes, at the first ``--train_sizes`` entry: forward + backward of
+    (a) the whole loss, (b) the two encoders and the latent scan alone, (c) every decoder alone on fixed
+    latents. Each part's gradient is of the sum of its outputs, so it costs what the loss's would."""
+    b, t, r = (int(v) for v in FLAGS.train_sizes[0].split("x"))
+    cfg = _paper_config(b, t, r)
+    params = model_lib.init_params(jax.random.PRNGKey(0), cfg)
+    batch = batch_lib.make_batch(jax.random.PRNGKey(0), town, cfg)
+    key = jax.random.PRNGKey(1)
+    total = lambda tree: sum(jnp.sum(x) for x in jax.tree.leaves(tree))
+    z = jnp.zeros((b * (t + 1), cfg.model.z1_dim + cfg.model.z2_dim))
+    parts = {
+        "loss": lambda p: train_lib.loss_lib.loss_fn(p, batch, key, cfg)[0],
+        "encoders_and_scan": lambda p: total(
+            model_lib.filter_sequence(p, batch["camera"], batch["lidar"], batch["action"], key, cfg)),
+        "decoders": lambda p: total(model_lib.decode(p, z, cfg)),
+    }
+    figure = {"batch": b, "seq_len": t, "image_size": r}
+    for name, fn in parts.items():
+        grad = jax.jit(jax.grad(fn))
+        figure[f"{name}_s"] = _median_s(lambda: grad(params), repeats)
+    return figure
 
 
 def bench_infer(town, repeats):
