@@ -23,6 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from absl import app, flags
+from flax import linen as nn
 
 from e2e_percep_jax import batch as batch_lib
 from e2e_percep_jax import config as config_lib
@@ -33,7 +34,7 @@ from e2e_percep_jax import pixor, sensors, world
 from e2e_percep_jax import train as train_lib
 from e2e_percep_jax.town import build_town
 
-BENCHMARKS = ("world", "frames", "frames_parts", "batch", "train", "train_parts", "infer", "compile", "eval", "memory")
+BENCHMARKS = ("world", "frames", "frames_parts", "batch", "train", "train_parts", "deconv", "infer", "compile", "eval", "memory")
 _REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PEER_SCRIPT = os.path.join(_REPO, "..", "shared", "peer", "torch_peer_bench.py")
 
@@ -206,6 +207,32 @@ def bench_train_parts(town, repeats):
     for name, fn in parts.items():
         grad = jax.jit(jax.grad(fn))
         figure[f"{name}_s"] = _median_s(lambda: grad(params), repeats)
+    return figure
+
+
+def bench_deconv(town, repeats):
+    """The sub-pixel reformulation (``model.Deconv2x``) against flax's plain ``nn.ConvTranspose`` with the
+    same parameters: forward + backward (gradient wrt input and kernel) of every stride-2 decoder layer
+    at the first ``--train_sizes`` entry, paper widths, N = B (T + 1) images."""
+    del town
+    b, t, r = (int(v) for v in FLAGS.train_sizes[0].split("x"))
+    cfg = _paper_config(b, t, r)
+    widths = model_lib.conv_widths(cfg.model, r)
+    # (input side, C in, C out, kernel) of each Deconv2x of one image decoder, as Trunk + ImageDecoder build them
+    ins = (cfg.model.feature_dim,) + tuple(reversed(widths[:-1]))
+    layers = [(4 * 2 ** i, c_in, c_out, 3) for i, (c_in, c_out) in enumerate(zip(ins, ins[1:]))]
+    layers.append((r // 2, widths[0], 3, 5))
+    figure = {"batch": b, "seq_len": t, "image_size": r, "subpixel_s": 0.0, "plain_s": 0.0}
+    for side, c_in, c_out, k in layers:
+        x = jax.random.normal(jax.random.PRNGKey(0), (b * (t + 1), side, side, c_in))
+        lo = k - 1 - k // 2
+        subpixel = model_lib.Deconv2x(c_out, k)
+        plain = nn.ConvTranspose(c_out, (k, k), strides=(2, 2), padding=((lo, lo + 1),) * 2)
+        params = subpixel.init(jax.random.PRNGKey(1), x)
+        for name, module in (("subpixel", subpixel), ("plain", plain)):
+            grad = jax.jit(jax.grad(lambda p, x: jnp.sum(module.apply(p, x) ** 2), argnums=(0, 1)))
+            figure[f"{name}_s"] += _median_s(lambda: grad(params, x), repeats)
+    figure["plain_over_subpixel"] = figure["plain_s"] / figure["subpixel_s"]
     return figure
 
 
