@@ -57,7 +57,7 @@ def box_corners(box):
     That order is counter-clockwise in a y-up frame (town and ego frames both are).
     """
     half = 0.5 * box[..., 3:5]  # (length/2, width/2)
-    local = jnp.asarray(BOX_CORNER_SIGNS, half.dtype) * half[..., None, :]  # [..., 4, 2]
+    local = jnp.asarray(BOX_CORNER_SIGNS, jnp.float32) * half[..., None, :]  # [..., 4, 2]
     return rotate(local, box[..., None, 2]) + box[..., None, :2]
 
 
