@@ -104,8 +104,8 @@ def loss_fn(params, batch, key, cfg: Config, head: str):
     del key  # deterministic: nothing is sampled
     pred = predict(params, batch["camera"], batch["lidar"], cfg, head)
     if head == "detection":
-        return loss_lib.with_total(loss_lib.detection_terms(pred, batch))
-    return loss_lib.with_total({"pose": loss_lib.pose_term(pred["pose"], batch["pose"])})
+        return loss_lib.with_total(loss_lib.detection_terms(pred, batch, cfg.train.perception_weight))
+    return loss_lib.with_total({"pose": loss_lib.pose_term(pred["pose"], batch["pose"], cfg.train.perception_weight)})
 
 
 OBJECTIVES = {h: train_lib.Objective(functools.partial(init_params, head=h), functools.partial(loss_fn, head=h))

@@ -51,6 +51,9 @@ class TrainConfig:
     seed: int = 0
     num_steps: int = 2000
     learning_rate: float = 1e-4
+    # The reference averages the ELBO over its batch but SUMS the detection and pose losses over it (the
+    # paper's B = 32). Per sequence (loss.py's normalisation, whatever B is) that is perception x 32.
+    perception_weight: float = 32.0
     checkpoint_every: int = 500  # steps; a checkpoint is also written at exit
     log_every: int = 10
     max_nonfinite_in_a_row: int = 10  # K: stop after K consecutive skipped (non-finite) updates
@@ -144,7 +147,8 @@ def validate(cfg: Config) -> Config:
         "data.seq_len": cfg.data.seq_len, "model.feature_dim": cfg.model.feature_dim,
         "model.hidden_dim": cfg.model.hidden_dim, "model.z1_dim": cfg.model.z1_dim,
         "model.z2_dim": cfg.model.z2_dim, "train.num_steps": cfg.train.num_steps,
-        "train.learning_rate": cfg.train.learning_rate, "train.checkpoint_every": cfg.train.checkpoint_every,
+        "train.learning_rate": cfg.train.learning_rate, "train.perception_weight": cfg.train.perception_weight,
+        "train.checkpoint_every": cfg.train.checkpoint_every,
         "train.log_every": cfg.train.log_every, "train.max_nonfinite_in_a_row": cfg.train.max_nonfinite_in_a_row,
         "eval.num_steps": cfg.eval.num_steps, "eval.num_worlds": cfg.eval.num_worlds,
         "eval.chunk_steps": cfg.eval.chunk_steps,

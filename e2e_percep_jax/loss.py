@@ -1,6 +1,6 @@
 """The training objective: -ELBO + PIXOR detection loss + ego-pose loss, one jitted pure function.
 
-    total = sum_k recon_k + kl + det_cls + det_reg + pose
+    total = sum_k recon_k + kl + w * (det_cls + det_reg + pose),   w = train.perception_weight
 
 - recon_k (k in the variant's images: camera, lidar, roadmap): Gaussian negative log-likelihood of
   the image in [0, 1] units under the decoder's mean and std sqrt(0.1), i.e. (x - mean)^2 / 0.2 per
@@ -14,7 +14,9 @@
 Normalisation: every term is summed over pixels, channels / latent dims and the T+1 frames of a
 sequence, then averaged over the B sequences of the batch (the torch peer's reconstruction and KL
 normalisation, used here for detection and pose too), so a term means "per sequence of T+1 frames"
-whatever the batch size or the number of devices.
+whatever the batch size or the number of devices. The reference instead sums the perception terms over
+its batch of 32 while averaging the ELBO; ``w`` = 32 (the default) keeps the reference's balance between
+the two at any batch size. The logged det_cls, det_reg and pose include ``w``.
 """
 import functools
 
@@ -50,24 +52,24 @@ def per_sequence(x, batch_size: int):
     return jnp.sum(x) / batch_size
 
 
-def detection_terms(pred: dict, batch: dict) -> dict:
+def detection_terms(pred: dict, batch: dict, weight: float) -> dict:
     """``det_cls`` and ``det_reg`` of decoded PIXOR maps ``pred["det_logit"]`` [B, T+1, R, R, 1] and
-    ``pred["det_reg"]`` [B, T+1, R, R, 6] against the batch's targets, per sequence."""
+    ``pred["det_reg"]`` [B, T+1, R, R, 6] against the batch's targets, per sequence, times ``weight``."""
     b = batch["det_cls"].shape[0]
-    terms = {"det_cls": per_sequence(focal_loss(pred["det_logit"], batch["det_cls"]), b)}
+    terms = {"det_cls": weight * per_sequence(focal_loss(pred["det_logit"], batch["det_cls"]), b)}
     # Regression targets are defined at positive pixels only (elsewhere they may be anything, even
     # non-finite): select them with `where` on both sides so no NaN reaches the value or the gradient.
     positive = batch["det_cls"] > 0.5
     reg_target = jnp.where(positive, batch["det_reg"], 0.0)
     reg_error = jnp.where(positive, optax.huber_loss(pred["det_reg"], reg_target), 0.0)  # smooth-L1, beta 1
-    terms["det_reg"] = DET_REG_WEIGHT * per_sequence(reg_error, b)
+    terms["det_reg"] = weight * DET_REG_WEIGHT * per_sequence(reg_error, b)
     return terms
 
 
-def pose_term(pred_pose, pose):
-    """Smooth-L1 pose loss, per sequence: pose head output [B, T+1, 5] (normalised units) against the
-    frame contract's pose [B, T+1, 5]."""
-    return per_sequence(optax.huber_loss(pred_pose, model_lib.normalise_pose(pose)), pose.shape[0])
+def pose_term(pred_pose, pose, weight: float):
+    """Smooth-L1 pose loss, per sequence, times ``weight``: pose head output [B, T+1, 5] (normalised
+    units) against the frame contract's pose [B, T+1, 5]."""
+    return weight * per_sequence(optax.huber_loss(pred_pose, model_lib.normalise_pose(pose)), pose.shape[0])
 
 
 def with_total(terms: dict) -> tuple:
@@ -78,7 +80,7 @@ def with_total(terms: dict) -> tuple:
 
 @functools.partial(jax.jit, static_argnames="cfg")
 def loss_fn(params, batch, key, cfg: Config):
-    """-ELBO + detection + pose loss of a batch, per sequence (see the module docstring).
+    """-ELBO + weighted detection + pose loss of a batch, per sequence (see the module docstring).
 
     batch: the frame contract with [B, T+1] leading axes (only :data:`BATCH_KEYS` are read);
     key: PRNG key for the posterior samples. Returns (total [], metrics dict of [] float32: one entry
@@ -94,6 +96,6 @@ def loss_fn(params, batch, key, cfg: Config):
         target = batch[k].astype(jnp.float32) / 255.0
         metrics[f"recon_{k}"] = per_sequence((pred[k] - target) ** 2, b) / (2.0 * RECON_VAR)
     metrics["kl"] = per_sequence(gaussian_kl(out["q_z1_loc"], out["q_z1_scale"], out["p_z1_loc"], out["p_z1_scale"]), b)
-    metrics.update(detection_terms(pred, batch))
-    metrics["pose"] = pose_term(pred["pose"], batch["pose"])
+    metrics.update(detection_terms(pred, batch, cfg.train.perception_weight))
+    metrics["pose"] = pose_term(pred["pose"], batch["pose"], cfg.train.perception_weight)
     return with_total(metrics)

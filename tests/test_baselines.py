@@ -80,7 +80,7 @@ def test_baseline_losses_are_the_perception_loss_terms_in_numpy():
     """Each head's loss is the perception loss's own terms (focal + 0.1 smooth-L1 at positives, or the
     smooth-L1 pose loss in normalised units), per sequence, recomputed in NumPy from the predictions."""
     cfg, batch = TINY, synthetic_batch(3, TINY)
-    b = batch["camera"].shape[0]
+    b, w = batch["camera"].shape[0], TINY.train.perception_weight
     for head, names in (("detection", {"det_cls", "det_reg"}), ("pose", {"pose"})):
         params = baselines.init_params(jax.random.PRNGKey(1), cfg, head)
         total, metrics = baselines.loss_fn(params, batch, None, cfg, head)
@@ -88,11 +88,11 @@ def test_baseline_losses_are_the_perception_loss_terms_in_numpy():
                             baselines.predict(params, batch["camera"], batch["lidar"], cfg, head))
         if head == "detection":
             positive = batch["det_cls"] > 0.5
-            want = {"det_cls": np.sum(np_focal(pred["det_logit"], batch["det_cls"])) / b,
-                    "det_reg": 0.1 * np.sum(np.where(positive, np_smooth_l1(pred["det_reg"] - batch["det_reg"]), 0)) / b}
+            want = {"det_cls": w * np.sum(np_focal(pred["det_logit"], batch["det_cls"])) / b,
+                    "det_reg": w * 0.1 * np.sum(np.where(positive, np_smooth_l1(pred["det_reg"] - batch["det_reg"]), 0)) / b}
         else:
             target = (batch["pose"] - [200, 200, 0, 0, 0]) / [100, 100, 1, 1, 10]
-            want = {"pose": np.sum(np_smooth_l1(pred["pose"] - target)) / b}
+            want = {"pose": w * np.sum(np_smooth_l1(pred["pose"] - target)) / b}
         assert set(metrics) == names | {"total"}
         for k, v in want.items():
             np.testing.assert_allclose(metrics[k], v, rtol=2e-4, err_msg=k)

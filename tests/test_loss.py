@@ -50,7 +50,7 @@ def setup():
 
 def test_every_term_matches_numpy_per_sequence(setup):
     """With posterior means (key None) the loss is deterministic: recompute each term in NumPy from
-    the model's outputs, summed over pixels and time, divided by B."""
+    the model's outputs, summed over pixels and time, divided by B (perception terms times 32)."""
     cfg, params, batch = setup
     total, metrics = loss.loss_fn(params, batch, None, cfg)
     out = jax.tree.map(np.asarray, model.filter_sequence(params, batch["camera"], batch["lidar"], batch["action"],
@@ -62,11 +62,13 @@ def test_every_term_matches_numpy_per_sequence(setup):
             for k in ("camera", "lidar", "roadmap")}
     mq, sq, mp, sp = (out[k].astype(np.float64) for k in ("q_z1_loc", "q_z1_scale", "p_z1_loc", "p_z1_scale"))
     want["kl"] = np.sum(np.log(sp / sq) + (sq ** 2 + (mq - mp) ** 2) / (2 * sp ** 2) - 0.5) / b
-    want["det_cls"] = np.sum(np_focal(pred["det_logit"], batch["det_cls"])) / b
+    w = 32.0  # the reference's perception terms are summed over its batch of 32: the default weight
+    assert cfg.train.perception_weight == w
+    want["det_cls"] = w * np.sum(np_focal(pred["det_logit"], batch["det_cls"])) / b
     positive = batch["det_cls"] > 0.5
-    want["det_reg"] = 0.1 * np.sum(np.where(positive, np_smooth_l1(pred["det_reg"] - batch["det_reg"]), 0)) / b
+    want["det_reg"] = w * 0.1 * np.sum(np.where(positive, np_smooth_l1(pred["det_reg"] - batch["det_reg"]), 0)) / b
     pose_target = (batch["pose"] - [200, 200, 0, 0, 0]) / [100, 100, 1, 1, 10]
-    want["pose"] = np.sum(np_smooth_l1(pred["pose"] - pose_target)) / b
+    want["pose"] = w * np.sum(np_smooth_l1(pred["pose"] - pose_target)) / b
     want["total"] = sum(want.values())
     assert set(metrics) == set(want)
     for k in want:
