@@ -14,7 +14,6 @@ sequence frame by frame reproduces the training-time posterior.
 import dataclasses
 import os
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 

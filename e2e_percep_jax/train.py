@@ -159,13 +159,17 @@ def shard_batch(batch: dict, mesh: Mesh) -> dict:
     return jax.tree.map(lambda x: jax.make_array_from_callback(x.shape, sharding, lambda i: x[i]), host)
 
 
+# TrainConfig fields the jitted step never reads; any other field (a new one too) stays in its config.
+_NOT_READ_BY_STEP = ("seed", "num_steps", "checkpoint_every", "log_every")
+
+
 def step_config(cfg: Config) -> Config:
     """``cfg`` with every field :func:`train_step` does not read set to its default (the batch's
     shapes come from the batch), so runs that differ only in those share one compilation."""
-    t = cfg.train
+    unread = {name: getattr(TrainConfig(), name) for name in _NOT_READ_BY_STEP}
     return dataclasses.replace(
         Config(), model=cfg.model, data=dataclasses.replace(Config().data, image_size=cfg.data.image_size),
-        train=TrainConfig(learning_rate=t.learning_rate, max_nonfinite_in_a_row=t.max_nonfinite_in_a_row))
+        train=dataclasses.replace(cfg.train, **unread))
 
 
 def make_train_step(cfg: Config, mesh: Mesh, objective: Objective = PERCEPTION):

@@ -28,7 +28,6 @@ flags.DEFINE_float("odometry_yaw_rate_std_rps", 0.01, "dead reckoning: white noi
 FLAGS = flags.FLAGS
 
 
-
 def main(argv):
     try:
         config_lib.check_launch(argv)

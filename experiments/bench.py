@@ -63,6 +63,15 @@ def _median_s(fn, repeats):
     return statistics.median(times)
 
 
+def _size(spec: str) -> tuple:
+    """(B, T, R) of a ``--train_sizes`` entry ``BxTxR``."""
+    try:
+        b, t, r = (int(v) for v in spec.split("x"))
+    except ValueError:
+        raise ValueError(f"--train_sizes: {spec!r} is not BxTxR (three integers)") from None
+    return b, t, r
+
+
 def _paper_config(batch_size, seq_len, image_size):
     """The paper's network (default widths) at the given (B, T, R)."""
     return config_lib.validate(config_lib.replace(
@@ -171,7 +180,7 @@ def bench_train(town, repeats):
     """Training-step frames/s (B·(T+1) per step) at the paper's widths, beside the eager PyTorch peer."""
     figures = []
     for size in FLAGS.train_sizes:
-        b, t, r = (int(v) for v in size.split("x"))
+        b, t, r = _size(size)
         cfg = _paper_config(b, t, r)
         compile_s, run = _train_step_runner(cfg, batch_lib.make_batch(jax.random.PRNGKey(0), town, cfg))
         step_s = _median_s(run, repeats)
@@ -190,7 +199,7 @@ def bench_train_parts(town, repeats):
     """Where a training step's time goes, at the first ``--train_sizes`` entry: forward + backward of
     (a) the whole loss, (b) the two encoders and the latent scan alone, (c) every decoder alone on fixed
     latents. Each part's gradient is of the sum of its outputs, so it costs what the loss's would."""
-    b, t, r = (int(v) for v in FLAGS.train_sizes[0].split("x"))
+    b, t, r = _size(FLAGS.train_sizes[0])
     cfg = _paper_config(b, t, r)
     params = model_lib.init_params(jax.random.PRNGKey(0), cfg)
     batch = batch_lib.make_batch(jax.random.PRNGKey(0), town, cfg)
@@ -215,7 +224,7 @@ def bench_deconv(town, repeats):
     same parameters: forward + backward (gradient wrt input and kernel) of every stride-2 decoder layer
     at the first ``--train_sizes`` entry, paper widths, N = B (T + 1) images."""
     del town
-    b, t, r = (int(v) for v in FLAGS.train_sizes[0].split("x"))
+    b, t, r = _size(FLAGS.train_sizes[0])
     cfg = _paper_config(b, t, r)
     widths = model_lib.conv_widths(cfg.model, r)
     # (input side, C in, C out, kernel) of each Deconv2x of one image decoder, as Trunk + ImageDecoder build them
@@ -322,6 +331,11 @@ def main(argv):
         sys.exit(f"error: --what={','.join(FLAGS.what)}: unknown {unknown}; choose from {BENCHMARKS}")
     if FLAGS.repeats < 1:
         sys.exit(f"error: --repeats={FLAGS.repeats}: must be >= 1")
+    try:
+        for spec in FLAGS.train_sizes:
+            _size(spec)
+    except ValueError as e:
+        sys.exit(f"error: {e}")
     os.makedirs(FLAGS.out_dir, exist_ok=True)
     town = build_town(config_lib.DEFAULT_TOWN_SEED)
     context = {"jax": jax.__version__, "backend": jax.default_backend(), "devices": jax.device_count(),

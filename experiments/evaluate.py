@@ -27,7 +27,6 @@ flags.DEFINE_float("nms_iou", None, "rotated-IoU threshold of the greedy NMS")
 FLAGS = flags.FLAGS
 
 
-
 def main(argv):
     from e2e_percep_jax import evaluate as eval_lib
     try:

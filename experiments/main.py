@@ -21,7 +21,6 @@ flags.DEFINE_integer("video_frames", 300, "frames of the first evaluation drive 
 FLAGS = flags.FLAGS
 
 
-
 def _evaluated_step(metrics_path):
     if not os.path.exists(metrics_path):
         return None

@@ -32,7 +32,6 @@ flags.DEFINE_integer("video_frames", 0, "frames of drive.mp4 per run (0: none)")
 FLAGS = flags.FLAGS
 
 
-
 def run_name(variant: str, seed: int) -> str:
     return f"{variant}-seed{seed}"
 

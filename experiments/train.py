@@ -23,7 +23,6 @@ flags.DEFINE_integer("process_id", None, "this process's index in a multi-proces
 FLAGS = flags.FLAGS
 
 
-
 def main(argv):
     try:
         config_lib.check_launch(argv)

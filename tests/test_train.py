@@ -126,6 +126,25 @@ def test_nonfinite_batch_skips_the_update():
                               before.params["params"]["pose_head"]["Dense_2"]["bias"])
 
 
+def test_compiled_step_uses_the_perception_weight():
+    """``train.perception_weight`` reaches the jitted step (its config is trimmed for compile reuse):
+    weight 1 against the default 32 divides the perception terms by 32 and leaves the ELBO alone."""
+    mesh = train.make_mesh()
+    replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
+    batch = train.shard_batch(synthetic_batch(0, CFG), mesh)
+    metrics = {}
+    for weight in (1.0, CFG.train.perception_weight):
+        cfg = config.replace(CFG, train=dict(perception_weight=weight))
+        state = jax.device_put(train.init_state(cfg), replicated)
+        metrics[weight] = train.make_train_step(cfg, mesh)(state, batch, jax.random.PRNGKey(0))[1]
+    ratio = CFG.train.perception_weight
+    assert ratio == 32.0
+    for k in ("det_cls", "det_reg", "pose"):
+        np.testing.assert_allclose(metrics[ratio][k], ratio * metrics[1.0][k], rtol=1e-5, err_msg=k)
+    for k in ("recon_camera", "kl"):
+        np.testing.assert_allclose(metrics[ratio][k], metrics[1.0][k], rtol=1e-6, err_msg=k)
+
+
 def test_stops_after_max_nonfinite_in_a_row_keeping_the_last_good_checkpoint(tmp_path):
     # Steps 0, 1 update; 2, 3, 4 are non-finite (the 3rd in a row halts updates), found at the log of step 6.
     with pytest.raises(train.NonFiniteLossError, match=r"stopping at step 6: 3 non-finite .*"
