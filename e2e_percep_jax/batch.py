@@ -21,13 +21,18 @@ def rollout(state, town, num_frames: int, image_size: int):
     Frame t is ``sensors.observe`` of state t plus ``action`` = the ego action applied from t to t+1
     (``ego_action`` of state t+1). Returns (state after the last step, i.e. the state of the next
     frame, so rollouts chain; frames: dict of [num_frames, ...] arrays).
+
+    The world is stepped first and the sensors observe all recorded states at once: one wide vmapped
+    pass instead of one narrow pass per scan step (the same frames; 1.6x faster for a `cpu` batch,
+    BUILD_NOTES.md performance log).
     """
     def body(state, _):
-        frame = sensors.observe(state, town, image_size)
-        state = world.step(state, town)
-        return state, {**frame, "action": state.ego_action}
+        next_state = world.step(state, town)
+        return next_state, (state, next_state.ego_action)
 
-    return jax.lax.scan(body, state, None, length=num_frames)
+    last, (states, actions) = jax.lax.scan(body, state, None, length=num_frames)
+    frames = jax.vmap(lambda s: sensors.observe(s, town, image_size))(states)
+    return last, {**frames, "action": actions}
 
 
 def sequence(key, town, cfg: config_lib.Config):
