@@ -220,28 +220,39 @@ def bench_train_parts(town, repeats):
 
 
 def bench_deconv(town, repeats):
-    """The sub-pixel reformulation (``model.Deconv2x``) against flax's plain ``nn.ConvTranspose`` with the
-    same parameters: forward + backward (gradient wrt input and kernel) of every stride-2 decoder layer
-    at the first ``--train_sizes`` entry, paper widths, N = B (T + 1) images."""
+    """Per-layer profile of the decoders' stride-2 transposed convolutions: the sub-pixel reformulation
+    (``model.Deconv2x``), flax's plain ``nn.ConvTranspose`` with the same parameters and, with
+    ``--peer_python``, eager PyTorch's ``ConvTranspose2d`` (``experiments/torch_layers.py``): forward +
+    backward (gradient wrt input and kernel) of each layer of one image decoder at the first
+    ``--train_sizes`` entry, paper widths, N = B (T + 1) images."""
     del town
     b, t, r = _size(FLAGS.train_sizes[0])
     cfg = _paper_config(b, t, r)
     widths = model_lib.conv_widths(cfg.model, r)
+    n = b * (t + 1)
     # (input side, C in, C out, kernel) of each Deconv2x of one image decoder, as Trunk + ImageDecoder build them
     ins = (cfg.model.feature_dim,) + tuple(reversed(widths[:-1]))
     layers = [(4 * 2 ** i, c_in, c_out, 3) for i, (c_in, c_out) in enumerate(zip(ins, ins[1:]))]
     layers.append((r // 2, widths[0], 3, 5))
-    figure = {"batch": b, "seq_len": t, "image_size": r, "subpixel_s": 0.0, "plain_s": 0.0}
+    figure = {"batch": b, "seq_len": t, "image_size": r, "layers": [list(layer) for layer in layers],
+              "subpixel_layer_s": [], "plain_layer_s": []}
     for side, c_in, c_out, k in layers:
-        x = jax.random.normal(jax.random.PRNGKey(0), (b * (t + 1), side, side, c_in))
+        x = jax.random.normal(jax.random.PRNGKey(0), (n, side, side, c_in))
         lo = k - 1 - k // 2
         subpixel = model_lib.Deconv2x(c_out, k)
         plain = nn.ConvTranspose(c_out, (k, k), strides=(2, 2), padding=((lo, lo + 1),) * 2)
         params = subpixel.init(jax.random.PRNGKey(1), x)
         for name, module in (("subpixel", subpixel), ("plain", plain)):
             grad = jax.jit(jax.grad(lambda p, x: jnp.sum(module.apply(p, x) ** 2), argnums=(0, 1)))
-            figure[f"{name}_s"] += _median_s(lambda: grad(params, x), repeats)
+            figure[f"{name}_layer_s"].append(_median_s(lambda: grad(params, x), repeats))
+    figure.update(subpixel_s=sum(figure["subpixel_layer_s"]), plain_s=sum(figure["plain_layer_s"]))
     figure["plain_over_subpixel"] = figure["plain_s"] / figure["subpixel_s"]
+    if FLAGS.peer_python and os.path.exists(FLAGS.peer_python):
+        cmd = [FLAGS.peer_python, os.path.join(_REPO, "experiments", "torch_layers.py"), "--repeats", str(repeats),
+               "--layers", json.dumps([[n, *layer] for layer in layers])]
+        peer = json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout.strip().splitlines()[-1])
+        figure.update(torch_layer_s=peer["layer_s"], torch_s=sum(peer["layer_s"]), torch_threads=peer["threads"])
+        figure["subpixel_over_torch"] = figure["subpixel_s"] / figure["torch_s"]
     return figure
 
 
@@ -355,7 +366,7 @@ def main(argv):
             for key, value in row.items():
                 if isinstance(value, float):
                     print(f"| {name} {label} | {key} | {value:.4g} |")
-                elif isinstance(value, list):
+                elif isinstance(value, list) and all(isinstance(v, float) for v in value):
                     print(f"| {name} {label} | {key} | {', '.join(f'{v:.4g}' for v in value)} |")
 
 
