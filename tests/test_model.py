@@ -165,16 +165,22 @@ def np_trunk(p, z):
     return x
 
 
-@pytest.mark.parametrize("kernel", [3, 5])
-def test_subpixel_deconv_equals_flax_conv_transpose(kernel):
+# Both computations of Deconv2x (a conv below MATMUL_MIN_FEATURES outputs, im2col + matmul from it), both kernels.
+@pytest.mark.parametrize("kernel,features", [(3, 3), (5, 3), (3, model.MATMUL_MIN_FEATURES), (5, 9)])
+def test_subpixel_deconv_equals_flax_conv_transpose(kernel, features):
     lo = kernel - 1 - kernel // 2
     x = jax.random.normal(jax.random.PRNGKey(0), (2, 5, 6, 4))
-    params = model.Deconv2x(7, kernel).init(jax.random.PRNGKey(1), x)
+    params = model.Deconv2x(features, kernel).init(jax.random.PRNGKey(1), x)
     params = jax.tree.map(lambda v: v + 0.1, params)  # non-zero bias too
-    want = nn.ConvTranspose(7, (kernel, kernel), strides=(2, 2), padding=((lo, lo + 1),) * 2).apply(params, x)
-    got = model.Deconv2x(7, kernel).apply(params, x)
-    assert got.shape == (2, 10, 12, 7)
-    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)
+    plain = nn.ConvTranspose(features, (kernel, kernel), strides=(2, 2), padding=((lo, lo + 1),) * 2)
+    got = model.Deconv2x(features, kernel).apply(params, x)
+    assert got.shape == (2, 10, 12, features)
+    np.testing.assert_allclose(got, plain.apply(params, x), rtol=1e-5, atol=1e-5)
+    # The gradients too (training differentiates the reformulation, not the plain layer).
+    cotangent = jax.random.normal(jax.random.PRNGKey(2), got.shape)
+    grad = lambda module: jax.grad(lambda p, x: jnp.sum(module.apply(p, x) * cotangent), argnums=(0, 1))(params, x)
+    for g, want in zip(jax.tree.leaves(grad(model.Deconv2x(features, kernel))), jax.tree.leaves(grad(plain))):
+        np.testing.assert_allclose(g, want, rtol=1e-4, atol=1e-4)
 
 
 def test_layers_match_numpy_torch_semantics():
