@@ -167,13 +167,17 @@ def bench_batch(town, repeats):
     return {"config": "cpu", "batch_s": batch_s, "train_step_s": step_s, "batch_over_step": batch_s / step_s}
 
 
-def _peer(batch_size, seq_len, image_size, repeats):
+def _run_peer(script, *args):
+    """The last stdout line of ``script`` run by ``--peer_python``, as JSON; None without a peer python."""
     if not FLAGS.peer_python or not os.path.exists(FLAGS.peer_python):
         return None
-    cmd = [FLAGS.peer_python, PEER_SCRIPT, "--batch", str(batch_size), "--seq-len", str(seq_len),
-           "--image-size", str(image_size), "--steps", str(repeats)]
-    out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
+    out = subprocess.run([FLAGS.peer_python, script, *map(str, args)], check=True, capture_output=True, text=True).stdout
     return json.loads(out.strip().splitlines()[-1])
+
+
+def _peer(batch_size, seq_len, image_size, repeats):
+    return _run_peer(PEER_SCRIPT, "--batch", batch_size, "--seq-len", seq_len, "--image-size", image_size,
+                     "--steps", repeats)
 
 
 def bench_train(town, repeats):
@@ -247,10 +251,9 @@ def bench_deconv(town, repeats):
             figure[f"{name}_layer_s"].append(_median_s(lambda: grad(params, x), repeats))
     figure.update(subpixel_s=sum(figure["subpixel_layer_s"]), plain_s=sum(figure["plain_layer_s"]))
     figure["plain_over_subpixel"] = figure["plain_s"] / figure["subpixel_s"]
-    if FLAGS.peer_python and os.path.exists(FLAGS.peer_python):
-        cmd = [FLAGS.peer_python, os.path.join(_REPO, "experiments", "torch_layers.py"), "--repeats", str(repeats),
-               "--layers", json.dumps([[n, *layer] for layer in layers])]
-        peer = json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout.strip().splitlines()[-1])
+    peer = _run_peer(os.path.join(_REPO, "experiments", "torch_layers.py"), "--repeats", repeats,
+                     "--layers", json.dumps([[n, *layer] for layer in layers]))
+    if peer is not None:
         figure.update(torch_layer_s=peer["layer_s"], torch_s=sum(peer["layer_s"]), torch_threads=peer["threads"])
         figure["subpixel_over_torch"] = figure["subpixel_s"] / figure["torch_s"]
     return figure
