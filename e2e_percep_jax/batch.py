@@ -23,8 +23,8 @@ def rollout(state, town, num_frames: int, image_size: int):
     frame, so rollouts chain; frames: dict of [num_frames, ...] arrays).
 
     The world is stepped first and the sensors observe all recorded states at once: one wide vmapped
-    pass instead of one narrow pass per scan step (the same frames; 1.6x faster for a `cpu` batch,
-    BUILD_NOTES.md performance log).
+    pass instead of one narrow pass per scan step (the same frames; a few % faster for a `cpu` batch,
+    BUILD_NOTES.md).
     """
     def body(state, _):
         next_state = world.step(state, town)

@@ -34,7 +34,6 @@ from e2e_percep_jax.config import Config, ModelConfig
 
 LEAK = 0.2  # leaky-ReLU slope of the reference (flax's default is 0.01)
 MIN_SCALE = 1e-5  # Gaussian scale = softplus(raw) + MIN_SCALE
-MATMUL_MIN_FEATURES = 8  # Deconv2x layers this wide compute as im2col + matmul (measured faster)
 
 # The pose head predicts (pose - POSE_OFFSET) / POSE_SCALE: x, y (m) centred on the ~400 m town and
 # in units of 100 m, heading cos/sin as they are, speed in units of 10 m/s. A fixed affine map, so
@@ -75,14 +74,6 @@ def _conv_s2(features: int, kernel: int) -> nn.Conv:
     return nn.Conv(features, (kernel, kernel), strides=(2, 2), padding=((p, p), (p, p)))
 
 
-def _patches(x, n: int, pad_lo: int, pad_hi: int):
-    """im2col of a stride-1 n x n conv, each spatial axis padded (pad_lo, pad_hi): [N, H, W, C] -> the
-    n x n shifted inputs side by side [N, H, W, n n C] (order dy, dx, C)."""
-    h, w = x.shape[1:3]
-    xp = jnp.pad(x, ((0, 0), (pad_lo, pad_hi), (pad_lo, pad_hi), (0, 0)))
-    return jnp.concatenate([xp[:, dy:dy + h, dx:dx + w] for dy in range(n) for dx in range(n)], -1)
-
-
 class Deconv2x(nn.Module):
     """torch ``ConvTranspose2d(kernel, 2, kernel // 2, output_padding=1)``: [N, H, W, C] -> [N, 2H, 2W, features].
 
@@ -91,9 +82,6 @@ class Deconv2x(nn.Module):
     sub-pixel: each of the four output phases (row, column parity) is a stride-1 conv of the input
     with a sub-kernel of taps, so one conv with 4 x features outputs, interleaved, gives the output.
     XLA:CPU runs a transposed conv as a conv over the zero-dilated input, ~10x slower to differentiate.
-    Layers with at least ``MATMUL_MIN_FEATURES`` outputs compute that stride-1 conv as im2col + matmul,
-    which XLA:CPU differentiates 1.3-2x faster than its conv; the narrow output layers (3, 1 and 6
-    features) stay a conv, 2x faster there (BUILD_NOTES.md performance log, ``bench.py --what=deconv``).
     """
     features: int
     kernel: int
@@ -112,12 +100,9 @@ class Deconv2x(nn.Module):
             index[d - d_min, a], used[d - d_min, a] = j, 1.0
         sub = w[index][:, :, index] * (used[:, :, None, None, None, None] * used[None, None, :, :, None, None])
         sub = sub.transpose(0, 2, 4, 1, 3, 5).reshape(n, n, c, 4 * self.features)  # [dy, dx, C, (ay, ax, F)]
+        y = jax.lax.conv_general_dilated(x, sub, (1, 1), ((-d_min, d_max), (-d_min, d_max)),
+                                         dimension_numbers=("NHWC", "HWIO", "NHWC"))
         nb, h, wd = x.shape[:3]
-        if self.features >= MATMUL_MIN_FEATURES:  # im2col + one matmul, rows in the kernel's (dy, dx, C) order
-            y = _patches(x, n, -d_min, d_max) @ sub.reshape(n * n * c, 4 * self.features)
-        else:
-            y = jax.lax.conv_general_dilated(x, sub, (1, 1), ((-d_min, d_max), (-d_min, d_max)),
-                                             dimension_numbers=("NHWC", "HWIO", "NHWC"))
         y = y.reshape(nb, h, wd, 2, 2, self.features).transpose(0, 1, 3, 2, 4, 5)
         return y.reshape(nb, 2 * h, 2 * wd, self.features) + b
 
