@@ -24,7 +24,6 @@ The loss's ``key`` is unused (nothing is sampled) and kept for ``train.Objective
 the launcher's flag checks must compile nothing.
 """
 import functools
-import json
 import os
 
 import flax.linen as nn
@@ -174,12 +173,6 @@ def dead_reckoning_host(speed_noise_std_mps: float, yaw_rate_noise_std_rps: floa
 # ----------------------------------------------------------------------------- runs
 
 
-def eval_dir(run: str, cfg: Config) -> str:
-    """``<run>/eval`` on the training town, ``<run>/eval_town<seed>`` on a held-out one."""
-    seed = cfg.eval.town_seed
-    return os.path.join(run, "eval" if seed == cfg.world.town_seed else f"eval_town{seed}")
-
-
 def check(baselines, cfg: Config, workdir: str) -> None:
     """Every check that compiles nothing: the names, and that ``cfg`` fits each trained run already in
     ``workdir``. Raises ValueError naming the flag."""
@@ -205,7 +198,7 @@ def trained_params(cfg: Config, workdir: str, run: str, log=print):
 def run(baseline: str, cfg: Config, workdir: str, *, video_frames: int = 300, speed_noise_std_mps: float = 0.1,
         yaw_rate_noise_std_rps: float = 0.01, log=print) -> dict:
     """Trains ``baseline`` if it needs it (the tracker reuses the detector's run) and evaluates it into
-    :func:`eval_dir` of ``<workdir>/<baseline>``, unless that already holds this evaluation (same
+    ``evaluate.eval_dir`` of ``<workdir>/<baseline>``, unless that already holds this evaluation (same
     label, checkpoint and config). Returns the evaluation's metrics."""
     from e2e_percep_jax import evaluate as eval_lib
     if baseline == "dead_reckoning":
@@ -219,13 +212,10 @@ def run(baseline: str, cfg: Config, workdir: str, *, video_frames: int = 300, sp
         params, step = trained_params(cfg, workdir, TRAINED_RUN[baseline], log)
         hooks = dict(frame_fn=frame_fn(cfg, RUN_HEAD[TRAINED_RUN[baseline]]),
                      host_fn=tracker_host() if baseline == "tracker" else None)
-    out_dir = eval_dir(os.path.join(workdir, baseline), cfg)
-    metrics_path = os.path.join(out_dir, "metrics.json")
-    if os.path.exists(metrics_path):
-        with open(metrics_path) as f:
-            done = json.load(f)
-        if (done["label"], done["checkpoint_step"], done["config"]) == (label, step, json.loads(cfg.to_json())):
-            log(f"{metrics_path} already evaluates {label} at step {step}; nothing to do")
-            return done
+    out_dir = eval_lib.eval_dir(os.path.join(workdir, baseline), cfg)
+    done = eval_lib.finished_evaluation(out_dir, label, step, cfg)
+    if done is not None:
+        log(f"{out_dir} already evaluates {label} at step {step}; nothing to do")
+        return done
     return eval_lib.evaluate(cfg, params, out_dir, video_frames=video_frames, workdir=model_dir,
                              checkpoint_step=step, label=label, log=log, **hooks)

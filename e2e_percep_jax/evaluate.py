@@ -122,6 +122,25 @@ def restore_params(workdir: str, cfg: Config | None = None, step: int | None = N
     return cfg, state.params, step
 
 
+def eval_dir(run: str, cfg: Config) -> str:
+    """Where a run's evaluation goes: ``<run>/eval`` on the training town, ``<run>/eval_town<seed>`` on a
+    held-out one (so a held-out evaluation never overwrites, nor is mistaken for, the training town's)."""
+    seed = cfg.eval.town_seed
+    return os.path.join(run, "eval" if seed == cfg.world.town_seed else f"eval_town{seed}")
+
+
+def finished_evaluation(out_dir: str, label: str, checkpoint_step: int | None, cfg: Config) -> dict | None:
+    """The metrics in ``out_dir`` if they already evaluate ``label`` at ``checkpoint_step`` under exactly
+    ``cfg`` (frames, worlds, seeds and town included), else None: the test for skipping a re-evaluation."""
+    path = os.path.join(out_dir, "metrics.json")
+    if not os.path.exists(path):
+        return None
+    with open(path) as f:
+        done = json.load(f)
+    same = (done["label"], done["checkpoint_step"], done["config"]) == (label, checkpoint_step, json.loads(cfg.to_json()))
+    return done if same else None
+
+
 # ----------------------------------------------------------------------------- device side
 
 

@@ -1,5 +1,5 @@
-"""Evaluates a trained run online (DESIGN §5) and writes RUN/eval/: metrics.json, report.md,
-pr_curves.png, examples.png, drive.mp4.
+"""Evaluates a trained run online (DESIGN §5) and writes RUN/eval/ (RUN/eval_town<seed>/ on a held-out
+``--eval.town_seed``): metrics.json, report.md, pr_curves.png, examples.png, drive.mp4.
 
     python experiments/evaluate.py --workdir=runs/demo [--eval.num_steps=2000 --sample --video_frames=300]
 
@@ -16,7 +16,8 @@ from e2e_percep_jax import config as config_lib
 
 config_lib.define_flags()
 flags.DEFINE_string("workdir", None, "run directory holding config.json and checkpoints/")
-flags.DEFINE_string("out_dir", None, "where the report goes (default: WORKDIR/eval)")
+flags.DEFINE_string("out_dir", None, "where the report goes (default: WORKDIR/eval, or WORKDIR/eval_town<seed> "
+                    "with a held-out --eval.town_seed)")
 flags.DEFINE_integer("step", None, "checkpoint step to evaluate (default: the latest)")
 flags.DEFINE_boolean("sample", False, "filter with posterior samples instead of the posterior mean")
 flags.DEFINE_integer("video_frames", 300, "frames of world 0 in drive.mp4 (0: no video)")
@@ -50,7 +51,7 @@ def main(argv):
     except (ValueError, FileNotFoundError) as e:
         sys.exit(f"error: {e}")
     extra = {k: FLAGS[k].value for k in ("top_k", "score_floor", "nms_iou") if FLAGS[k].value is not None}
-    eval_lib.evaluate(cfg, params, FLAGS.out_dir or os.path.join(FLAGS.workdir, "eval"), sample=FLAGS.sample,
+    eval_lib.evaluate(cfg, params, FLAGS.out_dir or eval_lib.eval_dir(FLAGS.workdir, cfg), sample=FLAGS.sample,
                       video_frames=FLAGS.video_frames, num_examples=FLAGS.num_examples,
                       workdir=os.path.abspath(FLAGS.workdir), checkpoint_step=step,
                       log=lambda s: print(s, flush=True), **extra)

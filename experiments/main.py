@@ -3,11 +3,10 @@
     python experiments/main.py --config=demo --workdir=runs/demo
 
 Writes into ``--workdir``: ``config.json``, ``metrics.jsonl``, ``checkpoints/`` (training) and
-``eval/`` (``report.md``, ``metrics.json``, ``pr_curves.png``, ``examples.png``, ``drive.mp4``).
-Run again, it continues an interrupted training and skips an evaluation that already matches the
-final checkpoint. Any ``--<section>.<field>`` flag overrides the preset (see ``config.py``).
+``eval/`` (``report.md``, ``metrics.json``, ``pr_curves.png``, ``examples.png``, ``drive.mp4``), or
+``eval_town<seed>/`` with a held-out ``--eval.town_seed``. Run again, it continues an interrupted
+training and skips an evaluation that already matches the final checkpoint and the config. Any ``--<section>.<field>`` flag overrides the preset (see ``config.py``).
 """
-import json
 import os
 import sys
 
@@ -21,26 +20,19 @@ flags.DEFINE_integer("video_frames", 300, "frames of the first evaluation drive 
 FLAGS = flags.FLAGS
 
 
-def _evaluated_step(metrics_path):
-    if not os.path.exists(metrics_path):
-        return None
-    with open(metrics_path) as f:
-        return json.load(f).get("checkpoint_step")
-
-
 def run(cfg: config_lib.Config, workdir: str, video_frames: int = 300, log=print) -> dict:
-    """Trains ``cfg`` in ``workdir`` (resuming) and evaluates its final checkpoint into ``workdir/eval``.
-    Returns the evaluation's metrics (read back if that checkpoint was already evaluated)."""
+    """Trains ``cfg`` in ``workdir`` (resuming) and evaluates its final checkpoint into ``workdir/eval``
+    (``eval_town<seed>`` for a held-out ``--eval.town_seed``). Returns the evaluation's metrics (read
+    back if that checkpoint was already evaluated under the same config)."""
     from e2e_percep_jax import evaluate as eval_lib
     from e2e_percep_jax import train as train_lib
     if train_lib.check_run(cfg, workdir) != cfg.train.num_steps:
         train_lib.train(cfg, workdir)
-    out_dir, step = os.path.join(workdir, "eval"), cfg.train.num_steps
-    metrics_path = os.path.join(out_dir, "metrics.json")
-    if _evaluated_step(metrics_path) == step:
-        log(f"{metrics_path} already evaluates step {step}; nothing to do")
-        with open(metrics_path) as f:
-            return json.load(f)
+    out_dir, step = eval_lib.eval_dir(workdir, cfg), cfg.train.num_steps
+    done = eval_lib.finished_evaluation(out_dir, cfg.model.variant, step, cfg)
+    if done is not None:
+        log(f"{out_dir} already evaluates step {step} under this config; nothing to do")
+        return done
     cfg, params, step = eval_lib.restore_params(workdir, cfg, step)
     return eval_lib.evaluate(cfg, params, out_dir, video_frames=video_frames, workdir=os.path.abspath(workdir),
                              checkpoint_step=step, log=log)
@@ -58,7 +50,8 @@ def main(argv):
         sys.exit(f"error: {e}")
     with train_lib.exit_on_stop():
         run(cfg, FLAGS.workdir, FLAGS.video_frames, log=lambda s: print(s, flush=True))
-    print(f"report: {os.path.join(FLAGS.workdir, 'eval', 'report.md')}")
+    from e2e_percep_jax import evaluate as eval_lib
+    print(f"report: {os.path.join(eval_lib.eval_dir(FLAGS.workdir, cfg), 'report.md')}")
 
 
 if __name__ == "__main__":

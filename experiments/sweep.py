@@ -8,6 +8,8 @@ Each run is ``experiments/main.py`` in its own process and directory ``SWEEP_DIR
 A stopped sweep resumes: finished runs are skipped, interrupted ones continue from their checkpoint.
 ``--parallel=N`` runs N processes at once (each sees all cores; on a 2-core machine 1 is fastest).
 Writes ``SWEEP_DIR/summary.json`` and ``summary.md``: mean ± std over seeds of each metric per variant.
+With a held-out ``--eval.town_seed`` the trained runs are re-evaluated there (into each run's
+``eval_town<seed>/``) and the table goes to ``summary_town<seed>.json`` and ``.md``.
 """
 import json
 import os
@@ -15,13 +17,12 @@ import subprocess
 import sys
 import time
 
-import numpy as np
 from absl import app, flags
 
 from e2e_percep_jax import config as config_lib
+from e2e_percep_jax.summary import mean_std, summary_metrics
 
 MAIN = os.path.join(os.path.dirname(os.path.abspath(__file__)), "main.py")
-IOUS = ("0.1", "0.3", "0.5", "0.7")
 
 config_lib.define_flags()
 flags.DEFINE_string("sweep_dir", None, "one sub-directory per run, and the summary, go here")
@@ -34,28 +35,6 @@ FLAGS = flags.FLAGS
 
 def run_name(variant: str, seed: int) -> str:
     return f"{variant}-seed{seed}"
-
-
-def summary_metrics(metrics: dict) -> dict:
-    """The sweep table's numbers from one evaluation's metrics.json: AP (%) and pose errors."""
-    row = {}
-    for iou in IOUS:
-        for subset in ("all", "visible", "occluded"):
-            ap = metrics["detection"]["ap"][iou][subset]
-            row[f"AP@{iou} {subset} (%)"] = None if ap is None else 100.0 * ap
-    for name, unit in (("location", "m"), ("heading", "rad"), ("speed", "mps")):
-        for stat in ("mean", "median"):
-            row[f"{name} {stat} ({unit.replace('mps', 'm/s')})"] = metrics["pose"][f"{name}_{unit}"][stat]
-    return row
-
-
-def mean_std(rows: list) -> dict:
-    """{metric: (mean, std, n)} over runs, ignoring runs where the metric is undefined (None)."""
-    out = {}
-    for key in rows[0]:
-        values = np.array([r[key] for r in rows if r[key] is not None], np.float64)
-        out[key] = (float(values.mean()), float(values.std()), len(values)) if len(values) else (None, None, 0)
-    return out
 
 
 def table_markdown(summary: dict, seeds) -> str:
@@ -97,16 +76,13 @@ def main(argv):
     except ValueError as e:
         sys.exit(f"error: {e}")
 
+    from e2e_percep_jax import evaluate as eval_lib
     runs = [(v, s) for v in FLAGS.variants for s in seeds]
-    metrics_path = lambda v, s: os.path.join(FLAGS.sweep_dir, run_name(v, s), "eval", "metrics.json")
+    run_cfg = lambda v, s: config_lib.replace(base, train=dict(seed=s), model=dict(variant=v))
+    out_dir = lambda v, s: eval_lib.eval_dir(os.path.join(FLAGS.sweep_dir, run_name(v, s)), run_cfg(v, s))
+    done = lambda v, s: eval_lib.finished_evaluation(out_dir(v, s), v, base.train.num_steps, run_cfg(v, s))
 
-    def finished(v, s):
-        if not os.path.exists(metrics_path(v, s)):
-            return False
-        with open(metrics_path(v, s)) as f:
-            return json.load(f).get("checkpoint_step") == base.train.num_steps
-
-    todo = [(v, s) for v, s in runs if not finished(v, s)]
+    todo = [(v, s) for v, s in runs if done(v, s) is None]
     print(f"sweep: {len(runs)} runs, {len(runs) - len(todo)} already finished", flush=True)
     os.makedirs(FLAGS.sweep_dir, exist_ok=True)
     running = []
@@ -133,17 +109,12 @@ def main(argv):
                 sys.exit(f"error: run {run_name(v, s)} failed with status {proc.returncode}; see {log.name}")
             print(f"sweep: finished {run_name(v, s)}", flush=True)
 
-    summary = {}
-    for v in FLAGS.variants:
-        rows = []
-        for s in seeds:
-            with open(metrics_path(v, s)) as f:
-                rows.append(summary_metrics(json.load(f)))
-        summary[v] = mean_std(rows)
-    with open(os.path.join(FLAGS.sweep_dir, "summary.json"), "w") as f:
+    summary = {v: mean_std([summary_metrics(done(v, s)) for s in seeds]) for v in FLAGS.variants}
+    name = "summary" if base.eval.town_seed == base.world.town_seed else f"summary_town{base.eval.town_seed}"
+    with open(os.path.join(FLAGS.sweep_dir, f"{name}.json"), "w") as f:
         json.dump({"seeds": seeds, "config": json.loads(base.to_json()), "summary": summary}, f, indent=1)
     table = table_markdown(summary, seeds)
-    with open(os.path.join(FLAGS.sweep_dir, "summary.md"), "w") as f:
+    with open(os.path.join(FLAGS.sweep_dir, f"{name}.md"), "w") as f:
         f.write(table)
     print(table)
 

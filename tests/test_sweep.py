@@ -8,9 +8,9 @@ import sys
 import numpy as np
 import pytest
 
+from e2e_percep_jax.summary import summary_metrics
+
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, os.path.join(REPO, "experiments"))
-import sweep  # noqa: E402  (experiments/ is not a package)
 
 TINY = ["--config=tiny", "--train.num_steps=4", "--train.checkpoint_every=2", "--eval.num_steps=20"]
 
@@ -38,9 +38,9 @@ def sweeps(tmp_path_factory):
 def test_same_seed_gives_identical_metrics(sweeps):
     a, b = sweeps
     m_a, m_b = _metrics(a, "full-seed0"), _metrics(b, "full-seed0")
-    assert sweep.summary_metrics(m_a) == sweep.summary_metrics(m_b)
+    assert summary_metrics(m_a) == summary_metrics(m_b)
     assert m_a["detection"]["pr_curves"] == m_b["detection"]["pr_curves"]
-    assert sweep.summary_metrics(m_a) != sweep.summary_metrics(_metrics(a, "full-seed1"))  # seeds matter
+    assert summary_metrics(m_a) != summary_metrics(_metrics(a, "full-seed1"))  # seeds matter
 
 
 def test_rerun_skips_finished_runs(sweeps):
@@ -55,10 +55,28 @@ def test_summary_is_mean_and_std_of_the_runs(sweeps):
     a, _ = sweeps
     with open(os.path.join(a, "summary.json")) as f:
         summary = json.load(f)["summary"]["full"]
-    rows = [sweep.summary_metrics(_metrics(a, f"full-seed{s}")) for s in (0, 1)]
+    rows = [summary_metrics(_metrics(a, f"full-seed{s}")) for s in (0, 1)]
     loc = np.array([r["location mean (m)"] for r in rows])
     np.testing.assert_allclose(summary["location mean (m)"][:2], [loc.mean(), loc.std()], rtol=1e-12)
     assert os.path.exists(os.path.join(a, "summary.md"))
+
+
+def test_held_out_town_is_evaluated_apart_without_retraining(sweeps):
+    a, _ = sweeps
+    run = os.path.join(a, "full-seed0")
+    before = {p: os.path.getmtime(os.path.join(run, p)) for p in ("eval/metrics.json", "metrics.jsonl")}
+    held_out = _sweep(a, "--seeds=0", "--variants=full", "--eval.town_seed=3")
+    assert held_out.returncode == 0 and "0 already finished" in held_out.stdout, held_out.stdout + held_out.stderr
+    assert {p: os.path.getmtime(os.path.join(run, p)) for p in before} == before  # no training, no overwrite
+    with open(os.path.join(run, "eval_town3", "metrics.json")) as f:
+        metrics = json.load(f)
+    assert metrics["config"]["eval"]["town_seed"] == 3 and metrics["checkpoint_step"] == 4
+    assert metrics["detection"]["num_gt"] != _metrics(a, "full-seed0")["detection"]["num_gt"]  # another town
+    with open(os.path.join(a, "summary_town3.json")) as f:
+        summary = json.load(f)["summary"]["full"]
+    assert summary["location mean (m)"][0] == summary_metrics(metrics)["location mean (m)"]
+    again = _sweep(a, "--seeds=0", "--variants=full", "--eval.town_seed=3")
+    assert again.returncode == 0 and "1 already finished" in again.stdout
 
 
 def test_bad_sweep_flags_are_named(tmp_path):

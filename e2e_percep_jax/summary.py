@@ -1,0 +1,38 @@
+"""Tables over evaluations: the numbers of one ``metrics.json`` as a row, and mean ± std over seeds.
+
+Used by ``experiments/sweep.py`` (variants x seeds) and ``experiments/compare.py`` (the end-to-end
+variants against the modular baselines, per town). Plain NumPy: it reads JSON and compiles nothing.
+"""
+import math
+
+import numpy as np
+
+IOUS = ("0.1", "0.3", "0.5", "0.7")  # the keys of metrics["detection"]["ap"]
+SUBSETS = ("all", "visible", "occluded")
+
+
+def _defined(value):
+    """None for an undefined number (None, or NaN: a head the evaluated method lacks)."""
+    return None if value is None or not math.isfinite(value) else value
+
+
+def summary_metrics(metrics: dict) -> dict:
+    """The table's numbers from one evaluation's metrics.json: AP (%) and pose errors (None: undefined)."""
+    row = {}
+    for iou in IOUS:
+        for subset in SUBSETS:
+            ap = _defined(metrics["detection"]["ap"][iou][subset])
+            row[f"AP@{iou} {subset} (%)"] = None if ap is None else 100.0 * ap
+    for name, unit in (("location", "m"), ("heading", "rad"), ("speed", "mps")):
+        for stat in ("mean", "median"):
+            row[f"{name} {stat} ({unit.replace('mps', 'm/s')})"] = _defined(metrics["pose"][f"{name}_{unit}"][stat])
+    return row
+
+
+def mean_std(rows: list) -> dict:
+    """{metric: (mean, std, n)} over runs, ignoring runs where the metric is undefined (None)."""
+    out = {}
+    for key in rows[0]:
+        values = np.array([r[key] for r in rows if r[key] is not None], np.float64)
+        out[key] = (float(values.mean()), float(values.std()), len(values)) if len(values) else (None, None, 0)
+    return out
