@@ -412,9 +412,10 @@ def report_markdown(m: dict) -> str:
     """report.md: the paper's Table I and Table II with this run's row, the baseline and the paper's rows."""
     det, pose, base = m["detection"], m["pose"], m["baseline"]
     variant, label = m["config"]["model"]["variant"], m["label"]
+    is_variant = label == variant  # else a baseline: it has no model variant, and no paper row is its own
     thr = [f"{t:g}" for t in IOU_THRESHOLDS]
     lines = [f"# Evaluation report: {m['workdir'] or '(library call)'}", "",
-             f"Checkpoint step {m['checkpoint_step']}, variant `{variant}`, preset image size "
+             f"Checkpoint step {m['checkpoint_step']}, {'variant' if is_variant else 'baseline'} `{label}`, image size "
              f"{m['config']['data']['image_size']}. Online drive: {m['num_frames']} frames "
              f"({m['num_worlds']} worlds x {m['frames_per_world']} frames, town seed {m['config']['eval']['town_seed']}, "
              f"start keys from eval.seed {m['config']['eval']['seed']}, {m['config']['data']['warmup_steps']} warm-up steps), "
@@ -428,7 +429,7 @@ def report_markdown(m: dict) -> str:
     lines.append("| this run, occluded GT | " + " | ".join(_fmt(ap[t]["occluded"], True) for t in thr) + " |")
     lines.append("| baseline: no boxes | " + " | ".join("0.0%" for _ in thr) + " |")
     for row, vals in PAPER_AP.items():
-        mark = " (same variant)" if PAPER_VARIANT_ROW[variant] == row else ""
+        mark = " (same variant)" if is_variant and PAPER_VARIANT_ROW[variant] == row else ""
         lines.append(f"| paper: {row}{mark} | " + " | ".join(f"{v:.1f}%" for v in vals) + " |")
     lines += ["", f"Ground truths: {det['num_gt']['all']} ({det['num_gt']['visible']} visible, "
               f"{det['num_gt']['occluded']} occluded: no lidar return). Detections: PIXOR class map -> "
@@ -450,7 +451,7 @@ def report_markdown(m: dict) -> str:
               f"| baseline: constant mean pose, mean | {_fmt(base['pose']['location_m']['mean'], digits=2)} | "
               f"{_fmt(base['pose']['heading_rad']['mean'], digits=3)} | {_fmt(base['pose']['speed_mps']['mean'], digits=2)} |"]
     for row, (loc, head) in PAPER_POSE.items():
-        mark = " (same variant)" if PAPER_VARIANT_ROW[variant] == row else ""
+        mark = " (same variant)" if is_variant and PAPER_VARIANT_ROW[variant] == row else ""
         lines.append(f"| paper: {row}{mark} | {loc} | {head} | - |")
     by = pose["location_m_by_step"]
     edges = by["bin_edges"] + [None]

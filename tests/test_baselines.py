@@ -156,7 +156,10 @@ def test_cli_trains_evaluates_and_resumes(cli_run):
     for name in ("tracker", "dead_reckoning"):
         with open(os.path.join(workdir, name, "eval", "metrics.json")) as f:
             metrics[name] = json.load(f)
-        assert metrics[name]["num_frames"] == 20 and os.path.exists(os.path.join(workdir, name, "eval", "report.md"))
+        assert metrics[name]["num_frames"] == 20
+        with open(os.path.join(workdir, name, "eval", "report.md")) as f:
+            report = f.read()
+        assert f"baseline `{metrics[name]['label']}`" in report and "same variant" not in report
     # The tracker evaluates the detector's run, trained on the detection terms; it trains nothing itself.
     with open(os.path.join(workdir, "detector", "metrics.jsonl")) as f:
         records = [json.loads(line) for line in f]
