@@ -7,9 +7,6 @@ import math
 
 import numpy as np
 
-IOUS = ("0.1", "0.3", "0.5", "0.7")  # the keys of metrics["detection"]["ap"]
-SUBSETS = ("all", "visible", "occluded")
-
 
 def _defined(value):
     """None for an undefined number (None, or NaN: a head the evaluated method lacks)."""
@@ -19,9 +16,9 @@ def _defined(value):
 def summary_metrics(metrics: dict) -> dict:
     """The table's numbers from one evaluation's metrics.json: AP (%) and pose errors (None: undefined)."""
     row = {}
-    for iou in IOUS:
-        for subset in SUBSETS:
-            ap = _defined(metrics["detection"]["ap"][iou][subset])
+    for iou, by_subset in metrics["detection"]["ap"].items():  # the evaluation's IoUs and subsets, in order
+        for subset, ap in by_subset.items():
+            ap = _defined(ap)
             row[f"AP@{iou} {subset} (%)"] = None if ap is None else 100.0 * ap
     for name, unit in (("location", "m"), ("heading", "rad"), ("speed", "mps")):
         for stat in ("mean", "median"):

@@ -18,11 +18,9 @@ from absl import app, flags
 
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax.baselines import BASELINES
-from e2e_percep_jax.summary import IOUS, SUBSETS, mean_std, summary_metrics
+from e2e_percep_jax.summary import mean_std, summary_metrics
 
 CONSTANT = "constant pose"
-ROWS = [f"AP@{iou} {subset} (%)" for iou in IOUS for subset in SUBSETS]
-ROWS += ["location mean (m)", "heading mean (rad)", "speed mean (m/s)"]
 
 flags.DEFINE_string("sweep_dir", None, "a sweep.py directory of <variant>-seed<seed> runs")
 flags.DEFINE_string("baselines_dir", None, "a baselines.py directory of <baseline> runs")
@@ -66,9 +64,10 @@ def check_comparable(found: dict) -> None:
     for method in found:
         for town, evals in found[method].items():
             for path, m in evals:
-                ref_path, ref = first.setdefault(town, (path, _protocol(m)))
-                if _protocol(m) != ref:
-                    diff = sorted(k for k in ref if ref[k] != _protocol(m)[k])
+                protocol = _protocol(m)
+                ref_path, ref = first.setdefault(town, (path, protocol))
+                if protocol != ref:
+                    diff = sorted(k for k in ref if ref[k] != protocol[k])
                     raise ValueError(f"{path} and {ref_path} differ in {', '.join(diff)}: not comparable")
 
 
@@ -82,19 +81,19 @@ def table(found: dict) -> str:
     towns = sorted({t for m in methods for t in found[m]}, key=lambda t: (t != training_town, t))
     # one evaluation per town for what all of that town's share: its worlds, boxes and oracle constant
     any_eval = {t: next(m for method in methods for _, m in found[method].get(t, [])) for t in towns}
+    rows = [r for r in summary_metrics(any_eval[towns[0]]) if "median" not in r]  # every AP; pose means
     cells = {}  # (row, column) -> [value per town]
     for method in methods:
         for town in towns:
-            rows = [summary_metrics(m) for _, m in found[method].get(town, [])]
-            means = mean_std(rows) if rows else {}
-            for row in ROWS:
+            evals = [summary_metrics(m) for _, m in found[method].get(town, [])]
+            means = mean_std(evals) if evals else {}
+            for row in rows:
                 cells.setdefault((row, method), []).append(means[row][0] if means else None)
-    for town in towns:
-        constant = {"detection": {"ap": {iou: {s: 0.0 for s in SUBSETS} for iou in IOUS}},
-                    "pose": any_eval[town]["baseline"]["pose"]}
-        for row, value in summary_metrics(constant).items():
-            if row in ROWS:
-                cells.setdefault((row, CONSTANT), []).append(value)
+    for town in towns:  # no boxes: AP 0 at every IoU and subset the evaluations report
+        no_boxes = {iou: dict.fromkeys(by_subset, 0.0) for iou, by_subset in any_eval[town]["detection"]["ap"].items()}
+        constant = summary_metrics({"detection": {"ap": no_boxes}, "pose": any_eval[town]["baseline"]["pose"]})
+        for row in rows:
+            cells.setdefault((row, CONSTANT), []).append(constant[row])
     fmt = lambda row, v: "n/a" if v is None else f"{v:.1f}" if row.startswith("AP") or abs(v) >= 10 else f"{v:.3g}"
     columns = [*methods, CONSTANT]
     header = [f"Towns {' / '.join(map(str, towns))} (town {training_town} trained on); each cell lists "
@@ -106,7 +105,7 @@ def table(found: dict) -> str:
               + ".", "",
               "| metric | " + " | ".join(columns) + " |", "|---" * (len(columns) + 1) + "|"]
     body = [f"| {row} | " + " | ".join(" / ".join(fmt(row, v) for v in cells[(row, c)]) for c in columns) + " |"
-            for row in ROWS]
+            for row in rows]
     return "\n".join(header + body) + "\n"
 
 

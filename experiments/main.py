@@ -5,7 +5,8 @@
 Writes into ``--workdir``: ``config.json``, ``metrics.jsonl``, ``checkpoints/`` (training) and
 ``eval/`` (``report.md``, ``metrics.json``, ``pr_curves.png``, ``examples.png``, ``drive.mp4``), or
 ``eval_town<seed>/`` with a held-out ``--eval.town_seed``. Run again, it continues an interrupted
-training and skips an evaluation that already matches the final checkpoint and the config. Any ``--<section>.<field>`` flag overrides the preset (see ``config.py``).
+training and skips an evaluation that already matches the final checkpoint and the config. Any
+``--<section>.<field>`` flag overrides the preset (see ``config.py``).
 """
 import os
 import sys

@@ -11,6 +11,8 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(REPO, "experiments"))
 import compare  # noqa: E402  (experiments/ is not a package)
 
+IOUS, SUBSETS = ("0.1", "0.3", "0.5", "0.7"), ("all", "visible", "occluded")  # as evaluate writes them
+
 
 def _metrics(ap, location_m, town=0, eval_frames=100, pose_defined=True):
     """A minimal metrics.json: every AP equal to ``ap`` (fraction), pose errors from ``location_m``."""
@@ -19,7 +21,7 @@ def _metrics(ap, location_m, town=0, eval_frames=100, pose_defined=True):
         "label": "x", "checkpoint_step": 10,
         "config": {"world": {"town_seed": 0}, "data": {"image_size": 32}, "train": {"num_steps": 10, "seed": 0},
                    "eval": {"town_seed": town, "num_steps": eval_frames}},
-        "detection": {"ap": {iou: {s: ap for s in compare.SUBSETS} for iou in compare.IOUS},
+        "detection": {"ap": {iou: {s: ap for s in SUBSETS} for iou in IOUS},
                       "num_gt": {"all": 50 + town, "visible": 45, "occluded": 5}},
         "pose": {"location_m": pose(location_m), "heading_rad": pose(0.5), "speed_mps": pose(1.0)},
         "baseline": {"pose": {"location_m": {"mean": 99.0, "median": 99.0}, "heading_rad": {"mean": 1.5, "median": 1.5},
