@@ -223,17 +223,22 @@ def check_run(cfg: Config, workdir: str) -> int | None:
     if cfg.data.batch_size % n_devices:
         raise ValueError(f"--data.batch_size={cfg.data.batch_size} must be a multiple of the number of "
                          f"devices ({n_devices})")
-    with _checkpoint_manager(workdir) as manager:
+    with _checkpoint_manager(workdir, remove_temporary=False) as manager:
         start = manager.latest_step()
     if start is not None:
         check_resumable(cfg, workdir)
     return start
 
 
-def _checkpoint_manager(workdir: str) -> ocp.CheckpointManager:
+def _checkpoint_manager(workdir: str, remove_temporary: bool = True) -> ocp.CheckpointManager:
+    """``remove_temporary`` deletes a killed save's temporary folders in a background thread that
+    ``close`` does not wait for (orbax 0.12): a process that exits at once, as on a config error after
+    :func:`check_run`, would log that thread's failure at interpreter shutdown. Only the training
+    manager, whose first save waits for it, removes them."""
     return ocp.CheckpointManager(
         os.path.join(os.path.abspath(workdir), "checkpoints"),
-        options=ocp.CheckpointManagerOptions(max_to_keep=MAX_CHECKPOINTS_KEPT, cleanup_tmp_directories=True))
+        options=ocp.CheckpointManagerOptions(max_to_keep=MAX_CHECKPOINTS_KEPT,
+                                             cleanup_tmp_directories=remove_temporary))
 
 
 def _host(tree):
