@@ -51,6 +51,9 @@ class TrainConfig:
     seed: int = 0
     num_steps: int = 2000
     learning_rate: float = 1e-4
+    # Global gradient-norm clip before Adam; 0 = none (the reference). One step whose KL spikes (a prior
+    # scale at its 1e-5 floor) otherwise fills Adam's second moment for thousands of steps.
+    max_grad_norm: float = 0.0
     # The reference averages the ELBO over its batch but SUMS the detection and pose losses over it (the
     # paper's B = 32). Per sequence (loss.py's normalisation, whatever B is) that is perception x 32.
     perception_weight: float = 32.0
@@ -107,13 +110,14 @@ PRESETS = {
         data=dict(image_size=64, batch_size=8),
         model=dict(conv_channels=(16, 32, 64, 128, 128), feature_dim=128, hidden_dim=128),
         # lr 1e-3, not the paper's 1e-4: reaches 1e-4's 600-step loss in 200 steps (BUILD_NOTES "Demo")
-        train=dict(num_steps=3000, learning_rate=1e-3),
+        # max_grad_norm 1e6: above the steady norms (3e4-6e5), below a spike's (1e13; BUILD_NOTES "Ablation collapse")
+        train=dict(num_steps=3000, learning_rate=1e-3, max_grad_norm=1e6),
         eval=dict(num_steps=15000)),
     "demo": replace(
         Config(),
         data=dict(image_size=64, batch_size=8),
         model=dict(conv_channels=(16, 32, 64, 128), feature_dim=128, hidden_dim=128),
-        train=dict(num_steps=600, checkpoint_every=200, learning_rate=1e-3),
+        train=dict(num_steps=600, checkpoint_every=200, learning_rate=1e-3, max_grad_norm=1e6),
         eval=dict(num_steps=2000, num_worlds=4)),
     "tiny": replace(
         Config(),
@@ -159,6 +163,8 @@ def validate(cfg: Config) -> Config:
             raise ValueError(f"--{name}={value}: must be positive")
     if cfg.data.warmup_steps < 0:
         raise ValueError(f"--data.warmup_steps={cfg.data.warmup_steps}: must be >= 0")
+    if not cfg.train.max_grad_norm >= 0:
+        raise ValueError(f"--train.max_grad_norm={cfg.train.max_grad_norm}: must be >= 0 (0: no clipping)")
     if not 0.0 < cfg.eval.score_threshold < 1.0:
         raise ValueError(f"--eval.score_threshold={cfg.eval.score_threshold}: must lie in (0, 1)")
     return cfg

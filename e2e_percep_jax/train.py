@@ -100,7 +100,11 @@ def exit_on_stop():
 
 
 def optimizer(cfg: Config) -> optax.GradientTransformation:
-    return optax.adam(cfg.train.learning_rate)
+    """Adam, after a global-norm clip if ``--train.max_grad_norm`` > 0 (plain Adam otherwise, so a run
+    trained without clipping keeps its optimizer state's structure)."""
+    adam = optax.adam(cfg.train.learning_rate)
+    clip = cfg.train.max_grad_norm
+    return optax.chain(optax.clip_by_global_norm(clip), adam) if clip else adam
 
 
 def model_keys(seed: int) -> tuple[jax.Array, jax.Array]:
@@ -205,8 +209,7 @@ def _flat_config(cfg: Config) -> dict:
 def check_resumable(cfg: Config, workdir: str) -> None:
     """Raises ValueError naming the first flag that differs from the run already in ``workdir``."""
     with open(os.path.join(workdir, "config.json")) as f:
-        saved = json.load(f)
-    old = {f"{s}.{k}": tuple(v) if isinstance(v, list) else v for s, fields in saved.items() for k, v in fields.items()}
+        old = _flat_config(Config.from_json(f.read()))  # a field added since takes its default
     for name, value in _flat_config(cfg).items():
         if name.startswith("eval.") or name in RESUMABLE_CHANGES or old.get(name) == value:
             continue

@@ -18,6 +18,7 @@ import time
 
 import jax
 import numpy as np
+import optax
 import orbax.checkpoint as ocp
 import pytest
 from test_model import TINY, loss_and_grads, synthetic_batch
@@ -143,6 +144,26 @@ def test_compiled_step_uses_the_perception_weight():
         np.testing.assert_allclose(metrics[ratio][k], ratio * metrics[1.0][k], rtol=1e-5, err_msg=k)
     for k in ("recon_camera", "kl"):
         np.testing.assert_allclose(metrics[ratio][k], metrics[1.0][k], rtol=1e-6, err_msg=k)
+
+
+def test_gradient_clip_is_adam_on_the_rescaled_gradient():
+    """--train.max_grad_norm=c: a gradient of norm n > c updates as plain Adam on gradient * c / n, one
+    within c as plain Adam on itself; c = 0 is plain Adam with its state's structure (older runs restore)."""
+    params = {"a": np.ones(3, np.float32), "b": np.ones((2, 2), np.float32)}
+    direction = {"a": np.array([3.0, 0.0, -4.0], np.float32), "b": np.zeros((2, 2), np.float32)}  # norm 5
+    clip, lr = 10.0, 1e-3
+    clipped = train.optimizer(config.replace(CFG, train=dict(learning_rate=lr, max_grad_norm=clip)))
+    adam = train.optimizer(config.replace(CFG, train=dict(learning_rate=lr, max_grad_norm=0.0)))
+    assert jax.tree.structure(adam.init(params)) == jax.tree.structure(optax.adam(lr).init(params))
+    for scale, expected_scale in ((1e12, clip / 5.0), (1.0, 1.0)):  # norms 5e12 (clipped) and 5 (not)
+        grads = jax.tree.map(lambda d: d * scale, direction)
+        got, _ = clipped.update(grads, clipped.init(params), params)
+        want, _ = adam.update(jax.tree.map(lambda d: d * expected_scale, direction), adam.init(params), params)
+        jax.tree.map(lambda g, w: np.testing.assert_allclose(g, w, rtol=1e-6), got, want)
+    # Adam's second moment after the spike is that of norm c, not 1e24 times larger.
+    _, state = clipped.update(jax.tree.map(lambda d: d * 1e12, direction), clipped.init(params), params)
+    nu = state[1][0].nu["a"]
+    np.testing.assert_allclose(nu, 0.001 * (np.array([3.0, 0.0, -4.0]) * clip / 5.0) ** 2, rtol=1e-6)
 
 
 def test_stops_after_max_nonfinite_in_a_row_keeping_the_last_good_checkpoint(tmp_path):
