@@ -1,5 +1,5 @@
 """Training tests: non-finite skipping and stopping, logs, launcher errors before compile (also with a
-coordinator), 4-device equality, learning on real world batches, and SIGKILL-and-resume equivalence.
+coordinator), 4-device equality, learning on real world batches, and SIGKILL- and SIGTERM-and-resume equivalence.
 
 Every in-process run shares ONE train-step compilation (runs differing only in num_steps, log_every and
 checkpoint_every compile the same step, see ``train.step_config``), and the subprocesses share a
@@ -102,7 +102,7 @@ def subprocess_runs(tmp_path_factory):
     this 2-core machine they overlap with the in-process tests. Futures of their results."""
     with concurrent.futures.ThreadPoolExecutor(2) as pool:
         yield {"four_devices": pool.submit(four_device_loss_and_grads, tmp_path_factory.mktemp("four")),
-               "kill": pool.submit(kill_and_resume, tmp_path_factory.mktemp("kill"))}
+               "stops": pool.submit(stops_and_resumes, tmp_path_factory.mktemp("stops"))}
 
 
 # ----------------------------------------------------------------------------- non-finite losses
@@ -265,14 +265,14 @@ def test_four_devices_equal_one_device(subprocess_runs):
 
 # ----------------------------------------------------------------------------- real world batches
 
-KILL_STEPS = 20  # N of the kill-and-resume test
+KILL_STEPS = 20  # N of the stop-and-resume tests
 WORLD_STEPS = 250
 HELD_OUT_STEP = 10**6  # the run's data stream from this step on: batches the run never trains on
 
 
 @pytest.fixture(scope="module")
 def world_run(tmp_path_factory):
-    """The tiny model on the world's batches to KILL_STEPS (the uninterrupted reference of the kill test),
+    """The tiny model on the world's batches to KILL_STEPS (the uninterrupted reference of the stop tests),
     then resumed on to WORLD_STEPS. Returns (params at KILL_STEPS, params at WORLD_STEPS, metrics records,
     8 held-out batches)."""
     workdir = str(tmp_path_factory.mktemp("world"))
@@ -324,23 +324,42 @@ def wait_for_checkpoint(proc, workdir, after):
     raise TimeoutError
 
 
-def kill_and_resume(workdir):
-    """The launcher to KILL_STEPS, SIGKILLed after its first checkpoint, then resumed to the end.
-    Returns (step it was killed at, the resumed run's stdout, its parameters at KILL_STEPS)."""
-    workdir, cache = str(workdir / "run"), workdir / "cache"
+def stop_and_resume(tmp_path, signum):
+    """The launcher to KILL_STEPS in a run of its own, sent ``signum`` after its first checkpoint, then
+    resumed to the end. Returns (its exit status, its last checkpoint, its stderr, the resumed run's
+    stdout, the parameters saved at KILL_STEPS)."""
+    workdir, cache = str(tmp_path / signal.Signals(signum).name), tmp_path / "cache"
     proc = launch(workdir, cache)
     wait_for_checkpoint(proc, workdir, after=0)
-    proc.kill()  # SIGKILL: no chance to save anything
-    assert proc.wait() == -signal.SIGKILL
-    killed_at = checkpoint_steps(workdir)[-1]
+    proc.send_signal(signum)
+    _, err = proc.communicate(timeout=300)
+    status, stopped_at = proc.returncode, checkpoint_steps(workdir)[-1]
     proc = launch(workdir, cache)
-    out, err = proc.communicate(timeout=600)
-    assert proc.returncode == 0, out + err
-    return killed_at, out, saved_params(workdir, KILL_STEPS)
+    out, resumed_err = proc.communicate(timeout=600)
+    assert proc.returncode == 0, out + resumed_err
+    return status, stopped_at, err, out, saved_params(workdir, KILL_STEPS)
+
+
+def stops_and_resumes(tmp_path):
+    """SIGKILL (nothing saved at the kill), then SIGTERM (the launcher saves the step it was on), one after
+    the other so the second reuses the first's compilation cache."""
+    return {sig: stop_and_resume(tmp_path, sig) for sig in (signal.SIGKILL, signal.SIGTERM)}
 
 
 def test_sigkill_then_resume_equals_an_uninterrupted_run(subprocess_runs, world_run):
-    killed_at, out, params = subprocess_runs["kill"].result()
+    status, killed_at, _, out, params = subprocess_runs["stops"].result()[signal.SIGKILL]
+    assert status == -signal.SIGKILL
     assert 0 < killed_at < KILL_STEPS
     assert f"resumed from step {killed_at}" in out, out
+    assert_trees_equal(params, world_run[0])
+
+
+def test_sigterm_saves_the_step_it_was_on_and_resume_equals_an_uninterrupted_run(subprocess_runs, world_run):
+    """The launcher finishes the step it is on, checkpoints it (on any step, not only a multiple of
+    checkpoint_every), says so in one line and exits with 128 + SIGTERM; a rerun continues from there."""
+    status, stopped_at, err, out, params = subprocess_runs["stops"].result()[signal.SIGTERM]
+    assert status == 128 + signal.SIGTERM, err
+    assert 0 < stopped_at < KILL_STEPS
+    assert f"interrupted by SIGTERM at step {stopped_at}; checkpoint saved" in err, err
+    assert f"resumed from step {stopped_at}" in out, out
     assert_trees_equal(params, world_run[0])
