@@ -479,8 +479,9 @@ def evaluate(cfg: Config, params, out_dir: str, *, sample: bool = False, video_f
              heads=None, frame_fn=None, host_fn=None, label: str | None = None, log=print) -> dict:
     """Runs the online evaluation of ``params`` under ``cfg`` and writes the report into ``out_dir``.
 
-    ``video_frames``: frames of world 0 recorded into drive.mp4 (0: no video); the examples are taken
-    from the same frames. ``heads``, ``frame_fn``: see :func:`make_chunk_fn` (None: the model's).
+    ``video_frames``: frames of world 0 recorded into drive.mp4 (0: no video); the examples are the
+    frames of world 0's whole drive with the most vehicles in view. ``heads``, ``frame_fn``: see
+    :func:`make_chunk_fn` (None: the model's).
     ``host_fn(w)``, called once per world w before its drive, returns a function ``(boxes [M, 5],
     scores [M], pose_pred [5], pose [5]) -> (boxes, scores, pose_pred)`` that post-processes each of
     that drive's frames in order, after NMS and before scoring (pose: the frame's true ego pose; e.g.
@@ -495,7 +496,9 @@ def evaluate(cfg: Config, params, out_dir: str, *, sample: bool = False, video_f
     warmup = cfg.data.warmup_steps
     per_world = np.array([ev.num_steps // e + (w < ev.num_steps % e) for w in range(e)])  # frames to score
     num_chunks = math.ceil((warmup + per_world.max()) / c)
-    shown_frames = max(1, min(video_frames, per_world[0]))  # world 0's frames with pictures
+    # World 0's frames with pictures: its whole drive, the examples' candidates (the video's frames are
+    # its first ones), so a run evaluated without video still shows frames with vehicles.
+    shown_frames = per_world[0]
     town = town_lib.build_town(ev.town_seed)
     params = jax.device_put(params)
     t0 = time.perf_counter()

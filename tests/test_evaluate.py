@@ -104,6 +104,8 @@ def test_oracle_targets_through_the_decode_path_and_a_known_pose_offset(memory_r
     by_step = pose["location_m_by_step"]
     assert sum(by_step["count"]) == 160
     assert all(v == pytest.approx(5.0, abs=2e-4) for v, n in zip(by_step["mean"], by_step["count"]) if n)
+    # No video, yet two examples (two rows of four panels each, a 6-pixel rule between), not frame 0 alone.
+    assert cv2.imread(os.path.join(tmp_path, "examples.png")).shape == (2 * 2 * 192 + 6, 4 * 192, 3)
 
 
 def test_host_detections_follow_floor_view_and_nms():
