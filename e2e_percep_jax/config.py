@@ -110,7 +110,7 @@ PRESETS = {
         data=dict(image_size=64, batch_size=8),
         model=dict(conv_channels=(16, 32, 64, 128, 128), feature_dim=128, hidden_dim=128),
         # lr 1e-3, not the paper's 1e-4: reaches 1e-4's 600-step loss in 200 steps (BUILD_NOTES "Demo")
-        # max_grad_norm 1e6: above the steady norms (3e4-6e5), below a spike's (1e13; BUILD_NOTES "Ablation collapse")
+        # max_grad_norm 1e6: above the steady norms (3e4-6e5), below a spike's (1e13; BUILD_NOTES, fifth session)
         train=dict(num_steps=3000, learning_rate=1e-3, max_grad_norm=1e6),
         eval=dict(num_steps=15000)),
     "demo": replace(
