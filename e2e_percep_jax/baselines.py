@@ -104,7 +104,7 @@ def loss_fn(params, batch, key, cfg: Config, head: str):
     pred = predict(params, batch["camera"], batch["lidar"], cfg, head)
     if head == "detection":
         return loss_lib.with_total(loss_lib.detection_terms(pred, batch, cfg.train.perception_weight))
-    return loss_lib.with_total({"pose": loss_lib.pose_term(pred["pose"], batch["pose"], cfg.train.perception_weight)})
+    return loss_lib.with_total({"pose": loss_lib.pose_term(pred["pose"], batch["pose"], loss_lib.pose_weight(cfg))})
 
 
 OBJECTIVES = {h: train_lib.Objective(functools.partial(init_params, head=h), functools.partial(loss_fn, head=h))

@@ -57,6 +57,9 @@ class TrainConfig:
     # The reference averages the ELBO over its batch but SUMS the detection and pose losses over it (the
     # paper's B = 32). Per sequence (loss.py's normalisation, whatever B is) that is perception x 32.
     perception_weight: float = 32.0
+    # A further factor on the pose term alone (its weight: perception_weight * pose_weight). 1 = the
+    # reference. Larger asks the latent to carry place, which it otherwise barely holds (BUILD_NOTES).
+    pose_weight: float = 1.0
     checkpoint_every: int = 500  # steps; a checkpoint is also written at exit
     log_every: int = 10
     max_nonfinite_in_a_row: int = 10  # K: stop after K consecutive skipped (non-finite) updates
@@ -164,6 +167,8 @@ def validate(cfg: Config) -> Config:
             raise ValueError(f"--{name}={value}: must be positive")
     if cfg.data.warmup_steps < 0:
         raise ValueError(f"--data.warmup_steps={cfg.data.warmup_steps}: must be >= 0")
+    if not cfg.train.pose_weight >= 0:
+        raise ValueError(f"--train.pose_weight={cfg.train.pose_weight}: must be >= 0 (0: no pose loss)")
     if not cfg.train.max_grad_norm >= 0:
         raise ValueError(f"--train.max_grad_norm={cfg.train.max_grad_norm}: must be >= 0 (0: no clipping)")
     if not 0.0 < cfg.eval.score_threshold < 1.0:

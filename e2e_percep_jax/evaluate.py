@@ -137,7 +137,9 @@ def finished_evaluation(out_dir: str, label: str, checkpoint_step: int | None, c
         return None
     with open(path) as f:
         done = json.load(f)
-    same = (done["label"], done["checkpoint_step"], done["config"]) == (label, checkpoint_step, json.loads(cfg.to_json()))
+    # Through from_json, so an evaluation saved before a config field was added (at its default) counts.
+    done_cfg = Config.from_json(json.dumps(done["config"]))
+    same = (done["label"], done["checkpoint_step"], done_cfg) == (label, checkpoint_step, cfg)
     return done if same else None
 
 

@@ -48,6 +48,7 @@ def test_flags_override_only_the_named_fields():
     (["--eval.score_threshold=1.5"], "--eval.score_threshold"),
     (["--data.warmup_steps=-1"], "--data.warmup_steps"),
     (["--train.max_grad_norm=-1"], "--train.max_grad_norm"),
+    (["--train.pose_weight=-1"], "--train.pose_weight"),
 ])
 def test_bad_values_name_their_flag(argv, flag):
     with pytest.raises(ValueError) as err:

@@ -172,3 +172,19 @@ def test_end_to_end_report_files(memory_run):
     assert int(video.get(cv2.CAP_PROP_FRAME_COUNT)) == VIDEO_FRAMES
     ok, frame = video.read()
     assert ok and frame.shape == (2 * 192, 4 * 192, 3) and frame.std() > 10
+
+
+def test_finished_evaluation_matches_label_step_and_config_even_from_an_older_config(tmp_path):
+    """An evaluation is reused only for the same label, checkpoint step and config; one saved before a
+    config field existed (so without it, i.e. at its default) still counts, a changed field does not."""
+    cfg = config_lib.get_config("tiny")
+    saved = json.loads(cfg.to_json())
+    del saved["train"]["pose_weight"]  # as written before the field was added
+    with open(tmp_path / "metrics.json", "w") as f:
+        json.dump({"label": "full", "checkpoint_step": 20, "config": saved}, f)
+    assert eval_lib.finished_evaluation(str(tmp_path), "full", 20, cfg)["label"] == "full"
+    assert eval_lib.finished_evaluation(str(tmp_path), "no_input_recon", 20, cfg) is None
+    assert eval_lib.finished_evaluation(str(tmp_path), "full", 10, cfg) is None
+    for changed in (dict(eval=dict(num_steps=80)), dict(train=dict(pose_weight=5.0))):
+        assert eval_lib.finished_evaluation(str(tmp_path), "full", 20, config_lib.replace(cfg, **changed)) is None
+    assert eval_lib.finished_evaluation(str(tmp_path / "nowhere"), "full", 20, cfg) is None

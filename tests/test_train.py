@@ -127,23 +127,27 @@ def test_nonfinite_batch_skips_the_update():
                               before.params["params"]["pose_head"]["Dense_2"]["bias"])
 
 
-def test_compiled_step_uses_the_perception_weight():
-    """``train.perception_weight`` reaches the jitted step (its config is trimmed for compile reuse):
-    weight 1 against the default 32 divides the perception terms by 32 and leaves the ELBO alone."""
+def test_compiled_step_uses_the_perception_and_pose_weights():
+    """``train.perception_weight`` and ``train.pose_weight`` reach the jitted step (its config is trimmed
+    for compile reuse): perception weight 1 against the default 32 divides the perception terms by 32,
+    pose weight 5 multiplies the pose term alone by 5, and the ELBO stays the same."""
     mesh = train.make_mesh()
     replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
     batch = train.shard_batch(synthetic_batch(0, CFG), mesh)
     metrics = {}
-    for weight in (1.0, CFG.train.perception_weight):
-        cfg = config.replace(CFG, train=dict(perception_weight=weight))
+    for weights in ((1.0, 1.0), (CFG.train.perception_weight, 1.0), (CFG.train.perception_weight, 5.0)):
+        cfg = config.replace(CFG, train=dict(perception_weight=weights[0], pose_weight=weights[1]))
         state = jax.device_put(train.init_state(cfg), replicated)
-        metrics[weight] = train.make_train_step(cfg, mesh)(state, batch, jax.random.PRNGKey(0))[1]
-    ratio = CFG.train.perception_weight
-    assert ratio == 32.0
+        metrics[weights] = train.make_train_step(cfg, mesh)(state, batch, jax.random.PRNGKey(0))[1]
+    w = CFG.train.perception_weight
+    assert (w, CFG.train.pose_weight) == (32.0, 1.0)
     for k in ("det_cls", "det_reg", "pose"):
-        np.testing.assert_allclose(metrics[ratio][k], ratio * metrics[1.0][k], rtol=1e-5, err_msg=k)
+        np.testing.assert_allclose(metrics[w, 1.0][k], w * metrics[1.0, 1.0][k], rtol=1e-5, err_msg=k)
+    np.testing.assert_allclose(metrics[w, 5.0]["pose"], 5.0 * metrics[w, 1.0]["pose"], rtol=1e-5)
+    for k in ("recon_camera", "kl", "det_cls", "det_reg"):
+        np.testing.assert_allclose(metrics[w, 5.0][k], metrics[w, 1.0][k], rtol=1e-6, err_msg=k)
     for k in ("recon_camera", "kl"):
-        np.testing.assert_allclose(metrics[ratio][k], metrics[1.0][k], rtol=1e-6, err_msg=k)
+        np.testing.assert_allclose(metrics[w, 1.0][k], metrics[1.0, 1.0][k], rtol=1e-6, err_msg=k)
 
 
 def test_gradient_clip_is_adam_on_the_rescaled_gradient():
