@@ -45,7 +45,7 @@ it to show it localises), and no boxes (AP 0).
 
 Outputs in ``out_dir`` (:func:`evaluate`): metrics.json, report.md (the paper's Tables I and II with
 this run, the baseline and the paper's rows), pr_curves.png (cv2), examples.png (the paper's Fig. 6
-layout: world 0's frames with the most vehicles in view, one per part of the pictured window) and
+layout: the frames with the most vehicles in view over all E drives, one per part of the drives) and
 drive.mp4 (the same panels for world 0's first ``video_frames`` frames). Memory is flat in N: the host
 keeps per-frame pose errors and true poses (~30 bytes a frame) and at most ``num_examples`` pictures.
 """
@@ -194,21 +194,21 @@ def _to_uint8(image):
 
 def model_frame_fn(cfg: Config, sample: bool):
     """The perception model's ``frame_fn`` (see :func:`make_chunk_fn`): one filtering step and its decoding,
-    plus world 0's reconstructions when ``with_images``."""
+    plus the reconstructions of the ``pictured`` worlds when ``with_images``."""
     recon_keys = model_lib.reconstructed_images(cfg.model.variant)
 
-    def frame_fn(params, fstate, frame, prev_action, key, with_images):
+    def frame_fn(params, fstate, frame, prev_action, key, with_images, pictured):
         fstate, post = model_lib.filter_step(params, fstate, frame["camera"], frame["lidar"], prev_action,
                                              key if sample else None, cfg)
         z = jnp.concatenate([post["z1"], post["z2"]], -1)
         decoded = model_lib.decode(params, z, cfg)  # image heads unused here: compiled away
 
-        def images(z0):
-            dec0 = model_lib.decode(params, z0, cfg)
-            return {f"recon_{k}": _to_uint8(dec0[k][0]) for k in recon_keys}
+        def images(z_pictured):
+            dec = model_lib.decode(params, z_pictured, cfg)
+            return {f"recon_{k}": _to_uint8(dec[k]) for k in recon_keys}
 
-        blank = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), jax.eval_shape(images, z[:1]))
-        return fstate, decoded, jax.lax.cond(with_images, images, lambda _: blank, z[:1])
+        blank = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), jax.eval_shape(images, z[pictured]))
+        return fstate, decoded, jax.lax.cond(with_images, images, lambda _: blank, z[pictured])
 
     return frame_fn
 
@@ -219,20 +219,23 @@ def make_chunk_fn(cfg: Config, town, sample: bool, top_k: int = TOP_K, floor: fl
     filter_state, out)``: ``cfg.eval.chunk_steps`` frames of all E worlds.
 
     ``warm`` (int32 []): the chunk's first ``warm`` frames only step the worlds (traffic warm-up: no
-    observation, no filtering; their outputs are zeros). ``with_images`` (bool []): also return world
-    0's images. One compiled program serves warm-up, image and plain chunks (``lax.cond``), so the
-    evaluation compiles once. ``out`` holds per frame [C, E, ...]: cand_boxes [k, 5], cand_scores [k],
-    saturated, gt boxes / boxes_valid / boxes_occluded, pose (truth) and pose_pred (metres); and
-    [C, R, R, 3] uint8: world 0's camera, lidar, roadmap and reconstructions ``recon_<name>``.
+    observation, no filtering; their outputs are zeros). ``with_images`` (bool []): also return the
+    pictured worlds' reconstructions. One compiled program serves warm-up, image and plain chunks
+    (``lax.cond``), so the evaluation compiles once. ``out`` holds per frame [C, E, ...]: cand_boxes
+    [k, 5], cand_scores [k], saturated, gt boxes / boxes_valid / boxes_occluded, pose (truth) and
+    pose_pred (metres); ``pictured`` int32 [C, 2]: world 0 (the video's drive) and the world with the
+    most vehicles in view in that frame (the examples' candidate); and [C, 2, R, R, 3] uint8: those
+    two worlds' camera, lidar, roadmap and reconstructions ``recon_<name>``.
 
     ``heads(decoded, frame) -> decoded``, traced inside the program, may replace the model's decoded
     det_cls / det_reg / pose (normalised) before scoring: tests feed the world's own targets through
     the same candidate / NMS / matching path (an oracle).
 
-    ``frame_fn(params, fstate, frame, prev_action, key, with_images) -> (fstate, decoded, recon)``
-    perceives one frame of the E worlds (default: :func:`model_frame_fn`, the filtered model): frame is
-    the frame contract [E, ...], prev_action [E, 2] the action from t-1 to t, decoded as the model's
-    ``decode`` (det_cls, det_reg, normalised pose), recon world 0's reconstructed images (may be empty).
+    ``frame_fn(params, fstate, frame, prev_action, key, with_images, pictured) -> (fstate, decoded,
+    recon)`` perceives one frame of the E worlds (default: :func:`model_frame_fn`, the filtered model):
+    frame is the frame contract [E, ...], prev_action [E, 2] the action from t-1 to t, decoded as the
+    model's ``decode`` (det_cls, det_reg, normalised pose), recon the reconstructed images [2, R, R, 3]
+    of the worlds ``pictured`` (int32 [2]), or empty.
     A baseline's memoryless model passes ``fstate`` through untouched.
     """
     image_size = cfg.data.image_size
@@ -242,8 +245,10 @@ def make_chunk_fn(cfg: Config, town, sample: bool, top_k: int = TOP_K, floor: fl
 
     def perceive(params, wstate, fstate, key, with_images):
         frame = observe(wstate)
+        # World 0 for the video; the most crowded world (first on ties) for the examples.
+        pictured = jnp.stack([0, jnp.argmax(jnp.sum(frame["boxes_valid"], -1))]).astype(jnp.int32)
         # state t's ego_action is the action applied from t-1 to t (ignored on a drive's first frame).
-        fstate, decoded, recon = frame_fn(params, fstate, frame, wstate.ego_action, key, with_images)
+        fstate, decoded, recon = frame_fn(params, fstate, frame, wstate.ego_action, key, with_images, pictured)
         if heads is not None:
             decoded = heads(decoded, frame)
         cand_boxes, cand_scores, saturated = detection_candidates(decoded["det_cls"], decoded["det_reg"], top_k, floor)
@@ -251,7 +256,7 @@ def make_chunk_fn(cfg: Config, town, sample: bool, top_k: int = TOP_K, floor: fl
                "boxes": frame["boxes"], "boxes_valid": frame["boxes_valid"],
                "boxes_occluded": frame["boxes_occluded"], "pose": frame["pose"],
                "pose_pred": model_lib.pose_to_metres(decoded["pose"])}
-        out.update({k: frame[k][0] for k in ("camera", "lidar", "roadmap")}, **recon)
+        out.update({k: frame[k][pictured] for k in ("camera", "lidar", "roadmap")}, pictured=pictured, **recon)
         return fstate, out
 
     def chunk(params, wstate, fstate, key, warm, with_images):
@@ -467,8 +472,10 @@ def report_markdown(m: dict) -> str:
         if count:
             hi = edges[i + 1]
             lines.append(f"| {edges[i]}-{hi - 1 if hi is not None else ''} | {count} | {_fmt(mean, digits=2)} |")
+    pictured = ", ".join(f"world {x['world']} frame {x['frame']} ({x['vehicles_in_view']} vehicles in view)"
+                      for x in m["examples"])
     lines += ["", "Pictures: `pr_curves.png` (PR curves per IoU; all / visible / occluded), `examples.png` "
-              "(the paper's Fig. 6 layout, world 0), `drive.mp4` (the same panels over world 0's drive)."]
+              f"(the paper's Fig. 6 layout: {pictured or 'none'}), `drive.mp4` (the same panels over world 0's drive)."]
     return "\n".join(lines) + "\n"
 
 
@@ -482,7 +489,7 @@ def evaluate(cfg: Config, params, out_dir: str, *, sample: bool = False, video_f
     """Runs the online evaluation of ``params`` under ``cfg`` and writes the report into ``out_dir``.
 
     ``video_frames``: frames of world 0 recorded into drive.mp4 (0: no video); the examples are the
-    frames of world 0's whole drive with the most vehicles in view. ``heads``, ``frame_fn``: see
+    frames with the most vehicles in view over all E drives (metrics ``examples`` says which). ``heads``, ``frame_fn``: see
     :func:`make_chunk_fn` (None: the model's).
     ``host_fn(w)``, called once per world w before its drive, returns a function ``(boxes [M, 5],
     scores [M], pose_pred [5], pose [5]) -> (boxes, scores, pose_pred)`` that post-processes each of
@@ -498,9 +505,6 @@ def evaluate(cfg: Config, params, out_dir: str, *, sample: bool = False, video_f
     warmup = cfg.data.warmup_steps
     per_world = np.array([ev.num_steps // e + (w < ev.num_steps % e) for w in range(e)])  # frames to score
     num_chunks = math.ceil((warmup + per_world.max()) / c)
-    # World 0's frames with pictures: its whole drive, the examples' candidates (the video's frames are
-    # its first ones), so a run evaluated without video still shows frames with vehicles.
-    shown_frames = per_world[0]
     town = town_lib.build_town(ev.town_seed)
     params = jax.device_put(params)
     t0 = time.perf_counter()
@@ -529,7 +533,7 @@ def evaluate(cfg: Config, params, out_dir: str, *, sample: bool = False, video_f
     def dispatch(i, wstate, fstate):
         first = i * c - warmup  # drive frame index of the chunk's first frame (negative: warm-up)
         return compiled(params, wstate, fstate, jax.random.fold_in(sample_root, i),
-                        jnp.int32(np.clip(-first, 0, c)), jnp.bool_(first < shown_frames and first + c > 0))
+                        jnp.int32(np.clip(-first, 0, c)), jnp.bool_(first + c > 0))
 
     pending = dispatch(0, wstate, fstate)
     for i in range(num_chunks):
@@ -551,20 +555,18 @@ def evaluate(cfg: Config, params, out_dir: str, *, sample: bool = False, video_f
                 det_acc.add_frame(boxes, scores, out["boxes"][t, w], out["boxes_valid"][t, w], out["boxes_occluded"][t, w])
                 saturated += bool(out["saturated"][t, w])
                 done += 1
-                if w == 0 and frame_index < shown_frames:
-                    frame = {k: np.array(out[k][t]) for k in out if k in ("camera", "lidar", "roadmap") or k.startswith("recon_")}
-                    frame.update({k: np.array(out[k][t, 0]) for k in ("boxes", "boxes_valid", "boxes_occluded")})
-                    shown = scores >= ev.score_threshold
-                    if frame_index < video_frames:
-                        picture = example_rows(frame, boxes[shown], scores[shown], panel_px)
-                        cv2.putText(picture, f"world 0, frame {frame_index}", (4 * panel_px - 150, 2 * panel_px - 8),
-                                    cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
-                        if video is None:
-                            video = cv2.VideoWriter(video_path, cv2.VideoWriter_fourcc(*"mp4v"), 10,
-                                                    (picture.shape[1], picture.shape[0]))
-                        video.write(cv2.cvtColor(picture, cv2.COLOR_RGB2BGR))
-                    images.append((frame_index, frame, boxes[shown], scores[shown]))
-                    images = _example_candidates(images, shown_frames, num_examples)  # flat memory
+                shown = scores >= ev.score_threshold
+                if w == 0 and frame_index < video_frames:
+                    picture = example_rows(pictured_frame(out, t, 0), boxes[shown], scores[shown], panel_px)
+                    cv2.putText(picture, f"world 0, frame {frame_index}", (4 * panel_px - 150, 2 * panel_px - 8),
+                                cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
+                    if video is None:
+                        video = cv2.VideoWriter(video_path, cv2.VideoWriter_fourcc(*"mp4v"), 10,
+                                                (picture.shape[1], picture.shape[0]))
+                    video.write(cv2.cvtColor(picture, cv2.COLOR_RGB2BGR))
+                if w == out["pictured"][t, 1] and num_examples:
+                    images.append((frame_index, w, pictured_frame(out, t, 1), boxes[shown], scores[shown]))
+                    images = _example_candidates(images, per_world.max(), num_examples)  # flat memory
             valid = frame_index < per_world
             pose_acc.add(metrics_lib.pose_errors(pose_pred[t][valid], out["pose"][t][valid]), frame_index)
             true_poses.append(out["pose"][t][valid])
@@ -587,6 +589,7 @@ def evaluate(cfg: Config, params, out_dir: str, *, sample: bool = False, video_f
     base_acc.add(metrics_lib.pose_errors(np.broadcast_to(constant, true_poses.shape), true_poses), 0)
 
     results = det_acc.results()
+    chosen = _example_candidates(images, per_world.max(), num_examples)
     key = lambda t: f"{t:g}"
     metrics = {
         "label": label or cfg.model.variant, "workdir": workdir, "checkpoint_step": checkpoint_step,
@@ -605,6 +608,8 @@ def evaluate(cfg: Config, params, out_dir: str, *, sample: bool = False, video_f
             "pr_curves": {key(t): {s: _curve_summary(results[t][s]) for s in metrics_lib.SUBSETS} for t in IOU_THRESHOLDS},
         },
         "pose": _pose_summary(pose_acc),
+        "examples": [{"world": int(w), "frame": int(i), "vehicles_in_view": int(np.sum(frame["boxes_valid"]))}
+                     for i, w, frame, _, _ in chosen],
         "baseline": {"description": "constant pose = mean of the drive's true poses (circular mean heading); no boxes",
                      "mean_pose": [float(v) for v in constant], "pose": _pose_summary(base_acc),
                      "ap": {key(t): 0.0 for t in IOU_THRESHOLDS}},
@@ -616,11 +621,10 @@ def evaluate(cfg: Config, params, out_dir: str, *, sample: bool = False, video_f
     with open(os.path.join(out_dir, "report.md"), "w") as f:
         f.write(report_markdown(metrics))
     cv2.imwrite(os.path.join(out_dir, "pr_curves.png"), pr_curves_image(results))
-    chosen = _example_candidates(images, shown_frames, num_examples)
     if chosen:
         sep = np.full((6, 4 * panel_px, 3), 255, np.uint8)
         rows = []
-        for index, frame, boxes, scores in chosen:
+        for _, _, frame, boxes, scores in chosen:
             rows += [example_rows(frame, boxes, scores, panel_px), sep]
         cv2.imwrite(os.path.join(out_dir, "examples.png"), cv2.cvtColor(np.concatenate(rows[:-1], 0), cv2.COLOR_RGB2BGR))
     log(f"eval: wrote {out_dir}: AP@0.5 {_fmt(metrics['detection']['ap']['0.5']['all'], True)}, "
@@ -629,17 +633,26 @@ def evaluate(cfg: Config, params, out_dir: str, *, sample: bool = False, video_f
     return metrics
 
 
+def pictured_frame(out, t, slot):
+    """Frame t of a chunk's ``out`` as seen in pictured slot ``slot`` (0: world 0, 1: the most crowded
+    world): its images, reconstructions and ground-truth boxes, as NumPy, for :func:`example_rows`."""
+    frame = {k: np.array(out[k][t, slot]) for k in out if k in ("camera", "lidar", "roadmap") or k.startswith("recon_")}
+    w = out["pictured"][t, slot]
+    frame.update({k: np.array(out[k][t, w]) for k in ("boxes", "boxes_valid", "boxes_occluded")})
+    return frame
+
+
 def _example_candidates(images, window, num_examples):
-    """The kept (frame_index, frame, boxes, scores) entries: the window of pictured frames is cut into
-    ``num_examples`` equal parts and each keeps its frame with the most ground-truth vehicles in view
-    (ties: the later frame, where the filter has run longer). Called after every new frame, so at
-    most ``num_examples`` frames are held."""
+    """The kept (frame_index, world, frame, boxes, scores) entries: the drives' frame indices [0,
+    window) are cut into ``num_examples`` equal parts and each part keeps its frame with the most
+    ground-truth vehicles in view (ties: the later frame, where the filter has run longer). Called
+    after every new frame, so at most ``num_examples`` frames are held."""
     if num_examples <= 0:
         return []
     best = {}
     for entry in images:
         part = min(num_examples - 1, entry[0] * num_examples // max(window, 1))
-        crowd = int(np.sum(entry[1]["boxes_valid"]))
+        crowd = int(np.sum(entry[2]["boxes_valid"]))
         if part not in best or crowd >= best[part][0]:
             best[part] = (crowd, entry)
     return [best[p][1] for p in sorted(best)]

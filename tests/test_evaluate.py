@@ -18,6 +18,8 @@ import pytest
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import evaluate as eval_lib
 from e2e_percep_jax import model as model_lib
+from e2e_percep_jax import sensors, world
+from e2e_percep_jax import town as town_lib
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 VIDEO_FRAMES = 40
@@ -71,6 +73,21 @@ def memory_run(tmp_path_factory):
         proc.kill()
 
 
+def vehicles_in_view(cfg, frames: int):
+    """[frames, E] valid ground-truth boxes of the evaluation drives, re-simulated step by step."""
+    town = town_lib.build_town(cfg.eval.town_seed)
+    step = jax.jit(jax.vmap(lambda s: world.step(s, town)))
+    count = jax.jit(jax.vmap(lambda s: sensors.observe(s, town, cfg.data.image_size)["boxes_valid"].sum()))
+    state = eval_lib.start_worlds(eval_lib.start_keys(cfg), town, cfg)
+    for _ in range(cfg.data.warmup_steps):
+        state = step(state)
+    counts = []
+    for _ in range(frames):
+        counts.append(np.asarray(count(state)))
+        state = step(state)
+    return np.stack(counts)
+
+
 def test_oracle_targets_through_the_decode_path_and_a_known_pose_offset(memory_run, tmp_path):
     """The world's own PIXOR targets in place of the decoded maps go through the same device top-k,
     score floor, BEV-view rule, NMS and matching: AP >= 0.99 at IoU 0.5. The pose head replaced by the
@@ -104,8 +121,15 @@ def test_oracle_targets_through_the_decode_path_and_a_known_pose_offset(memory_r
     by_step = pose["location_m_by_step"]
     assert sum(by_step["count"]) == 160
     assert all(v == pytest.approx(5.0, abs=2e-4) for v, n in zip(by_step["mean"], by_step["count"]) if n)
-    # No video, yet two examples (two rows of four panels each, a 6-pixel rule between), not frame 0 alone.
+    # No video, yet two examples (two rows of four panels each, a 6-pixel rule between), not frame 0 alone:
+    # in each half of the drives, the frame of any world with the most vehicles in view (re-simulated).
     assert cv2.imread(os.path.join(tmp_path, "examples.png")).shape == (2 * 2 * 192 + 6, 4 * 192, 3)
+    counts = vehicles_in_view(cfg, frames=80)  # [frame, world]
+    for half, example in enumerate(m["examples"]):
+        assert example["vehicles_in_view"] == counts[example["frame"], example["world"]]
+        assert example["vehicles_in_view"] == counts[40 * half:40 * (half + 1)].max() > 0
+    # The fixture discriminates: in some half, world 0 alone (the old choice) would miss the busiest frame.
+    assert any(counts[h:h + 40, 0].max() < counts[h:h + 40].max() for h in (0, 40))
 
 
 def test_host_detections_follow_floor_view_and_nms():
@@ -160,7 +184,7 @@ def test_end_to_end_report_files(memory_run):
     assert sum(m["pose"]["location_m_by_step"]["count"]) == 2000
 
     report = open(os.path.join(out, "report.md")).read()
-    for needle in ("Table I", "Table II", "AP<sub>0.5</sub>", "79.4%", "61.0%", "22.1%", "| 7.1 |", "0.17",
+    for needle in ("vehicles in view", "Table I", "Table II", "AP<sub>0.5</sub>", "79.4%", "61.0%", "22.1%", "| 7.1 |", "0.17",
                    "baseline: no boxes", "baseline: constant mean pose"):
         assert needle in report, needle
 
