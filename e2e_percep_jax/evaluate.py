@@ -489,8 +489,8 @@ def evaluate(cfg: Config, params, out_dir: str, *, sample: bool = False, video_f
     """Runs the online evaluation of ``params`` under ``cfg`` and writes the report into ``out_dir``.
 
     ``video_frames``: frames of world 0 recorded into drive.mp4 (0: no video); the examples are the
-    frames with the most vehicles in view over all E drives (metrics ``examples`` says which). ``heads``, ``frame_fn``: see
-    :func:`make_chunk_fn` (None: the model's).
+    frames with the most vehicles in view over all E drives (metrics ``examples`` says which).
+    ``heads``, ``frame_fn``: see :func:`make_chunk_fn` (None: the model's).
     ``host_fn(w)``, called once per world w before its drive, returns a function ``(boxes [M, 5],
     scores [M], pose_pred [5], pose [5]) -> (boxes, scores, pose_pred)`` that post-processes each of
     that drive's frames in order, after NMS and before scoring (pose: the frame's true ego pose; e.g.
