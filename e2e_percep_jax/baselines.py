@@ -118,7 +118,7 @@ OBJECTIVES = {h: train_lib.Objective(functools.partial(init_params, head=h), fun
 def frame_fn(cfg: Config, head: str | None):
     """``evaluate``'s per-frame hook for ``head`` (None: no network, for dead reckoning): decoded maps and
     pose of each frame on its own; a missing head gives empty maps (no boxes) or a NaN pose."""
-    def perceive(params, fstate, frame, prev_action, key, with_images, pictured):
+    def perceive(params, fstate, frame, prev_action, key, pictured):
         out = {} if head is None else predict(params, frame["camera"], frame["lidar"], cfg, head)
         decoded = {"det_cls": jnp.zeros_like(frame["det_cls"]), "det_reg": jnp.zeros_like(frame["det_reg"]),
                    "pose": jnp.full_like(frame["pose"], jnp.nan), **out}

@@ -194,36 +194,30 @@ def _to_uint8(image):
 
 def model_frame_fn(cfg: Config, sample: bool):
     """The perception model's ``frame_fn`` (see :func:`make_chunk_fn`): one filtering step and its decoding,
-    plus the reconstructions of the ``pictured`` worlds when ``with_images``."""
+    plus the reconstructions of the ``pictured`` worlds."""
     recon_keys = model_lib.reconstructed_images(cfg.model.variant)
 
-    def frame_fn(params, fstate, frame, prev_action, key, with_images, pictured):
+    def frame_fn(params, fstate, frame, prev_action, key, pictured):
         fstate, post = model_lib.filter_step(params, fstate, frame["camera"], frame["lidar"], prev_action,
                                              key if sample else None, cfg)
         z = jnp.concatenate([post["z1"], post["z2"]], -1)
         decoded = model_lib.decode(params, z, cfg)  # image heads unused here: compiled away
-
-        def images(z_pictured):
-            dec = model_lib.decode(params, z_pictured, cfg)
-            return {f"recon_{k}": _to_uint8(dec[k]) for k in recon_keys}
-
-        blank = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), jax.eval_shape(images, z[pictured]))
-        return fstate, decoded, jax.lax.cond(with_images, images, lambda _: blank, z[pictured])
+        pictured_decoded = model_lib.decode(params, z[pictured], cfg)
+        return fstate, decoded, {f"recon_{k}": _to_uint8(pictured_decoded[k]) for k in recon_keys}
 
     return frame_fn
 
 
 def make_chunk_fn(cfg: Config, town, sample: bool, top_k: int = TOP_K, floor: float = SCORE_FLOOR, heads=None,
                   frame_fn=None):
-    """Jitted ``chunk(params, world_state, filter_state, key, warm, with_images) -> (world_state,
+    """Jitted ``chunk(params, world_state, filter_state, key, warm) -> (world_state,
     filter_state, out)``: ``cfg.eval.chunk_steps`` frames of all E worlds.
 
     ``warm`` (int32 []): the chunk's first ``warm`` frames only step the worlds (traffic warm-up: no
-    observation, no filtering; their outputs are zeros). ``with_images`` (bool []): also return the
-    pictured worlds' reconstructions. One compiled program serves warm-up, image and plain chunks
-    (``lax.cond``), so the evaluation compiles once. ``out`` holds per frame [C, E, ...]: cand_boxes
-    [k, 5], cand_scores [k], saturated, gt boxes / boxes_valid / boxes_occluded, pose (truth) and
-    pose_pred (metres); ``pictured`` int32 [C, 2]: world 0 (the video's drive) and the world with the
+    observation, no filtering; their outputs are zeros). One compiled program serves warm-up and
+    driven chunks (``lax.cond``), so the evaluation compiles once. ``out`` holds per frame [C, E, ...]:
+    cand_boxes [k, 5], cand_scores [k], saturated, gt boxes / boxes_valid / boxes_occluded, pose (truth)
+    and pose_pred (metres); ``pictured`` int32 [C, 2]: world 0 (the video's drive) and the world with the
     most vehicles in view in that frame (the examples' candidate); and [C, 2, R, R, 3] uint8: those
     two worlds' camera, lidar, roadmap and reconstructions ``recon_<name>``.
 
@@ -231,11 +225,11 @@ def make_chunk_fn(cfg: Config, town, sample: bool, top_k: int = TOP_K, floor: fl
     det_cls / det_reg / pose (normalised) before scoring: tests feed the world's own targets through
     the same candidate / NMS / matching path (an oracle).
 
-    ``frame_fn(params, fstate, frame, prev_action, key, with_images, pictured) -> (fstate, decoded,
-    recon)`` perceives one frame of the E worlds (default: :func:`model_frame_fn`, the filtered model):
-    frame is the frame contract [E, ...], prev_action [E, 2] the action from t-1 to t, decoded as the
-    model's ``decode`` (det_cls, det_reg, normalised pose), recon the reconstructed images [2, R, R, 3]
-    of the worlds ``pictured`` (int32 [2]), or empty.
+    ``frame_fn(params, fstate, frame, prev_action, key, pictured) -> (fstate, decoded, recon)``
+    perceives one frame of the E worlds (default: :func:`model_frame_fn`, the filtered model): frame is
+    the frame contract [E, ...], prev_action [E, 2] the action from t-1 to t, decoded as the model's
+    ``decode`` (det_cls, det_reg, normalised pose), recon the reconstructed images [2, R, R, 3] of the
+    worlds ``pictured`` (int32 [2]), or empty.
     A baseline's memoryless model passes ``fstate`` through untouched.
     """
     image_size = cfg.data.image_size
@@ -243,12 +237,12 @@ def make_chunk_fn(cfg: Config, town, sample: bool, top_k: int = TOP_K, floor: fl
     step = jax.vmap(lambda s: world.step(s, town))
     frame_fn = frame_fn or model_frame_fn(cfg, sample)
 
-    def perceive(params, wstate, fstate, key, with_images):
+    def perceive(params, wstate, fstate, key):
         frame = observe(wstate)
         # World 0 for the video; the most crowded world (first on ties) for the examples.
         pictured = jnp.stack([0, jnp.argmax(jnp.sum(frame["boxes_valid"], -1))]).astype(jnp.int32)
         # state t's ego_action is the action applied from t-1 to t (ignored on a drive's first frame).
-        fstate, decoded, recon = frame_fn(params, fstate, frame, wstate.ego_action, key, with_images, pictured)
+        fstate, decoded, recon = frame_fn(params, fstate, frame, wstate.ego_action, key, pictured)
         if heads is not None:
             decoded = heads(decoded, frame)
         cand_boxes, cand_scores, saturated = detection_candidates(decoded["det_cls"], decoded["det_reg"], top_k, floor)
@@ -259,15 +253,15 @@ def make_chunk_fn(cfg: Config, town, sample: bool, top_k: int = TOP_K, floor: fl
         out.update({k: frame[k][pictured] for k in ("camera", "lidar", "roadmap")}, pictured=pictured, **recon)
         return fstate, out
 
-    def chunk(params, wstate, fstate, key, warm, with_images):
-        shapes = jax.eval_shape(lambda: perceive(params, wstate, fstate, key, with_images)[1])
+    def chunk(params, wstate, fstate, key, warm):
+        shapes = jax.eval_shape(lambda: perceive(params, wstate, fstate, key)[1])
         zeros = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)
 
         def body(carry, xs):
             wstate, fstate = carry
             k, warming = xs
             fstate, out = jax.lax.cond(warming, lambda: (fstate, zeros),
-                                       lambda: perceive(params, wstate, fstate, k, with_images))
+                                       lambda: perceive(params, wstate, fstate, k))
             return (step(wstate), fstate), out
 
         xs = (jax.random.split(key, cfg.eval.chunk_steps), jnp.arange(cfg.eval.chunk_steps) < warm)
@@ -515,7 +509,7 @@ def evaluate(cfg: Config, params, out_dir: str, *, sample: bool = False, video_f
                  score_floor, heads, frame_fn, jax.tree.structure(params), tuple(x.shape for x in jax.tree.leaves(params)))
     if cache_key not in _COMPILED:  # one compile per program, reused by later evaluations in the process
         _COMPILED[cache_key] = make_chunk_fn(cfg, town, sample, top_k, score_floor, heads, frame_fn).lower(
-            params, wstate, fstate, sample_root, jnp.int32(0), jnp.bool_(False)).compile()
+            params, wstate, fstate, sample_root, jnp.int32(0)).compile()
     compiled = _COMPILED[cache_key]
     compile_s = time.perf_counter() - t0
     log(f"eval: {ev.num_steps} frames = {e} worlds x {per_world.max()} frames after {warmup} warm-up steps, "
@@ -533,7 +527,7 @@ def evaluate(cfg: Config, params, out_dir: str, *, sample: bool = False, video_f
     def dispatch(i, wstate, fstate):
         first = i * c - warmup  # drive frame index of the chunk's first frame (negative: warm-up)
         return compiled(params, wstate, fstate, jax.random.fold_in(sample_root, i),
-                        jnp.int32(np.clip(-first, 0, c)), jnp.bool_(first + c > 0))
+                        jnp.int32(np.clip(-first, 0, c)))
 
     pending = dispatch(0, wstate, fstate)
     for i in range(num_chunks):

@@ -103,7 +103,7 @@ def test_baseline_losses_are_the_perception_loss_terms_in_numpy():
 # ----------------------------------------------------------------------------- tracker and dead reckoning
 
 
-def oracle_frame_fn(params, fstate, frame, prev_action, key, with_images, pictured):
+def oracle_frame_fn(params, fstate, frame, prev_action, key, pictured):
     """The world's own PIXOR targets as detections (score 1 on every vehicle in view); no pose."""
     decoded = {"det_cls": frame["det_cls"], "det_reg": frame["det_reg"], "pose": jnp.full_like(frame["pose"], jnp.nan)}
     return fstate, decoded, {}
