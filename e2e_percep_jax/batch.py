@@ -6,6 +6,12 @@ A batch is the frame contract (DESIGN §2) with leading [B, T+1] axes: camera, l
 [B, T+1, N]. Every sequence starts from a fresh ``world.reset`` with its own key and records after
 ``cfg.data.warmup_steps`` steps (steady traffic), so a batch depends only on its key and successive
 batches are independent. Nothing touches the disk.
+
+Opt-in, ``--data.batches_per_drive=K`` > 1: the stream's B worlds drive on for K batches, each batch the
+next T+1 frames of the same drives, so the 200 warm-up steps are paid once per K batches (most of a
+batch's cost at the `cpu` config, BUILD_NOTES). Successive batches are then correlated (they continue
+one another), as in a replay of long recorded drives. Batch s is still a function of (seed, s) alone:
+a stream resumed at s re-drives its worlds from their reset, without observing.
 """
 import functools
 
@@ -35,12 +41,17 @@ def rollout(state, town, num_frames: int, image_size: int):
     return last, {**frames, "action": actions}
 
 
-def sequence(key, town, cfg: config_lib.Config):
-    """One recorded sequence: dict of [T+1, ...] arrays (T = cfg.data.seq_len)."""
-    state = world.reset(key, town, cfg.world)
-    state = jax.lax.fori_loop(0, cfg.data.warmup_steps, lambda _, s: world.step(s, town), state)
-    _, frames = rollout(state, town, cfg.data.seq_len + 1, cfg.data.image_size)
-    return frames
+def _start(key, town, cfg: config_lib.Config, skip_frames):
+    """B worlds reset from ``key`` and driven ``warmup_steps + skip_frames`` steps, unobserved."""
+    def one(k):
+        state = world.reset(k, town, cfg.world)
+        return jax.lax.fori_loop(0, cfg.data.warmup_steps + skip_frames, lambda _, s: world.step(s, town), state)
+    return jax.vmap(one)(jax.random.split(key, cfg.data.batch_size))
+
+
+def _drive_on(states, town, cfg: config_lib.Config):
+    """(states T+1 steps later, batch of the T+1 frames from ``states``)."""
+    return jax.vmap(lambda s: rollout(s, town, cfg.data.seq_len + 1, cfg.data.image_size))(states)
 
 
 @functools.partial(jax.jit, static_argnames="cfg")
@@ -50,18 +61,36 @@ def make_batch(key, town, cfg: config_lib.Config):
     ``cfg`` is static (hashable frozen dataclasses); the same key, town and config give a bit-identical
     batch.
     """
-    keys = jax.random.split(key, cfg.data.batch_size)
-    return jax.vmap(lambda k: sequence(k, town, cfg))(keys)
+    return _drive_on(_start(key, town, cfg, 0), town, cfg)[1]
+
+
+start_drives = jax.jit(_start, static_argnames="cfg")  # skip_frames traced: one compilation for every resume
+drive_on = jax.jit(_drive_on, static_argnames="cfg")
 
 
 def batch_key(seed: int, step: int):
-    """The key of training step ``step``'s batch: a resumed run sees the same data at the same step."""
+    """The key of training step ``step``'s batch: a resumed run sees the same data at the same step.
+    With ``batches_per_drive`` K > 1 it keys drive ``step // K`` instead."""
     return jax.random.fold_in(jax.random.PRNGKey(seed), step)
 
 
 def batch_stream(town, cfg: config_lib.Config, seed: int, start_step: int = 0):
-    """Yields (step, batch) for step = start_step, start_step + 1, ... with batch_key(seed, step)."""
-    step = start_step
+    """Yields (step, batch) for step = start_step, start_step + 1, ...
+
+    With ``cfg.data.batches_per_drive`` K = 1 (default) the batch of step s is
+    ``make_batch(batch_key(seed, s))``. With K > 1 it is segment s % K of the drives keyed
+    ``batch_key(seed, s // K)``: frames [(s % K)(T+1), (s % K + 1)(T+1)) after the warm-up.
+    """
+    per_drive, step = cfg.data.batches_per_drive, start_step
+    if per_drive == 1:
+        while True:
+            yield step, make_batch(batch_key(seed, step), town, cfg)
+            step += 1
+    states = None
     while True:
-        yield step, make_batch(batch_key(seed, step), town, cfg)
+        drive, segment = divmod(step, per_drive)
+        if states is None or segment == 0:
+            states = start_drives(batch_key(seed, drive), town, cfg, segment * (cfg.data.seq_len + 1))
+        states, frames = drive_on(states, town, cfg)
+        yield step, frames
         step += 1

@@ -32,6 +32,9 @@ class DataConfig:
     batch_size: int = 8  # B sequences per training batch
     seq_len: int = 10  # T: each sequence has T+1 frames
     warmup_steps: int = 200  # world steps from reset before a sequence is recorded (steady traffic)
+    # K: successive batches continue the same B drives for K batches (warm-up paid once per K); 1 =
+    # every batch from fresh worlds, decorrelated (batch.py)
+    batches_per_drive: int = 1
 
 
 @dataclasses.dataclass(frozen=True)
@@ -152,7 +155,8 @@ def validate(cfg: Config) -> Config:
         raise ValueError(f"--model.variant={cfg.model.variant!r}: choose one of {VARIANTS}")
     positive = {
         "world.num_vehicles": cfg.world.num_vehicles, "data.batch_size": cfg.data.batch_size,
-        "data.seq_len": cfg.data.seq_len, "model.feature_dim": cfg.model.feature_dim,
+        "data.seq_len": cfg.data.seq_len,
+        "data.batches_per_drive": cfg.data.batches_per_drive, "model.feature_dim": cfg.model.feature_dim,
         "model.hidden_dim": cfg.model.hidden_dim, "model.z1_dim": cfg.model.z1_dim,
         "model.z2_dim": cfg.model.z2_dim, "train.num_steps": cfg.train.num_steps,
         "train.learning_rate": cfg.train.learning_rate, "train.perception_weight": cfg.train.perception_weight,

@@ -4,7 +4,8 @@ What is trained is an :class:`Objective` (params init and loss), the perception 
 single-frame baselines (``baselines.py``) plug in their own and keep everything else.
 
 Randomness, all from ``cfg.train.seed``: the batch of step s is the world's
-``make_batch(batch_key(seed, s))`` with ``batch_key = fold_in(PRNGKey(seed), s)``; the model's root is ``fold_in(PRNGKey(seed), 2**32 - 1)`` (a step the
+``make_batch(batch_key(seed, s))`` with ``batch_key = fold_in(PRNGKey(seed), s)`` (``batch.batch_stream``
+has the opt-in ``batches_per_drive``); the model's root is ``fold_in(PRNGKey(seed), 2**32 - 1)`` (a step the
 data stream never reaches), split into the init key and the noise root, and step s samples its
 latents with ``fold_in(noise_root, s)``. So a run is a function of (config, step) only, and a run
 killed and resumed from a checkpoint reproduces the uninterrupted run exactly.

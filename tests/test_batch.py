@@ -82,3 +82,35 @@ def test_frames_pair_state_t_with_the_action_to_t_plus_1(town, first_batch):
         np.testing.assert_allclose(first_batch["pose"][0, t], frame["pose"], atol=1e-3)
         np.testing.assert_allclose(first_batch["action"][0, t], state.ego_action, atol=1e-4)
         assert np.mean(first_batch["roadmap"][0, t] == np.asarray(frame["roadmap"])) > 0.99
+
+
+def test_stream_of_fresh_worlds_is_make_batch_of_each_step_key(town):
+    (s0, b0), (s1, b1) = itertools.islice(batch.batch_stream(town, CFG, seed=5, start_step=7), 2)
+    assert (s0, s1) == (7, 8)
+    for step, got in ((7, b0), (8, b1)):
+        want = batch.make_batch(batch.batch_key(5, step), town, CFG)
+        for key in want:
+            np.testing.assert_array_equal(np.asarray(got[key]), np.asarray(want[key]), err_msg=key)
+
+
+def test_batches_per_drive_continue_one_drive_and_resume_mid_drive(town):
+    # Truth: one unbroken rollout of K(T+1) frames from the drive's warmed-up worlds; the stream's K batches
+    # are its consecutive slices, the next drive starts afresh, and a stream resumed mid-drive (re-driving
+    # its worlds unobserved) yields the same batch as the uninterrupted one.
+    per_drive, t1 = 3, CFG.data.seq_len + 1
+    cfg = config.replace(CFG, data=dict(batches_per_drive=per_drive))
+    stream = [b for _, b in itertools.islice(batch.batch_stream(town, cfg, seed=2), per_drive + 1)]
+    states = batch.start_drives(batch.batch_key(2, 0), town, cfg, 0)
+    _, unbroken = jax.vmap(lambda s: batch.rollout(s, town, per_drive * t1, CFG.data.image_size))(states)
+    for segment in range(per_drive):  # another program than the stream's: equal up to float rounding
+        piece = {k: np.asarray(v[:, segment * t1:(segment + 1) * t1]) for k, v in unbroken.items()}
+        for key in ("pose", "boxes", "action"):
+            np.testing.assert_allclose(stream[segment][key], piece[key], atol=1e-3, err_msg=f"{segment} {key}")
+        assert np.mean(np.asarray(stream[segment]["camera"]) == piece["camera"]) > 0.99, segment
+    # the next drive (step K) is drive 1's first segment: fresh worlds, not a continuation
+    np.testing.assert_array_equal(np.asarray(stream[per_drive]["pose"]),
+                                  np.asarray(batch.make_batch(batch.batch_key(2, 1), town, cfg)["pose"]))
+    step, resumed = next(batch.batch_stream(town, cfg, seed=2, start_step=2))
+    assert step == 2
+    for key in ("pose", "camera", "lidar", "det_cls", "action"):
+        np.testing.assert_array_equal(np.asarray(resumed[key]), np.asarray(stream[2][key]), err_msg=key)

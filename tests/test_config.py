@@ -47,6 +47,7 @@ def test_flags_override_only_the_named_fields():
     (["--data.image_size=256"], "--model.conv_channels"),  # tiny has 3 widths; R = 256 needs 6
     (["--eval.score_threshold=1.5"], "--eval.score_threshold"),
     (["--data.warmup_steps=-1"], "--data.warmup_steps"),
+    (["--data.batches_per_drive=0"], "--data.batches_per_drive"),
     (["--train.max_grad_norm=-1"], "--train.max_grad_norm"),
     (["--train.pose_weight=-1"], "--train.pose_weight"),
 ])
