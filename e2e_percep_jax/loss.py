@@ -1,7 +1,8 @@
 """The training objective: -ELBO + PIXOR detection loss + ego-pose loss, one jitted pure function.
 
-    total = sum_k recon_k + kl + w * (det_cls + det_reg + p * pose),   w = train.perception_weight,
-                                                                        p = train.pose_weight
+    total = sum_k recon_k + b * kl + w * (det_cls + det_reg + p * pose),   w = train.perception_weight,
+                                                                            p = train.pose_weight,
+                                                                            b = train.kl_weight (1: -ELBO)
 
 - recon_k (k in the variant's images: camera, lidar, roadmap): Gaussian negative log-likelihood of
   the image in [0, 1] units under the decoder's mean and std sqrt(0.1), i.e. (x - mean)^2 / 0.2 per
@@ -17,7 +18,8 @@ sequence, then averaged over the B sequences of the batch (the torch peer's reco
 normalisation, used here for detection and pose too), so a term means "per sequence of T+1 frames"
 whatever the batch size or the number of devices. The reference instead sums the perception terms over
 its batch of 32 while averaging the ELBO; ``w`` = 32 (the default) keeps the reference's balance between
-the two at any batch size. The logged det_cls, det_reg and pose include ``w`` (pose also ``p``).
+the two at any batch size. The logged det_cls, det_reg and pose include ``w`` (pose also ``p``), the
+logged kl ``b``.
 """
 import functools
 
@@ -101,7 +103,7 @@ def loss_fn(params, batch, key, cfg: Config):
     for k in model_lib.reconstructed_images(cfg.model.variant):
         target = batch[k].astype(jnp.float32) / 255.0
         metrics[f"recon_{k}"] = per_sequence((pred[k] - target) ** 2, b) / (2.0 * RECON_VAR)
-    metrics["kl"] = per_sequence(gaussian_kl(out["q_z1_loc"], out["q_z1_scale"], out["p_z1_loc"], out["p_z1_scale"]), b)
+    metrics["kl"] = cfg.train.kl_weight * per_sequence(gaussian_kl(out["q_z1_loc"], out["q_z1_scale"], out["p_z1_loc"], out["p_z1_scale"]), b)
     metrics.update(detection_terms(pred, batch, cfg.train.perception_weight))
     metrics["pose"] = pose_term(pred["pose"], batch["pose"], pose_weight(cfg))
     return with_total(metrics)

@@ -50,6 +50,7 @@ def test_flags_override_only_the_named_fields():
     (["--data.batches_per_drive=0"], "--data.batches_per_drive"),
     (["--train.max_grad_norm=-1"], "--train.max_grad_norm"),
     (["--train.pose_weight=-1"], "--train.pose_weight"),
+    (["--train.kl_weight=0"], "--train.kl_weight"),
 ])
 def test_bad_values_name_their_flag(argv, flag):
     with pytest.raises(ValueError) as err:

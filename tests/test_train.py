@@ -127,27 +127,34 @@ def test_nonfinite_batch_skips_the_update():
                               before.params["params"]["pose_head"]["Dense_2"]["bias"])
 
 
-def test_compiled_step_uses_the_perception_and_pose_weights():
-    """``train.perception_weight`` and ``train.pose_weight`` reach the jitted step (its config is trimmed
-    for compile reuse): perception weight 1 against the default 32 divides the perception terms by 32,
-    pose weight 5 multiplies the pose term alone by 5, and the ELBO stays the same."""
+def test_compiled_step_uses_the_perception_pose_and_kl_weights():
+    """``train.perception_weight``, ``train.pose_weight`` and ``train.kl_weight`` reach the jitted step (its
+    config is trimmed for compile reuse): perception weight 1 against the default 32 divides the perception
+    terms by 32, pose weight 5 multiplies the pose term alone by 5, KL weight 0.25 the KL alone by 0.25."""
     mesh = train.make_mesh()
     replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
     batch = train.shard_batch(synthetic_batch(0, CFG), mesh)
     metrics = {}
-    for weights in ((1.0, 1.0), (CFG.train.perception_weight, 1.0), (CFG.train.perception_weight, 5.0)):
-        cfg = config.replace(CFG, train=dict(perception_weight=weights[0], pose_weight=weights[1]))
+    w = CFG.train.perception_weight
+    assert (w, CFG.train.pose_weight, CFG.train.kl_weight) == (32.0, 1.0, 1.0)
+    for weights in ((1.0, 1.0, 1.0), (w, 1.0, 1.0), (w, 5.0, 1.0), (w, 1.0, 0.25)):
+        cfg = config.replace(CFG, train=dict(perception_weight=weights[0], pose_weight=weights[1],
+                                             kl_weight=weights[2]))
         state = jax.device_put(train.init_state(cfg), replicated)
         metrics[weights] = train.make_train_step(cfg, mesh)(state, batch, jax.random.PRNGKey(0))[1]
-    w = CFG.train.perception_weight
-    assert (w, CFG.train.pose_weight) == (32.0, 1.0)
+    base = metrics[w, 1.0, 1.0]
     for k in ("det_cls", "det_reg", "pose"):
-        np.testing.assert_allclose(metrics[w, 1.0][k], w * metrics[1.0, 1.0][k], rtol=1e-5, err_msg=k)
-    np.testing.assert_allclose(metrics[w, 5.0]["pose"], 5.0 * metrics[w, 1.0]["pose"], rtol=1e-5)
-    for k in ("recon_camera", "kl", "det_cls", "det_reg"):
-        np.testing.assert_allclose(metrics[w, 5.0][k], metrics[w, 1.0][k], rtol=1e-6, err_msg=k)
-    for k in ("recon_camera", "kl"):
-        np.testing.assert_allclose(metrics[w, 1.0][k], metrics[1.0, 1.0][k], rtol=1e-6, err_msg=k)
+        np.testing.assert_allclose(base[k], w * metrics[1.0, 1.0, 1.0][k], rtol=1e-5, err_msg=k)
+    np.testing.assert_allclose(metrics[w, 5.0, 1.0]["pose"], 5.0 * base["pose"], rtol=1e-5)
+    np.testing.assert_allclose(metrics[w, 1.0, 0.25]["kl"], 0.25 * base["kl"], rtol=1e-5)
+    for changed, unchanged in ((metrics[w, 5.0, 1.0], ("recon_camera", "kl", "det_cls", "det_reg")),
+                               (metrics[w, 1.0, 0.25], ("recon_camera", "det_cls", "det_reg", "pose")),
+                               (metrics[1.0, 1.0, 1.0], ("recon_camera", "kl"))):
+        for k in unchanged:
+            np.testing.assert_allclose(changed[k], base[k], rtol=1e-6, err_msg=k)
+    not_terms = ("total", "grad_norm", "nonfinite_in_a_row", "nonfinite_total")
+    for m in metrics.values():  # the objective is the plain sum of the weighted terms
+        np.testing.assert_allclose(m["total"], sum(v for k, v in m.items() if k not in not_terms), rtol=1e-6)
 
 
 def test_gradient_clip_is_adam_on_the_rescaled_gradient():
