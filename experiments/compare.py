@@ -54,8 +54,8 @@ def collect(sweep_dir: str | None, baselines_dir: str | None) -> dict:
 
 def _protocol(m):
     """What must match for two evaluations of one town to be compared: eval protocol and training budget."""
-    c = m["config"]
-    return {"eval": c["eval"], "world": c["world"], "data": c["data"], "train.num_steps": c["train"]["num_steps"]}
+    c = config_lib.Config.from_json(json.dumps(m["config"]))  # a field added since takes its default
+    return {"eval": c.eval, "world": c.world, "data": c.data, "train.num_steps": c.train.num_steps}
 
 
 def check_comparable(found: dict) -> None:

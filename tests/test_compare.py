@@ -74,3 +74,17 @@ def test_launcher_writes_the_table_and_names_bad_flags(runs, tmp_path):
     assert ok.returncode == 0 and out.read_text() == compare.table(compare.collect(*runs)), ok.stderr
     bad = subprocess.run(cmd + [f"--sweep_dir={tmp_path / 'missing'}"], capture_output=True, text=True, timeout=300)
     assert bad.returncode == 1 and bad.stderr.strip().startswith("error: --sweep_dir"), bad.stderr
+
+
+def test_a_field_added_since_compares_as_its_default(runs):
+    # An evaluation written before a config field existed equals one that writes the field's default,
+    # and still differs from one that sets it otherwise.
+    sweep, base = runs
+    newer = _metrics(0.3, 1.0)
+    newer["config"]["data"]["batches_per_drive"] = 1
+    _write(os.path.join(base, "tracker", "eval", "metrics.json"), newer)
+    compare.check_comparable(compare.collect(sweep, base))
+    newer["config"]["data"]["batches_per_drive"] = 4
+    _write(os.path.join(base, "tracker", "eval", "metrics.json"), newer)
+    with pytest.raises(ValueError, match=r"tracker.*differ in data"):
+        compare.check_comparable(compare.collect(sweep, base))
