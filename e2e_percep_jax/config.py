@@ -94,8 +94,15 @@ class Config:
 
     @classmethod
     def from_json(cls, text: str) -> "Config":
-        """Inverse of :meth:`to_json` (JSON lists become tuples again); unknown fields raise ValueError."""
-        saved, sections = json.loads(text), {}
+        """Inverse of :meth:`to_json`; see :meth:`from_dict`."""
+        return cls.from_dict(json.loads(text))
+
+    @classmethod
+    def from_dict(cls, saved: dict) -> "Config":
+        """A config from its saved sections (as ``metrics.json`` holds them): JSON lists become tuples
+        again, a field missing (added since it was saved) takes its default, unknown fields raise
+        ValueError."""
+        sections = {}
         for section in dataclasses.fields(cls):
             fields = saved.get(section.name, {})
             known = {f.name for f in dataclasses.fields(section.default)}
@@ -158,11 +165,12 @@ def validate(cfg: Config) -> Config:
         raise ValueError(f"--model.variant={cfg.model.variant!r}: choose one of {VARIANTS}")
     positive = {
         "world.num_vehicles": cfg.world.num_vehicles, "data.batch_size": cfg.data.batch_size,
-        "data.seq_len": cfg.data.seq_len,
-        "data.batches_per_drive": cfg.data.batches_per_drive, "model.feature_dim": cfg.model.feature_dim,
+        "data.seq_len": cfg.data.seq_len, "data.batches_per_drive": cfg.data.batches_per_drive,
+        "model.feature_dim": cfg.model.feature_dim,
         "model.hidden_dim": cfg.model.hidden_dim, "model.z1_dim": cfg.model.z1_dim,
         "model.z2_dim": cfg.model.z2_dim, "train.num_steps": cfg.train.num_steps,
         "train.learning_rate": cfg.train.learning_rate, "train.perception_weight": cfg.train.perception_weight,
+        "train.kl_weight": cfg.train.kl_weight,
         "train.checkpoint_every": cfg.train.checkpoint_every,
         "train.log_every": cfg.train.log_every, "train.max_nonfinite_in_a_row": cfg.train.max_nonfinite_in_a_row,
         "eval.num_steps": cfg.eval.num_steps, "eval.num_worlds": cfg.eval.num_worlds,
@@ -176,8 +184,6 @@ def validate(cfg: Config) -> Config:
         raise ValueError(f"--data.warmup_steps={cfg.data.warmup_steps}: must be >= 0")
     if not cfg.train.pose_weight >= 0:
         raise ValueError(f"--train.pose_weight={cfg.train.pose_weight}: must be >= 0 (0: no pose loss)")
-    if not cfg.train.kl_weight > 0:
-        raise ValueError(f"--train.kl_weight={cfg.train.kl_weight}: must be positive (1: the ELBO)")
     if not cfg.train.max_grad_norm >= 0:
         raise ValueError(f"--train.max_grad_norm={cfg.train.max_grad_norm}: must be >= 0 (0: no clipping)")
     if not 0.0 < cfg.eval.score_threshold < 1.0:

@@ -137,8 +137,8 @@ def finished_evaluation(out_dir: str, label: str, checkpoint_step: int | None, c
         return None
     with open(path) as f:
         done = json.load(f)
-    # Through from_json, so an evaluation saved before a config field was added (at its default) counts.
-    done_cfg = Config.from_json(json.dumps(done["config"]))
+    # Through from_dict, so an evaluation saved before a config field was added (at its default) counts.
+    done_cfg = Config.from_dict(done["config"])
     same = (done["label"], done["checkpoint_step"], done_cfg) == (label, checkpoint_step, cfg)
     return done if same else None
 

@@ -103,7 +103,8 @@ def loss_fn(params, batch, key, cfg: Config):
     for k in model_lib.reconstructed_images(cfg.model.variant):
         target = batch[k].astype(jnp.float32) / 255.0
         metrics[f"recon_{k}"] = per_sequence((pred[k] - target) ** 2, b) / (2.0 * RECON_VAR)
-    metrics["kl"] = cfg.train.kl_weight * per_sequence(gaussian_kl(out["q_z1_loc"], out["q_z1_scale"], out["p_z1_loc"], out["p_z1_scale"]), b)
+    kl = gaussian_kl(out["q_z1_loc"], out["q_z1_scale"], out["p_z1_loc"], out["p_z1_scale"])
+    metrics["kl"] = cfg.train.kl_weight * per_sequence(kl, b)
     metrics.update(detection_terms(pred, batch, cfg.train.perception_weight))
     metrics["pose"] = pose_term(pred["pose"], batch["pose"], pose_weight(cfg))
     return with_total(metrics)

@@ -54,7 +54,7 @@ def collect(sweep_dir: str | None, baselines_dir: str | None) -> dict:
 
 def _protocol(m):
     """What must match for two evaluations of one town to be compared: eval protocol and training budget."""
-    c = config_lib.Config.from_json(json.dumps(m["config"]))  # a field added since takes its default
+    c = config_lib.Config.from_dict(m["config"])  # a field added since takes its default
     return {"eval": c.eval, "world": c.world, "data": c.data, "train.num_steps": c.train.num_steps}
 
 
