@@ -7,11 +7,12 @@ A batch is the frame contract (DESIGN §2) with leading [B, T+1] axes: camera, l
 ``cfg.data.warmup_steps`` steps (steady traffic), so a batch depends only on its key and successive
 batches are independent. Nothing touches the disk.
 
-Opt-in, ``--data.batches_per_drive=K`` > 1: the stream's B worlds drive on for K batches, each batch the
-next T+1 frames of the same drives, so the 200 warm-up steps are paid once per K batches (most of a
-batch's cost at the `cpu` config, BUILD_NOTES). Successive batches are then correlated (they continue
-one another), as in a replay of long recorded drives. Batch s is still a function of (seed, s) alone:
-a stream resumed at s re-drives its worlds from their reset, without observing.
+Opt-in, ``--data.batches_per_drive=K`` > 1: each drive of B worlds feeds K batches, each the next T+1
+frames, so the 200 warm-up steps are paid once per K batches (most of a batch's cost at the `cpu` config,
+BUILD_NOTES). The stream keeps K such drives and takes its batches from them in turn (step s from drive
+slot s % K), so successive batches still come from independent worlds; a drive is revisited every K
+steps, K times, then replaced by a fresh one. Batch s is still a function of (seed, s) alone: a stream
+resumed at s re-drives each slot's worlds from their reset, without observing.
 """
 import functools
 
@@ -70,27 +71,38 @@ drive_on = jax.jit(_drive_on, static_argnames="cfg")
 
 def batch_key(seed: int, step: int):
     """The key of training step ``step``'s batch: a resumed run sees the same data at the same step.
-    With ``batches_per_drive`` K > 1 it keys drive ``step // K`` instead."""
+    With ``batches_per_drive`` K > 1 it keys drive ``drive_index(step, K)`` instead."""
     return jax.random.fold_in(jax.random.PRNGKey(seed), step)
+
+
+def drive_slot(step: int, per_drive: int):
+    """(drive index, segment): step ``step``'s batch is segment ``segment`` (frames [segment (T+1),
+    (segment + 1)(T+1)) after the warm-up) of drive ``drive index``. Slot ``step % K`` serves steps
+    s, s + K, s + 2K, ...; each of its drives lasts K of them, so drive g serves the steps
+    (g // K) K^2 + g % K + j K, j < K. K = 1: drive s, segment 0."""
+    slot, visit = step % per_drive, step // per_drive
+    generation, segment = divmod(visit, per_drive)
+    return generation * per_drive + slot, segment
 
 
 def batch_stream(town, cfg: config_lib.Config, seed: int, start_step: int = 0):
     """Yields (step, batch) for step = start_step, start_step + 1, ...
 
     With ``cfg.data.batches_per_drive`` K = 1 (default) the batch of step s is
-    ``make_batch(batch_key(seed, s))``. With K > 1 it is segment s % K of the drives keyed
-    ``batch_key(seed, s // K)``: frames [(s % K)(T+1), (s % K + 1)(T+1)) after the warm-up.
+    ``make_batch(batch_key(seed, s))``. With K > 1 it is segment ``j`` of the drives keyed
+    ``batch_key(seed, g)``, ``(g, j) = drive_slot(s, K)``.
     """
     per_drive, step = cfg.data.batches_per_drive, start_step
     if per_drive == 1:
         while True:
             yield step, make_batch(batch_key(seed, step), town, cfg)
             step += 1
-    states = None
+    slots = [None] * per_drive  # per slot: the B world states its drive has reached
     while True:
-        drive, segment = divmod(step, per_drive)
-        if states is None or segment == 0:
-            states = start_drives(batch_key(seed, drive), town, cfg, segment * (cfg.data.seq_len + 1))
-        states, frames = drive_on(states, town, cfg)
+        drive, segment = drive_slot(step, per_drive)
+        slot = step % per_drive
+        if slots[slot] is None or segment == 0:
+            slots[slot] = start_drives(batch_key(seed, drive), town, cfg, segment * (cfg.data.seq_len + 1))
+        slots[slot], frames = drive_on(slots[slot], town, cfg)
         yield step, frames
         step += 1

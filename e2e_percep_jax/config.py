@@ -32,8 +32,9 @@ class DataConfig:
     batch_size: int = 8  # B sequences per training batch
     seq_len: int = 10  # T: each sequence has T+1 frames
     warmup_steps: int = 200  # world steps from reset before a sequence is recorded (steady traffic)
-    # K: successive batches continue the same B drives for K batches (warm-up paid once per K); 1 =
-    # every batch from fresh worlds, decorrelated (batch.py)
+    # K: each drive of B worlds feeds K batches (warm-up paid once per K), the stream taking its batches
+    # from K drives in turn so successive batches still come from different worlds; 1 = every batch
+    # from fresh worlds (batch.py)
     batches_per_drive: int = 1
 
 

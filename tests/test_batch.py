@@ -93,24 +93,46 @@ def test_stream_of_fresh_worlds_is_make_batch_of_each_step_key(town):
             np.testing.assert_array_equal(np.asarray(got[key]), np.asarray(want[key]), err_msg=key)
 
 
-def test_batches_per_drive_continue_one_drive_and_resume_mid_drive(town):
-    # Truth: one unbroken rollout of K(T+1) frames from the drive's warmed-up worlds; the stream's K batches
-    # are its consecutive slices, the next drive starts afresh, and a stream resumed mid-drive (re-driving
-    # its worlds unobserved) yields the same batch as the uninterrupted one.
-    per_drive, t1 = 3, CFG.data.seq_len + 1
+def test_drive_slot_visits_each_drive_k_times_and_successive_steps_differ():
+    # Brute force over the first 3 K^2 steps: every drive serves exactly K steps, segments 0..K-1 in order,
+    # K apart; successive steps never share a drive; K = 1 is one fresh drive per step.
+    for per_drive in (1, 2, 3, 5):
+        slots = [batch.drive_slot(step, per_drive) for step in range(3 * per_drive ** 2)]
+        served = {}
+        for step, (drive, segment) in enumerate(slots):
+            served.setdefault(drive, []).append((step, segment))
+        assert all(a[0] != b[0] for a, b in zip(slots, slots[1:]))
+        assert sorted(served) == list(range(3 * per_drive))
+        for steps in served.values():
+            assert [j for _, j in steps] == list(range(per_drive))
+            assert all(b - a == per_drive for (a, _), (b, _) in zip(steps, steps[1:]))
+
+
+def test_batches_per_drive_interleave_drives_and_resume_mid_drive(town):
+    # Truth: one unbroken rollout of K(T+1) frames from each drive's warmed-up worlds; the stream's batches
+    # are its consecutive slices, taken in turn from the K drives (drive_slot), the next drive of a slot
+    # starts afresh, and a stream resumed mid-drive (re-driving its worlds unobserved) yields the same batch
+    # as the uninterrupted one.
+    per_drive, t1 = 2, CFG.data.seq_len + 1
     cfg = config.replace(CFG, data=dict(batches_per_drive=per_drive))
-    stream = [b for _, b in itertools.islice(batch.batch_stream(town, cfg, seed=2), per_drive + 1)]
-    states = batch.start_drives(batch.batch_key(2, 0), town, cfg, 0)
-    _, unbroken = jax.vmap(lambda s: batch.rollout(s, town, per_drive * t1, CFG.data.image_size))(states)
-    for segment in range(per_drive):  # another program than the stream's: equal up to float rounding
-        piece = {k: np.asarray(v[:, segment * t1:(segment + 1) * t1]) for k, v in unbroken.items()}
-        for key in ("pose", "boxes", "action"):
-            np.testing.assert_allclose(stream[segment][key], piece[key], atol=1e-3, err_msg=f"{segment} {key}")
-        assert np.mean(np.asarray(stream[segment]["camera"]) == piece["camera"]) > 0.99, segment
-    # the next drive (step K) is drive 1's first segment: fresh worlds, not a continuation
-    np.testing.assert_array_equal(np.asarray(stream[per_drive]["pose"]),
-                                  np.asarray(batch.make_batch(batch.batch_key(2, 1), town, cfg)["pose"]))
-    step, resumed = next(batch.batch_stream(town, cfg, seed=2, start_step=2))
-    assert step == 2
-    for key in ("pose", "camera", "lidar", "det_cls", "action"):
-        np.testing.assert_array_equal(np.asarray(resumed[key]), np.asarray(stream[2][key]), err_msg=key)
+    stream = [b for _, b in itertools.islice(batch.batch_stream(town, cfg, seed=2), per_drive ** 2 + 1)]
+    for drive in range(per_drive):
+        states = batch.start_drives(batch.batch_key(2, drive), town, cfg, 0)
+        _, unbroken = jax.vmap(lambda s: batch.rollout(s, town, per_drive * t1, CFG.data.image_size))(states)
+        for segment in range(per_drive):  # another program than the stream's: equal up to float rounding
+            step = segment * per_drive + drive
+            assert batch.drive_slot(step, per_drive) == (drive, segment)
+            piece = {k: np.asarray(v[:, segment * t1:(segment + 1) * t1]) for k, v in unbroken.items()}
+            for key in ("pose", "boxes", "action"):
+                np.testing.assert_allclose(stream[step][key], piece[key], atol=1e-3, err_msg=f"{step} {key}")
+            assert np.mean(np.asarray(stream[step]["camera"]) == piece["camera"]) > 0.99, step
+    # successive batches come from different worlds
+    assert not np.allclose(np.asarray(stream[0]["pose"]), np.asarray(stream[1]["pose"]))
+    # step K^2 is slot 0's next drive (drive K), segment 0: fresh worlds, not a continuation
+    np.testing.assert_array_equal(np.asarray(stream[per_drive ** 2]["pose"]),
+                                  np.asarray(batch.make_batch(batch.batch_key(2, per_drive), town, cfg)["pose"]))
+    for start in (2, 3):  # resumed at slot 0's and slot 1's second segment
+        step, resumed = next(batch.batch_stream(town, cfg, seed=2, start_step=start))
+        assert step == start
+        for key in ("pose", "camera", "lidar", "det_cls", "action"):
+            np.testing.assert_array_equal(np.asarray(resumed[key]), np.asarray(stream[start][key]), err_msg=key)
