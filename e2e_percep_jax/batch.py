@@ -71,7 +71,7 @@ drive_on = jax.jit(_drive_on, static_argnames="cfg")
 
 def batch_key(seed: int, step: int):
     """The key of training step ``step``'s batch: a resumed run sees the same data at the same step.
-    With ``batches_per_drive`` K > 1 it keys drive ``drive_index(step, K)`` instead."""
+    With ``batches_per_drive`` K > 1 it keys drive ``drive_slot(step, K)[0]`` instead."""
     return jax.random.fold_in(jax.random.PRNGKey(seed), step)
 
 
