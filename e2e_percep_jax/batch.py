@@ -9,10 +9,13 @@ batches are independent. Nothing touches the disk.
 
 Opt-in, ``--data.batches_per_drive=K`` > 1: each drive of B worlds feeds K batches, each the next T+1
 frames, so the 200 warm-up steps are paid once per K batches (most of a batch's cost at the `cpu` config,
-BUILD_NOTES). The stream keeps K such drives and takes its batches from them in turn (step s from drive
-slot s % K), so successive batches still come from independent worlds; a drive is revisited every K
-steps, K times, then replaced by a fresh one. Batch s is still a function of (seed, s) alone: a stream
-resumed at s re-drives each slot's worlds from their reset, without observing.
+BUILD_NOTES). Before each segment the ego role passes to a random NPC of its world
+(``world.hand_over_ego``): the traffic goes on, but every batch is seen from B fresh places, so the
+sequences are not continuations of the last visit's. The stream keeps K drives and takes its batches from
+them in turn (step s from drive slot s % K), so successive batches come from independent worlds; a drive is
+revisited every K steps, K times, then replaced by a fresh one. Batch s is still a function of (seed, s)
+alone: a stream resumed at s re-drives each slot's worlds from their reset, hand-overs included, without
+observing.
 """
 import functools
 
@@ -42,11 +45,11 @@ def rollout(state, town, num_frames: int, image_size: int):
     return last, {**frames, "action": actions}
 
 
-def _start(key, town, cfg: config_lib.Config, skip_frames):
-    """B worlds reset from ``key`` and driven ``warmup_steps + skip_frames`` steps, unobserved."""
+def warm_up(key, town, cfg: config_lib.Config):
+    """B worlds reset from ``key`` and driven ``warmup_steps`` steps, unobserved."""
     def one(k):
         state = world.reset(k, town, cfg.world)
-        return jax.lax.fori_loop(0, cfg.data.warmup_steps + skip_frames, lambda _, s: world.step(s, town), state)
+        return jax.lax.fori_loop(0, cfg.data.warmup_steps, lambda _, s: world.step(s, town), state)
     return jax.vmap(one)(jax.random.split(key, cfg.data.batch_size))
 
 
@@ -62,11 +65,31 @@ def make_batch(key, town, cfg: config_lib.Config):
     ``cfg`` is static (hashable frozen dataclasses); the same key, town and config give a bit-identical
     batch.
     """
-    return _drive_on(_start(key, town, cfg, 0), town, cfg)[1]
+    return _drive_on(warm_up(key, town, cfg), town, cfg)[1]
 
 
-start_drives = jax.jit(_start, static_argnames="cfg")  # skip_frames traced: one compilation for every resume
-drive_on = jax.jit(_drive_on, static_argnames="cfg")
+def _hand_over(states, drive_key, segment, cfg: config_lib.Config):
+    """Each of the B worlds hands its ego role to a random NPC, keyed by (drive, segment)."""
+    keys = jax.random.split(jax.random.fold_in(drive_key, segment), cfg.data.batch_size)
+    vehicles = jax.vmap(lambda k: jax.random.randint(k, (), 1, cfg.world.num_vehicles + 1))(keys)
+    return jax.vmap(world.hand_over_ego)(states, vehicles)
+
+
+@functools.partial(jax.jit, static_argnames="cfg")
+def start_drive(drive_key, town, cfg: config_lib.Config, segments):
+    """A drive's B worlds ready for segment ``segments``: warmed up, then ``segments`` segments driven
+    unobserved, each after its hand-over (``segments`` traced: one compilation for every resume)."""
+    def segment(j, states):
+        states = _hand_over(states, drive_key, j, cfg)
+        return jax.vmap(lambda s: jax.lax.fori_loop(
+            0, cfg.data.seq_len + 1, lambda _, x: world.step(x, town), s))(states)
+    return jax.lax.fori_loop(0, segments, segment, warm_up(drive_key, town, cfg))
+
+
+@functools.partial(jax.jit, static_argnames="cfg")
+def drive_segment(states, drive_key, segment, town, cfg: config_lib.Config):
+    """(states after, batch): segment ``segment`` of a drive, seen by the egos its hand-over picks."""
+    return _drive_on(_hand_over(states, drive_key, segment, cfg), town, cfg)
 
 
 def batch_key(seed: int, step: int):
@@ -100,9 +123,9 @@ def batch_stream(town, cfg: config_lib.Config, seed: int, start_step: int = 0):
     slots = [None] * per_drive  # per slot: the B world states its drive has reached
     while True:
         drive, segment = drive_slot(step, per_drive)
-        slot = step % per_drive
+        slot, drive_key = step % per_drive, batch_key(seed, drive)
         if slots[slot] is None or segment == 0:
-            slots[slot] = start_drives(batch_key(seed, drive), town, cfg, segment * (cfg.data.seq_len + 1))
-        slots[slot], frames = drive_on(slots[slot], town, cfg)
+            slots[slot] = start_drive(drive_key, town, cfg, segment)
+        slots[slot], frames = drive_segment(slots[slot], drive_key, segment, town, cfg)
         yield step, frames
         step += 1

@@ -32,9 +32,9 @@ class DataConfig:
     batch_size: int = 8  # B sequences per training batch
     seq_len: int = 10  # T: each sequence has T+1 frames
     warmup_steps: int = 200  # world steps from reset before a sequence is recorded (steady traffic)
-    # K: each drive of B worlds feeds K batches (warm-up paid once per K), the stream taking its batches
-    # from K drives in turn so successive batches still come from different worlds; 1 = every batch
-    # from fresh worlds (batch.py)
+    # K: each drive of B worlds feeds K batches (warm-up paid once per K), each seen by egos handed over
+    # to random NPCs, the stream taking its batches from K drives in turn so successive batches still come
+    # from different worlds; 1 = every batch from fresh worlds (batch.py)
     batches_per_drive: int = 1
 
 

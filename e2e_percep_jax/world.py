@@ -365,6 +365,22 @@ def step(state: WorldState, town) -> WorldState:
     )
 
 
+def hand_over_ego(state: WorldState, vehicle) -> WorldState:
+    """The ego role passes to NPC row ``vehicle`` (int in [1, N]): rows EGO and ``vehicle`` swap their place
+    on the road (centre, yaw, speed, lane, arc, previous lane, route) and their driver traits, while each row
+    keeps its body (length, width, height, paint), so the ego is still the EGO_SIZE_M car. The traffic goes
+    on as it was; only whose sensors see it changes (a fresh viewpoint without a fresh warm-up). Bodies swap
+    lengths by at most 0.9 m, i.e. 0.45 m per end, within LEADER_CLEARANCE_M: no overlap (tested).
+    """
+    order = jnp.arange(state.veh_s_m.shape[0]).at[EGO].set(vehicle).at[vehicle].set(EGO)
+    swap = lambda a: a[order]
+    return state._replace(
+        veh_box=jnp.concatenate([state.veh_box[order, :3], state.veh_box[:, 3:]], 1),
+        veh_speed_mps=swap(state.veh_speed_mps), veh_lane=swap(state.veh_lane), veh_s_m=swap(state.veh_s_m),
+        veh_prev_lane=swap(state.veh_prev_lane), veh_route=swap(state.veh_route),
+        veh_max_accel_mps2=swap(state.veh_max_accel_mps2), veh_speed_frac=swap(state.veh_speed_frac))
+
+
 def _drive_ego(state, town, accel):
     """Steers the ego along its lane and moves it by the bicycle model under ``accel``.
 

@@ -83,11 +83,9 @@ def _paper_config(batch_size, seq_len, image_size):
 
 
 def _warm_worlds(town, num_worlds, cfg):
-    keys = jax.random.split(jax.random.PRNGKey(0), num_worlds)
-    states = jax.jit(jax.vmap(lambda k: world.reset(k, town, cfg.world)))(keys)
-    warm = jax.jit(lambda s: jax.lax.fori_loop(
-        0, cfg.data.warmup_steps, lambda _, x: jax.vmap(lambda y: world.step(y, town))(x), s))
-    return warm(states)
+    """``num_worlds`` worlds with steady traffic, as a batch's warm-up leaves them."""
+    cfg = config_lib.replace(cfg, data=dict(batch_size=num_worlds))
+    return jax.jit(batch_lib.warm_up, static_argnames="cfg")(jax.random.PRNGKey(0), town, cfg)
 
 
 def bench_world(town, repeats):

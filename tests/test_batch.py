@@ -108,29 +108,42 @@ def test_drive_slot_visits_each_drive_k_times_and_successive_steps_differ():
             assert all(b - a == per_drive for (a, _), (b, _) in zip(steps, steps[1:]))
 
 
-def test_batches_per_drive_interleave_drives_and_resume_mid_drive(town):
-    # Truth: one unbroken rollout of K(T+1) frames from each drive's warmed-up worlds; the stream's batches
-    # are its consecutive slices, taken in turn from the K drives (drive_slot), the next drive of a slot
-    # starts afresh, and a stream resumed mid-drive (re-driving its worlds unobserved) yields the same batch
-    # as the uninterrupted one.
-    per_drive, t1 = 2, CFG.data.seq_len + 1
+def test_batches_per_drive_interleave_drives_hand_over_the_ego_and_resume_mid_drive(town):
+    # Truth: each drive's warmed-up worlds driven on by hand, K segments of T+1 frames, the ego handed over
+    # to the NPC drawn from (drive key, segment) before each; the stream's batches are those segments, taken
+    # in turn from the K drives (drive_slot), the next drive of a slot starts afresh, and a stream resumed
+    # mid-drive (re-driving its worlds unobserved) yields the same batch as the uninterrupted one.
+    per_drive, b, n = 2, CFG.data.batch_size, CFG.world.num_vehicles
     cfg = config.replace(CFG, data=dict(batches_per_drive=per_drive))
     stream = [b for _, b in itertools.islice(batch.batch_stream(town, cfg, seed=2), per_drive ** 2 + 1)]
     for drive in range(per_drive):
-        states = batch.start_drives(batch.batch_key(2, drive), town, cfg, 0)
-        _, unbroken = jax.vmap(lambda s: batch.rollout(s, town, per_drive * t1, CFG.data.image_size))(states)
-        for segment in range(per_drive):  # another program than the stream's: equal up to float rounding
+        drive_key = batch.batch_key(2, drive)
+        states = batch.start_drive(drive_key, town, cfg, 0)
+        for segment in range(per_drive):
             step = segment * per_drive + drive
             assert batch.drive_slot(step, per_drive) == (drive, segment)
-            piece = {k: np.asarray(v[:, segment * t1:(segment + 1) * t1]) for k, v in unbroken.items()}
-            for key in ("pose", "boxes", "action"):
+            keys = jax.random.split(jax.random.fold_in(drive_key, segment), b)
+            vehicles = [int(jax.random.randint(k, (), 1, n + 1)) for k in keys]
+            place = lambda s, rows: np.asarray(s.veh_box)[np.arange(b)[:, None], rows, :2]
+            before = states
+            states = jax.vmap(world.hand_over_ego)(states, np.array(vehicles))
+            # the new ego stands where its NPC stood, the old ego's place is now that row's; bodies stay
+            np.testing.assert_array_equal(place(states, [[world.EGO]] * b), place(before, np.array(vehicles)[:, None]))
+            np.testing.assert_array_equal(place(states, np.array(vehicles)[:, None]), place(before, [[world.EGO]] * b))
+            np.testing.assert_array_equal(np.asarray(states.veh_box)[..., 3:], np.asarray(before.veh_box)[..., 3:])
+            states, piece = jax.vmap(lambda s: batch.rollout(s, town, CFG.data.seq_len + 1, CFG.data.image_size))(states)
+            for key in ("pose", "boxes", "action"):  # another program than the stream's: equal up to rounding
                 np.testing.assert_allclose(stream[step][key], piece[key], atol=1e-3, err_msg=f"{step} {key}")
-            assert np.mean(np.asarray(stream[step]["camera"]) == piece["camera"]) > 0.99, step
-    # successive batches come from different worlds
+            assert np.mean(np.asarray(stream[step]["camera"]) == np.asarray(piece["camera"])) > 0.99, step
+    # successive batches come from different worlds, and a drive's next segment is seen from elsewhere:
+    # its first pose is not one step on from the last segment's last pose
     assert not np.allclose(np.asarray(stream[0]["pose"]), np.asarray(stream[1]["pose"]))
+    jump_m = np.linalg.norm(np.asarray(stream[per_drive]["pose"])[:, 0, :2] - np.asarray(stream[0]["pose"])[:, -1, :2], axis=-1)
+    assert (jump_m > 5.0).all(), jump_m
     # step K^2 is slot 0's next drive (drive K), segment 0: fresh worlds, not a continuation
-    np.testing.assert_array_equal(np.asarray(stream[per_drive ** 2]["pose"]),
-                                  np.asarray(batch.make_batch(batch.batch_key(2, per_drive), town, cfg)["pose"]))
+    fresh = batch.drive_segment(batch.start_drive(batch.batch_key(2, per_drive), town, cfg, 0),
+                                batch.batch_key(2, per_drive), 0, town, cfg)[1]
+    np.testing.assert_array_equal(np.asarray(stream[per_drive ** 2]["pose"]), np.asarray(fresh["pose"]))
     for start in (2, 3):  # resumed at slot 0's and slot 1's second segment
         step, resumed = next(batch.batch_stream(town, cfg, seed=2, start_step=start))
         assert step == start

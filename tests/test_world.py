@@ -177,6 +177,43 @@ def test_ego_action_is_within_limits_and_is_what_moved_the_ego(recorded):
     np.testing.assert_allclose(dyaw, ds * np.tan(steer) / world.WHEELBASE_M, atol=1e-4)
 
 
+def test_ego_hand_overs_keep_bodies_apart_on_the_road_and_the_ego_within_its_limits():
+    """The ego role passed to a random NPC every 11 steps (batches_per_drive > 1), 40 hand-overs in each
+    of three worlds: no two bodies overlap and every corner stays on the road, right after each swap of
+    places between bodies of different lengths and in the steps after it; the ego keeps its size and its
+    action limits, and the ego's position jumps only at hand-overs (the swap does happen)."""
+    town = town_lib.build_town(DEFAULT_TOWN_SEED)
+    segments, seg_len, n = 40, 11, CFG.num_vehicles + 1
+
+    @jax.jit
+    def drive_handing_over(keys, town):
+        step = jax.vmap(lambda x: world.step(x, town))
+        states = jax.vmap(lambda k: world.reset(k, town, CFG))(keys)
+        states = jax.lax.fori_loop(0, 200, lambda _, s: step(s), states)
+
+        def segment(states, key):
+            states = jax.vmap(world.hand_over_ego)(states, jax.random.randint(key, (len(keys),), 1, n))
+            last, later = jax.lax.scan(lambda s, _: (step(s),) * 2, states, None, length=seg_len)
+            return last, jax.tree.map(lambda a, b: jnp.concatenate([a[None], b[:-1]]), states, later)
+        return jax.lax.scan(segment, states, jax.random.split(keys[0], segments))[1]
+
+    states = jax.tree.map(np.asarray, drive_handing_over(world_keys(DEFAULT_TOWN_SEED), town))
+    box = states.veh_box.reshape(-1, n, 5)  # [segments seg_len W, N+1, 5]: every state, hand-overs first
+    np.testing.assert_allclose(box[:, world.EGO, 3:], np.broadcast_to(world.EGO_SIZE_M[:2], (len(box), 2)))
+    i, j = np.triu_indices(n, 1)
+    close = np.linalg.norm(box[:, i, :2] - box[:, j, :2], axis=-1) < 0.5 * (
+        np.hypot(box[:, i, 3], box[:, i, 4]) + np.hypot(box[:, j, 3], box[:, j, 4]))
+    t, p = np.nonzero(close)
+    hit = sat_overlap(box[t, i[p]], box[t, j[p]])
+    assert len(t) > 100 and not hit.any(), f"vehicles {i[p][hit][:3]} and {j[p][hit][:3]} overlap"
+    assert np.isin(sem_at(jax.tree.map(np.asarray, town), corners(box)), DRIVABLE).all()
+    assert (np.abs(states.ego_action) <= [world.EGO_ACCEL_LIMIT_MPS2 + 1e-6, world.EGO_STEER_LIMIT_RAD + 1e-6]).all()
+    ego_xy = states.veh_box[..., world.EGO, :2]  # [segments, seg_len, W, 2]
+    step_m = np.linalg.norm(np.diff(ego_xy, axis=1), axis=-1)
+    jump_m = np.linalg.norm(ego_xy[1:, 0] - ego_xy[:-1, -1], axis=-1)  # across each hand-over
+    assert step_m.max() <= MAX_LIMIT_MPS * world.DT_S + 0.05 and np.median(jump_m) > 20.0
+
+
 @pytest.fixture(scope="module")
 def town0():
     return town_lib.build_town(DEFAULT_TOWN_SEED)
