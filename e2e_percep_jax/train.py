@@ -207,6 +207,11 @@ def _flat_config(cfg: Config) -> dict:
     return {f"{s}.{k}": v for s, fields in dataclasses.asdict(cfg).items() for k, v in fields.items()}
 
 
+def _flag_value(value) -> str:
+    """``value`` as a flag would spell it (tuples comma-separated)."""
+    return ",".join(map(str, value)) if isinstance(value, (tuple, list)) else str(value)
+
+
 def check_resumable(cfg: Config, workdir: str) -> None:
     """Raises ValueError naming the first flag that differs from the run already in ``workdir``."""
     with open(os.path.join(workdir, "config.json")) as f:
@@ -215,7 +220,8 @@ def check_resumable(cfg: Config, workdir: str) -> None:
         if name.startswith("eval.") or name in RESUMABLE_CHANGES or old.get(name) == value:
             continue
         raise ValueError(f"--{name}={value} differs from the run being resumed in {workdir} "
-                         f"({old.get(name)}); use a new --workdir")
+                         f"({old.get(name)}); pass --{name}={_flag_value(old.get(name))} to resume it, or use a "
+                         f"new --workdir")
 
 
 def check_run(cfg: Config, workdir: str) -> int | None:

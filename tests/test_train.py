@@ -237,6 +237,7 @@ def test_launcher_errors_are_one_line_naming_the_flag_before_any_compile(tmp_pat
         (["--data.nonsense=1"], {}, "data.nonsense"),
         (["--data.batch_size=3"], four_devices, "--data.batch_size=3 must be a multiple of the number of devices (4)"),
         ([f"--workdir={resumed}", "--model.z1_dim=4"], {}, "--model.z1_dim=4 differs"),
+        ([f"--workdir={resumed}", "--model.conv_channels=8,16,64"], {}, "pass --model.conv_channels=8,16,32 to resume"),
         # jax.distributed.initialize makes the 2 processes' 2 devices one mesh: the error counts both.
         (coordinator + ["--process_id=0"], {}, "number of devices (2)"),
         (coordinator + ["--process_id=1"], {}, "number of devices (2)"),
