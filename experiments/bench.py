@@ -35,7 +35,7 @@ from e2e_percep_jax import pixor, sensors, world
 from e2e_percep_jax import train as train_lib
 from e2e_percep_jax.town import build_town
 
-BENCHMARKS = ("world", "frames", "frames_parts", "batch", "train", "train_parts", "deconv", "infer", "compile", "eval", "memory")
+BENCHMARKS = ("world", "frames", "frames_parts", "batch", "loop", "train", "train_parts", "deconv", "infer", "compile", "eval", "memory")
 _REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PEER_SCRIPT = os.path.join(_REPO, "..", "shared", "peer", "torch_peer_bench.py")
 
@@ -142,7 +142,7 @@ def bench_frames_parts(town, repeats):
 
 
 def _train_step_runner(cfg, batch):
-    """(compile seconds, a zero-argument function running one compiled training step)."""
+    """(compile seconds, a function running one compiled training step, on ``batch`` unless given another)."""
     mesh = train_lib.make_mesh()
     step_fn = train_lib.make_train_step(cfg, mesh)
     holder = {"state": train_lib.init_state(cfg)}
@@ -152,8 +152,8 @@ def _train_step_runner(cfg, batch):
     compiled = step_fn.lower(holder["state"], batch, key).compile()
     compile_s = time.perf_counter() - start
 
-    def run():
-        holder["state"], metrics = compiled(holder["state"], batch, key)  # the state is donated
+    def run(step_batch=batch):
+        holder["state"], metrics = compiled(holder["state"], step_batch, key)  # the state is donated
         return metrics["total"]
 
     return compile_s, run
@@ -180,6 +180,36 @@ def bench_batch(town, repeats):
     return {"config": "cpu", "train_step_s": step_s, "batches_per_drive": per_drive,
             "stream_batch_s": stream_batch_s, "stream_batch_over_step": stream_batch_s / step_s,
             "fresh_batch_s": fresh_batch_s, "fresh_batch_over_step": fresh_batch_s / step_s}
+
+
+def bench_loop(town, repeats):
+    """The batch's share as training meets it: seconds per step of a loop that dispatches like
+    ``train.train`` (a batch, its sharding, then a step, no wait in between), fed by the ``cpu`` preset's stream against
+    one fixed batch, each over a whole cycle of K^2 steps; pairs alternate, medians over ``repeats`` // 2
+    pairs (at least 2)."""
+    cfg = config_lib.get_config("cpu")
+    per_drive = FLAGS.batches_per_drive or cfg.data.batches_per_drive
+    cfg = config_lib.replace(cfg, data=dict(batches_per_drive=per_drive))
+    fixed = batch_lib.make_batch(jax.random.PRNGKey(0), town, cfg)
+    _, train_step = _train_step_runner(cfg, fixed)
+    steps = per_drive ** 2
+
+    mesh = train_lib.make_mesh()
+
+    def run(batches):
+        start = time.perf_counter()
+        jax.block_until_ready([train_step(train_lib.shard_batch(batch, mesh))
+                               for _, batch in itertools.islice(batches, steps)])
+        return (time.perf_counter() - start) / steps
+
+    run(batch_lib.batch_stream(town, cfg, seed=0))  # compiles the stream's functions
+    fixed_s, stream_s = [], []
+    for pair in range(max(2, repeats // 2)):
+        fixed_s.append(run(itertools.repeat((None, fixed))))
+        stream_s.append(run(batch_lib.batch_stream(town, cfg, seed=0, start_step=(pair + 1) * steps)))
+    fixed_s, stream_s = statistics.median(fixed_s), statistics.median(stream_s)
+    return {"config": "cpu", "batches_per_drive": per_drive, "steps_per_run": steps, "fixed_batch_step_s": fixed_s,
+            "stream_step_s": stream_s, "stream_overhead": stream_s / fixed_s - 1}
 
 
 def _run_peer(script, *args):
