@@ -3,9 +3,10 @@
 What is trained is an :class:`Objective` (params init and loss), the perception model by default; the
 single-frame baselines (``baselines.py``) plug in their own and keep everything else.
 
-Randomness, all from ``cfg.train.seed``: the batch of step s is the world's
-``make_batch(batch_key(seed, s))`` with ``batch_key = fold_in(PRNGKey(seed), s)`` (``batch.batch_stream``
-has the opt-in ``batches_per_drive``); the model's root is ``fold_in(PRNGKey(seed), 2**32 - 1)`` (a step the
+Randomness, all from ``cfg.train.seed``: the batch of step s is a function of (seed, s) alone
+(``batch.batch_stream``): with ``batches_per_drive`` K = 1 it is ``make_batch(batch_key(seed, s))``,
+``batch_key = fold_in(PRNGKey(seed), s)``; with the presets' K > 1 a segment of drive
+``batch_key(seed, g)``. The model's root is ``fold_in(PRNGKey(seed), 2**32 - 1)`` (a step or drive the
 data stream never reaches), split into the init key and the noise root, and step s samples its
 latents with ``fold_in(noise_root, s)``. So a run is a function of (config, step) only, and a run
 killed and resumed from a checkpoint reproduces the uninterrupted run exactly.
