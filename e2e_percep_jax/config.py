@@ -121,7 +121,7 @@ def replace(cfg: Config, **sections: dict) -> Config:
         cfg, **{name: dataclasses.replace(getattr(cfg, name), **fields) for name, fields in sections.items()})
 
 
-# The training presets' stream: 10 batches per drive cost 6 % of a `cpu` step against 21 % for fresh worlds,
+# The training presets' stream: 10 batches per drive cost 6-9 % of a `cpu` step against 20-22 % for fresh worlds,
 # and learned as well over three seeds (BUILD_NOTES, session ten). `tiny` (the tests) keeps fresh worlds.
 _BATCHES_PER_DRIVE = 10
 

@@ -159,21 +159,25 @@ def _train_step_runner(cfg, batch):
     return compile_s, run
 
 
+def _cpu_stream_config():
+    """The ``cpu`` preset, its stream's K replaced by ``--batches_per_drive`` if given."""
+    cfg = config_lib.get_config("cpu")
+    return config_lib.replace(cfg, data=dict(batches_per_drive=FLAGS.batches_per_drive or cfg.data.batches_per_drive))
+
+
 def bench_batch(town, repeats):
     """Making one training batch vs one training step, at the ``cpu`` config (target: < 10 %): the preset's
     stream (``batches_per_drive`` K) and fresh worlds for every batch (K = 1)."""
-    cfg = config_lib.get_config("cpu")
-    per_drive = FLAGS.batches_per_drive or cfg.data.batches_per_drive
+    cfg = _cpu_stream_config()
+    per_drive = cfg.data.batches_per_drive
     key = jax.random.PRNGKey(0)
     fresh_batch_s = _median_s(lambda: batch_lib.make_batch(key, town, cfg), repeats)
     _, run = _train_step_runner(cfg, batch_lib.make_batch(key, town, cfg))
     step_s = _median_s(run, repeats)
     # The stream's first K batches are K warm-ups: time a whole cycle (K^2 batches: K drives, each its
     # warm-up and K segments, served in turn).
-    stream_cfg = config_lib.replace(cfg, data=dict(batches_per_drive=per_drive))
-
     def cycle():
-        stream = batch_lib.batch_stream(town, stream_cfg, seed=0)
+        stream = batch_lib.batch_stream(town, cfg, seed=0)
         return [b["camera"] for _, b in itertools.islice(stream, per_drive ** 2)]
 
     stream_batch_s = _median_s(cycle, repeats) / per_drive ** 2
@@ -184,17 +188,14 @@ def bench_batch(town, repeats):
 
 def bench_loop(town, repeats):
     """The batch's share as training meets it: seconds per step of a loop that dispatches like
-    ``train.train`` (a batch, its sharding, then a step, no wait in between), fed by the ``cpu`` preset's stream against
-    one fixed batch, each over a whole cycle of K^2 steps; pairs alternate, medians over ``repeats`` // 2
-    pairs (at least 2)."""
-    cfg = config_lib.get_config("cpu")
-    per_drive = FLAGS.batches_per_drive or cfg.data.batches_per_drive
-    cfg = config_lib.replace(cfg, data=dict(batches_per_drive=per_drive))
+    ``train.train`` (a batch, its sharding, then a step, no wait in between), fed by the ``cpu`` preset's
+    stream against one fixed batch, each over a whole cycle of K^2 steps; pairs alternate, medians over
+    ``repeats`` // 2 pairs (at least 2)."""
+    cfg = _cpu_stream_config()
+    per_drive = cfg.data.batches_per_drive
     fixed = batch_lib.make_batch(jax.random.PRNGKey(0), town, cfg)
     _, train_step = _train_step_runner(cfg, fixed)
-    steps = per_drive ** 2
-
-    mesh = train_lib.make_mesh()
+    steps, mesh = per_drive ** 2, train_lib.make_mesh()
 
     def run(batches):
         start = time.perf_counter()

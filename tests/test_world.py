@@ -84,9 +84,8 @@ def test_sat_finds_overlaps():
     np.testing.assert_array_equal(sat_overlap(a, b), [True, False, True, False])
 
 
-def test_no_two_vehicles_ever_overlap(recorded):
-    _, states = recorded
-    boxes = states.veh_box.reshape(-1, *states.veh_box.shape[2:])  # [T W, N, 5]
+def assert_no_overlaps(boxes):
+    """Asserts no two of each row's boxes [S, N, 5] overlap; returns how many close pairs were tested."""
     radius = 0.5 * np.hypot(boxes[..., 3], boxes[..., 4])
     i, j = np.triu_indices(boxes.shape[1], 1)
     pairs = 0
@@ -97,6 +96,12 @@ def test_no_two_vehicles_ever_overlap(recorded):
         pairs += len(t)
         hit = sat_overlap(b[t, i[p]], b[t, j[p]])
         assert not hit.any(), f"vehicles {i[p][hit][:3]} and {j[p][hit][:3]} overlap"
+    return pairs
+
+
+def test_no_two_vehicles_ever_overlap(recorded):
+    _, states = recorded
+    pairs = assert_no_overlaps(states.veh_box.reshape(-1, *states.veh_box.shape[2:]))  # [T W, N, 5]
     assert pairs > 100  # the check did meet vehicles close together (queues)
 
 
@@ -200,12 +205,7 @@ def test_ego_hand_overs_keep_bodies_apart_on_the_road_and_the_ego_within_its_lim
     states = jax.tree.map(np.asarray, drive_handing_over(world_keys(DEFAULT_TOWN_SEED), town))
     box = states.veh_box.reshape(-1, n, 5)  # [segments seg_len W, N+1, 5]: every state, hand-overs first
     np.testing.assert_allclose(box[:, world.EGO, 3:], np.broadcast_to(world.EGO_SIZE_M[:2], (len(box), 2)))
-    i, j = np.triu_indices(n, 1)
-    close = np.linalg.norm(box[:, i, :2] - box[:, j, :2], axis=-1) < 0.5 * (
-        np.hypot(box[:, i, 3], box[:, i, 4]) + np.hypot(box[:, j, 3], box[:, j, 4]))
-    t, p = np.nonzero(close)
-    hit = sat_overlap(box[t, i[p]], box[t, j[p]])
-    assert len(t) > 100 and not hit.any(), f"vehicles {i[p][hit][:3]} and {j[p][hit][:3]} overlap"
+    assert assert_no_overlaps(box) > 100
     assert np.isin(sem_at(jax.tree.map(np.asarray, town), corners(box)), DRIVABLE).all()
     assert (np.abs(states.ego_action) <= [world.EGO_ACCEL_LIMIT_MPS2 + 1e-6, world.EGO_STEER_LIMIT_RAD + 1e-6]).all()
     ego_xy = states.veh_box[..., world.EGO, :2]  # [segments, seg_len, W, 2]
