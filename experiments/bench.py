@@ -26,6 +26,7 @@ import numpy as np
 from absl import app, flags
 from flax import linen as nn
 
+from e2e_percep_jax import allocator
 from e2e_percep_jax import batch as batch_lib
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import evaluate as evaluate_lib
@@ -51,6 +52,8 @@ flags.DEFINE_list("compile_seq_lens", ["10", "50"], "T values of the paper-confi
 flags.DEFINE_integer("infer_batch", 64, "batch of the inference throughput figure (latency is at batch 1)")
 flags.DEFINE_integer("batches_per_drive", None, "K of the batch figure's stream (drives feed K batches each); default: the cpu preset's")
 flags.DEFINE_integer("memory_steps", 300, "training steps of the cpu-config run whose resident memory is sampled")
+flags.DEFINE_boolean("keep_freed_buffers", True, "reuse freed buffers as the launchers do (allocator.py), "
+                     "here and in the peer; --nokeep_freed_buffers measures glibc's default")
 FLAGS = flags.FLAGS
 
 
@@ -98,13 +101,22 @@ def bench_world(town, repeats):
             "world_steps_per_s": FLAGS.num_worlds * steps / median}
 
 
+FRAMES_SECONDS = 6  # the frames figure's one-second blocks
+
+
 def bench_frames(town, repeats):
-    """Full frames/s: ``sensors.observe`` (every contract key) on W world states at once."""
+    """Full frames/s: ``sensors.observe`` (every contract key) on W world states at once.
+
+    This VM's speed swings by up to 2x from one second to the next (BUILD_NOTES, session eleven), so
+    the figure is the median over FRAMES_SECONDS one-second blocks, and the slowest and fastest block's
+    medians show the spread."""
     cfg, r = config_lib.get_config("paper"), FLAGS.frames_image_size
     states = _warm_worlds(town, FLAGS.num_worlds, cfg)
     observe = jax.jit(jax.vmap(lambda s: sensors.observe(s, town, r)))
-    median = _median_s(lambda: observe(states), repeats)
-    return {"image_size": r, "frames_at_once": FLAGS.num_worlds, "frames_per_s": FLAGS.num_worlds / median}
+    blocks_s = [_median_s(lambda: observe(states), repeats) for _ in range(FRAMES_SECONDS)]
+    per_s = lambda seconds: FLAGS.num_worlds / seconds
+    return {"image_size": r, "frames_at_once": FLAGS.num_worlds, "frames_per_s": per_s(statistics.median(blocks_s)),
+            "slowest_second_frames_per_s": per_s(max(blocks_s)), "fastest_second_frames_per_s": per_s(min(blocks_s))}
 
 
 def bench_frames_parts(town, repeats):
@@ -217,7 +229,9 @@ def _run_peer(script, *args):
     """The last stdout line of ``script`` run by ``--peer_python``, as JSON; None without a peer python."""
     if not FLAGS.peer_python or not os.path.exists(FLAGS.peer_python):
         return None
-    out = subprocess.run([FLAGS.peer_python, script, *map(str, args)], check=True, capture_output=True, text=True).stdout
+    # The peer's allocator keeps freed buffers as ours does (allocator.py), so neither pays page faults the other does not.
+    out = subprocess.run([FLAGS.peer_python, script, *map(str, args)], check=True, capture_output=True, text=True,
+                         env={**os.environ, "GLIBC_TUNABLES": allocator.GLIBC_TUNABLES if FLAGS.keep_freed_buffers else ""}).stdout
     return json.loads(out.strip().splitlines()[-1])
 
 
@@ -399,6 +413,8 @@ def main(argv):
     except ValueError as e:
         sys.exit(f"error: {e}")
     os.makedirs(FLAGS.out_dir, exist_ok=True)
+    if FLAGS.keep_freed_buffers:
+        allocator.keep_freed_buffers()
     town = build_town(config_lib.DEFAULT_TOWN_SEED)
     context = {"jax": jax.__version__, "backend": jax.default_backend(), "devices": jax.device_count(),
                "cpu_count": os.cpu_count()}

@@ -12,6 +12,7 @@ import sys
 
 from absl import app, flags
 
+from e2e_percep_jax import allocator
 from e2e_percep_jax import config as config_lib
 
 config_lib.define_flags()
@@ -30,6 +31,7 @@ FLAGS = flags.FLAGS
 
 def main(argv):
     from e2e_percep_jax import evaluate as eval_lib
+    allocator.keep_freed_buffers()
     try:
         config_lib.check_launch(argv)
         config_path = os.path.join(FLAGS.workdir, "config.json")

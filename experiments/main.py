@@ -13,6 +13,7 @@ import sys
 
 from absl import app, flags
 
+from e2e_percep_jax import allocator
 from e2e_percep_jax import config as config_lib
 
 config_lib.define_flags()
@@ -41,6 +42,7 @@ def run(cfg: config_lib.Config, workdir: str, video_frames: int = 300, log=print
 
 def main(argv):
     from e2e_percep_jax import train as train_lib
+    allocator.keep_freed_buffers()
     try:
         config_lib.check_launch(argv)
         if FLAGS.video_frames < 0:
