@@ -6,8 +6,8 @@ threshold. A jitted function whose buffers cross those limits then gets new page
 the kernel must fault in and zero. On this project's 2-core VM that was 600-1,800 page faults and
 1.5-3.7 ms of system time per 32-frame ``sensors.observe`` call (~10 ms of wall time), and its cost
 swung with the host's load: one-second medians fell from ~3,400 to 1,400-1,900 frames/s in some
-seconds. With the limits below, the same call faults ~20 pages and no second fell below 2,500
-(BUILD_NOTES.md, session eleven).
+seconds. With the limits below, the same call faults ~20 pages and no 1.5-s block fell below 2,447
+frames/s (BUILD_NOTES.md, session eleven).
 
 The cost: freed memory up to ``trim_threshold_mib`` stays in the process instead of going back to
 the system. A process-wide setting, so the launchers in ``experiments/`` call it and the library
@@ -40,6 +40,6 @@ def keep_freed_buffers(mmap_threshold_mib: int = MMAP_THRESHOLD_MIB, trim_thresh
         return False
     mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
     mib = 1 << 20
-    # mallopt returns 1 on success; glibc caps the mmap threshold at 32 MiB x 32 = 1 GiB on 64-bit.
-    return bool(mallopt(_M_MMAP_THRESHOLD, mmap_threshold_mib * mib)) & bool(
-        mallopt(_M_TRIM_THRESHOLD, trim_threshold_mib * mib))
+    mmap_set = mallopt(_M_MMAP_THRESHOLD, mmap_threshold_mib * mib)  # 1 on success (musl's stub: 0)
+    trim_set = mallopt(_M_TRIM_THRESHOLD, trim_threshold_mib * mib)
+    return mmap_set == 1 and trim_set == 1
