@@ -19,11 +19,12 @@ import ctypes.util
 
 _M_TRIM_THRESHOLD = -1  # mallopt parameters, from glibc's malloc.h
 _M_MMAP_THRESHOLD = -3
+_MIB = 1 << 20
 MMAP_THRESHOLD_MIB = 256
 TRIM_THRESHOLD_MIB = 512
 # The same setting for a process started afresh (glibc reads it at start-up), e.g. the benchmark's peer.
-GLIBC_TUNABLES = (f"glibc.malloc.mmap_threshold={MMAP_THRESHOLD_MIB << 20}"
-                  f":glibc.malloc.trim_threshold={TRIM_THRESHOLD_MIB << 20}")
+GLIBC_TUNABLES = (f"glibc.malloc.mmap_threshold={MMAP_THRESHOLD_MIB * _MIB}"
+                  f":glibc.malloc.trim_threshold={TRIM_THRESHOLD_MIB * _MIB}")
 
 
 def keep_freed_buffers(mmap_threshold_mib: int = MMAP_THRESHOLD_MIB, trim_threshold_mib: int = TRIM_THRESHOLD_MIB) -> bool:
@@ -39,7 +40,6 @@ def keep_freed_buffers(mmap_threshold_mib: int = MMAP_THRESHOLD_MIB, trim_thresh
     except (OSError, AttributeError, TypeError):  # no C library found, or one without mallopt
         return False
     mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
-    mib = 1 << 20
-    mmap_set = mallopt(_M_MMAP_THRESHOLD, mmap_threshold_mib * mib)  # 1 on success (musl's stub: 0)
-    trim_set = mallopt(_M_TRIM_THRESHOLD, trim_threshold_mib * mib)
+    mmap_set = mallopt(_M_MMAP_THRESHOLD, mmap_threshold_mib * _MIB)  # 1 on success (musl's stub: 0)
+    trim_set = mallopt(_M_TRIM_THRESHOLD, trim_threshold_mib * _MIB)
     return mmap_set == 1 and trim_set == 1
