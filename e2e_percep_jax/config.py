@@ -17,6 +17,10 @@ import math
 from typing import Any
 
 VARIANTS = ("full", "no_input_recon", "no_roadmap_recon")
+# belief: a heatmap over the town (pose_belief.py), filtered through motion at evaluation; regression: an MLP
+# on the latent sample, smooth-L1 in normalised units (what runs saved before the field was added used);
+# reference: the same head on the reference code's objective, 10 x smooth-L1 on raw metres.
+POSE_HEADS = ("belief", "regression", "reference")
 DEFAULT_TOWN_SEED = 0
 
 
@@ -49,6 +53,9 @@ class ModelConfig:
     z1_dim: int = 32
     z2_dim: int = 256
     variant: str = "full"  # one of VARIANTS
+    pose_head: str = "regression"  # one of POSE_HEADS; the presets use "belief"
+    pose_cell_m: float = 10.0  # the belief's cell size (metres)
+    pose_heading_bins: int = 36  # the belief's heading bins
 
 
 @dataclasses.dataclass(frozen=True)
@@ -126,27 +133,31 @@ def replace(cfg: Config, **sections: dict) -> Config:
 _BATCHES_PER_DRIVE = 10
 
 PRESETS = {
-    "paper": replace(Config(), data=dict(batches_per_drive=_BATCHES_PER_DRIVE)),
+    # pose_weight 16: the `cpu` preset's 4, scaled with the images' pixel count (128^2 against 64^2)
+    "paper": replace(Config(), data=dict(batches_per_drive=_BATCHES_PER_DRIVE), model=dict(pose_head="belief"),
+                     train=dict(pose_weight=16.0)),
     "cpu": replace(
         Config(),
         data=dict(image_size=64, batch_size=8, batches_per_drive=_BATCHES_PER_DRIVE),
-        model=dict(conv_channels=(16, 32, 64, 128, 128), feature_dim=128, hidden_dim=128),
+        model=dict(conv_channels=(16, 32, 64, 128, 128), feature_dim=128, hidden_dim=128, pose_head="belief"),
         # lr 1e-3, not the paper's 1e-4: reaches 1e-4's 600-step loss in 200 steps (BUILD_NOTES "Demo")
         # max_grad_norm 1e6: above the steady norms (3e4-6e5), below a spike's (1e13; BUILD_NOTES, fifth session)
-        train=dict(num_steps=3000, learning_rate=1e-3, max_grad_norm=1e6),
+        # pose_weight 4: the belief's terms (~4,000 per sequence at init, cross-entropies of ~2-3 nats a
+        # frame once learned) then weigh about as much as one image's reconstruction (~5,000-10,000)
+        train=dict(num_steps=3000, learning_rate=1e-3, max_grad_norm=1e6, pose_weight=4.0),
         eval=dict(num_steps=15000)),
     "demo": replace(
         Config(),
         data=dict(image_size=64, batch_size=8, batches_per_drive=_BATCHES_PER_DRIVE),
-        model=dict(conv_channels=(16, 32, 64, 128), feature_dim=128, hidden_dim=128),
+        model=dict(conv_channels=(16, 32, 64, 128), feature_dim=128, hidden_dim=128, pose_head="belief"),
         # 1,000 steps: with the clip the network detects from ~800 (BUILD_NOTES "Learning curve with the clip")
-        train=dict(num_steps=1000, checkpoint_every=200, learning_rate=1e-3, max_grad_norm=1e6),
+        train=dict(num_steps=1000, checkpoint_every=200, learning_rate=1e-3, max_grad_norm=1e6, pose_weight=4.0),
         eval=dict(num_steps=2000, num_worlds=4)),
     "tiny": replace(
         Config(),
         world=dict(num_vehicles=20),
         data=dict(image_size=32, batch_size=2, seq_len=3, warmup_steps=20),
-        model=dict(conv_channels=(8, 16, 32), feature_dim=32, hidden_dim=32, z1_dim=8, z2_dim=16),
+        model=dict(conv_channels=(8, 16, 32), feature_dim=32, hidden_dim=32, z1_dim=8, z2_dim=16, pose_head="belief"),
         train=dict(num_steps=20, checkpoint_every=10, log_every=5),
         eval=dict(num_steps=40, num_worlds=2, chunk_steps=10)),
 }
@@ -169,6 +180,14 @@ def validate(cfg: Config) -> Config:
                          f"image_size {r} needs {n_layers}")
     if cfg.model.variant not in VARIANTS:
         raise ValueError(f"--model.variant={cfg.model.variant!r}: choose one of {VARIANTS}")
+    if cfg.model.pose_head not in POSE_HEADS:
+        raise ValueError(f"--model.pose_head={cfg.model.pose_head!r}: choose one of {POSE_HEADS}")
+    # The filter moves a heading bin's mass by at most one cell a step (pose_belief.predict): 2 m is above
+    # the world's fastest step (12 m/s x 0.1 s); above 40 m a cell is as large as a block.
+    if not 2.0 <= cfg.model.pose_cell_m <= 40.0:
+        raise ValueError(f"--model.pose_cell_m={cfg.model.pose_cell_m}: must lie in [2, 40] metres")
+    if not 4 <= cfg.model.pose_heading_bins <= 360:
+        raise ValueError(f"--model.pose_heading_bins={cfg.model.pose_heading_bins}: must lie in [4, 360]")
     positive = {
         "world.num_vehicles": cfg.world.num_vehicles, "data.batch_size": cfg.data.batch_size,
         "data.seq_len": cfg.data.seq_len, "data.batches_per_drive": cfg.data.batches_per_drive,

@@ -11,7 +11,11 @@
 - det_cls: focal loss (alpha 0.25 on positives, gamma 2) on the class map.
 - det_reg: 0.1 x smooth-L1 (beta 1) between predicted and target regression maps at positive pixels
   (``det_cls`` > 0.5); targets elsewhere are ignored, whatever their value.
-- pose: smooth-L1 (beta 1) on the pose in :func:`~e2e_percep_jax.model.normalise_pose` units.
+- pose, by ``model.pose_head``: ``belief`` (the presets): the belief head's cross-entropies and offset and
+  speed losses (``pose_belief.loss_terms``), logged as ``pose_place``, ``pose_heading``, ``pose_offset`` and
+  ``pose_speed``; ``regression``: smooth-L1 (beta 1) on the pose in
+  :func:`~e2e_percep_jax.model.normalise_pose` units; ``reference``: the reference code's
+  REFERENCE_POSE_WEIGHT x smooth-L1 on the raw pose (metres, cos / sin, m/s).
 
 Normalisation: every term is summed over pixels, channels / latent dims and the T+1 frames of a
 sequence, then averaged over the B sequences of the batch (the torch peer's reconstruction and KL
@@ -29,11 +33,13 @@ import jax.numpy as jnp
 import optax
 
 from e2e_percep_jax import model as model_lib
+from e2e_percep_jax import pose_belief
 from e2e_percep_jax.config import Config
 
 RECON_VAR = 0.1  # fixed decoder variance: std sqrt(0.1)
 FOCAL_ALPHA, FOCAL_GAMMA = 0.25, 2.0
 DET_REG_WEIGHT = 0.1
+REFERENCE_POSE_WEIGHT = 10.0
 BATCH_KEYS = ("camera", "lidar", "roadmap", "det_cls", "det_reg", "pose", "action")  # what the loss reads
 
 
@@ -69,10 +75,28 @@ def detection_terms(pred: dict, batch: dict, weight: float) -> dict:
     return terms
 
 
-def pose_term(pred_pose, pose, weight: float):
+def pose_term(pred_pose, pose, weight: float, raw_metres: bool = False):
     """Smooth-L1 pose loss, per sequence, times ``weight``: pose head output [B, T+1, 5] (normalised
-    units) against the frame contract's pose [B, T+1, 5]."""
-    return weight * per_sequence(optax.huber_loss(pred_pose, model_lib.normalise_pose(pose)), pose.shape[0])
+    units) against the frame contract's pose [B, T+1, 5], compared in normalised units or, with
+    ``raw_metres`` (the reference's objective), in the contract's own units."""
+    if raw_metres:
+        error = optax.huber_loss(model_lib.pose_to_metres(pred_pose), pose)
+    else:
+        error = optax.huber_loss(pred_pose, model_lib.normalise_pose(pose))
+    return weight * per_sequence(error, pose.shape[0])
+
+
+def pose_terms(params, filtered: dict, pred: dict, pose, cfg: Config) -> dict:
+    """The pose loss's terms for ``cfg.model.pose_head`` (module docstring), per sequence, weighted:
+    ``filtered`` is ``filter_sequence``'s output, ``pred`` the decoders', ``pose`` [B, T+1, 5] the truth."""
+    head, weight = cfg.model.pose_head, pose_weight(cfg)
+    if head == "belief":
+        parts = pose_belief.loss_terms(model_lib.pose_belief_head(params, filtered, cfg), pose,
+                                       pose_belief.grid_of(cfg.model))
+        return {k: weight * per_sequence(v, pose.shape[0]) for k, v in parts.items()}
+    if head == "reference":
+        return {"pose": pose_term(pred["pose"], pose, REFERENCE_POSE_WEIGHT * weight, raw_metres=True)}
+    return {"pose": pose_term(pred["pose"], pose, weight)}
 
 
 def pose_weight(cfg: Config) -> float:
@@ -92,7 +116,7 @@ def loss_fn(params, batch, key, cfg: Config):
 
     batch: the frame contract with [B, T+1] leading axes (only :data:`BATCH_KEYS` are read);
     key: PRNG key for the posterior samples. Returns (total [], metrics dict of [] float32: one entry
-    per active term (``recon_<image>``, ``kl``, ``det_cls``, ``det_reg``, ``pose``) and ``total``).
+    per active term (``recon_<image>``, ``kl``, ``det_cls``, ``det_reg``, the pose terms) and ``total``).
     """
     b, t1 = batch["camera"].shape[:2]
     out = model_lib.filter_sequence(params, batch["camera"], batch["lidar"], batch["action"], key, cfg)
@@ -106,5 +130,5 @@ def loss_fn(params, batch, key, cfg: Config):
     kl = gaussian_kl(out["q_z1_loc"], out["q_z1_scale"], out["p_z1_loc"], out["p_z1_scale"])
     metrics["kl"] = cfg.train.kl_weight * per_sequence(kl, b)
     metrics.update(detection_terms(pred, batch, cfg.train.perception_weight))
-    metrics["pose"] = pose_term(pred["pose"], batch["pose"], pose_weight(cfg))
+    metrics.update(pose_terms(params, out, pred, batch["pose"], cfg))
     return with_total(metrics)

@@ -30,6 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from e2e_percep_jax import pose_belief
 from e2e_percep_jax.config import Config, ModelConfig
 
 LEAK = 0.2  # leaky-ReLU slope of the reference (flax's default is 0.01)
@@ -200,7 +201,10 @@ class PerceptionModel(nn.Module):
         self.p_z2_next = GaussianMLP(m.hidden_dim, m.z2_dim)  # p(z2_t+1 | z1_t+1, z2_t, a_t)
         self.image_decoders = {k: ImageDecoder(widths, m.feature_dim) for k in reconstructed_images(m.variant)}
         self.pixor_decoder = PixorDecoder(widths, m.feature_dim)
-        self.pose_head = MLP(m.hidden_dim, 5)
+        if m.pose_head == "belief":
+            self.pose_belief_head = MLP(m.hidden_dim, pose_belief.grid_of(m).head_size)
+        else:
+            self.pose_head = MLP(m.hidden_dim, 5)
 
     def encode(self, camera, lidar):
         """uint8 [N, R, R, 3] x 2 -> concatenated features [N, 2 * feature_dim]."""
@@ -243,17 +247,28 @@ class PerceptionModel(nn.Module):
 
     def decode(self, z):
         """Latent [N, Z] -> dict: built image means [N, R, R, 3], det_logit / det_cls [N, R, R, 1]
-        (logit / probability), det_reg [N, R, R, 6], pose [N, 5] (normalised units)."""
+        (logit / probability), det_reg [N, R, R, 6], and with a regression pose head pose [N, 5]
+        (normalised units)."""
         out = {k: dec(z) for k, dec in self.image_decoders.items()}
         logit, out["det_reg"] = self.pixor_decoder(z)
         out["det_logit"], out["det_cls"] = logit, jax.nn.sigmoid(logit)
-        out["pose"] = self.pose_head(z)
+        if self.cfg.pose_head != "belief":
+            out["pose"] = self.pose_head(z)
         return out
+
+    def pose_belief(self, features, z1_loc, z2_loc):
+        """The belief head's flat output [N, head_size] (``pose_belief.split_head`` names its parts), from
+        deterministic inputs: the frame's features and the posterior means of z1 and z2."""
+        return self.pose_belief_head(jnp.concatenate([features, z1_loc, z2_loc], -1))
 
     def __call__(self, camera, lidar, prev_action, state):
         """Every network once (used by ``init``): one posterior-mean step, then decode."""
-        state, out = self.posterior_step(state, self.encode(camera, lidar), prev_action, None)
-        return self.decode(jnp.concatenate([out["z1"], out["z2"]], -1))
+        features = self.encode(camera, lidar)
+        state, out = self.posterior_step(state, features, prev_action, None)
+        decoded = self.decode(jnp.concatenate([out["z1"], out["z2"]], -1))
+        if self.cfg.pose_head == "belief":
+            decoded["pose_belief"] = self.pose_belief(features, out["q_z1_loc"], out["z2_loc"])
+        return decoded
 
 
 def build_model(cfg: Config) -> PerceptionModel:
@@ -298,11 +313,13 @@ def filter_step(params, state, camera, lidar, prev_action, key, cfg: Config):
     camera, lidar: uint8 [B, R, R, 3] at frame t; prev_action: float32 [B, 2], the action applied
     from frame t-1 to t (ignored on first frames); key: PRNG key for z1 ~ q and z2 ~ p, or None for
     the means. Returns (state, outputs) with outputs z1 [B, z1], z2 [B, z2], the z1 posterior and prior
-    (``q_z1_loc``/``q_z1_scale``, ``p_z1_loc``/``p_z1_scale``) and z2's (``z2_loc``/``z2_scale``).
+    (``q_z1_loc``/``q_z1_scale``, ``p_z1_loc``/``p_z1_scale``), z2's (``z2_loc``/``z2_scale``) and the
+    frame's ``features`` [B, 2 feature_dim].
     """
     model = build_model(cfg)
     features = model.apply(params, camera, lidar, method=PerceptionModel.encode)
-    return model.apply(params, state, features, prev_action, key, method=PerceptionModel.posterior_step)
+    state, outputs = model.apply(params, state, features, prev_action, key, method=PerceptionModel.posterior_step)
+    return state, dict(outputs, features=features)
 
 
 def filter_sequence(params, camera, lidar, action, key, cfg: Config):
@@ -328,9 +345,17 @@ def filter_sequence(params, camera, lidar, action, key, cfg: Config):
 
     xs = (time_major(features.reshape(b, t1, -1)), time_major(prev_action), keys)
     _, outputs = jax.lax.scan(step, init_filter_state(b, cfg), xs)
-    return jax.tree.map(time_major, outputs)
+    return dict(jax.tree.map(time_major, outputs), features=features.reshape(b, t1, -1))
 
 
 def decode(params, z, cfg: Config) -> dict:
     """Latents [N, z1 + z2] -> :meth:`PerceptionModel.decode`'s dict."""
     return build_model(cfg).apply(params, z, method=PerceptionModel.decode)
+
+
+def pose_belief_head(params, filtered: dict, cfg: Config) -> dict:
+    """The belief head's parts (``pose_belief.split_head``) for :func:`filter_step`'s or
+    :func:`filter_sequence`'s outputs ``filtered`` (any leading axes)."""
+    raw = build_model(cfg).apply(params, filtered["features"], filtered["q_z1_loc"], filtered["z2_loc"],
+                                 method=PerceptionModel.pose_belief)
+    return pose_belief.split_head(raw, pose_belief.grid_of(cfg.model))

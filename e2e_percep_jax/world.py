@@ -26,6 +26,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from e2e_percep_jax import town as town_lib
 from e2e_percep_jax.config import WorldConfig
@@ -54,9 +55,9 @@ LEADER_CLEARANCE_M = 0.5  # an NPC never steps closer than this to its leader's 
 BODY_MARGIN_M = 0.3  # added to both ends of a body against conflict zones: box corners on curves reach further
 START_TIME_RANGE_S = 3600.0  # reset draws the clock uniformly from [0, this): lights start in any phase
 
-_CAR_PAINTS = jnp.array([[235, 235, 235], [25, 25, 28], [170, 172, 178], [95, 98, 105], [30, 45, 110],
+_CAR_PAINTS = np.array([[235, 235, 235], [25, 25, 28], [170, 172, 178], [95, 98, 105], [30, 45, 110],
                          [180, 25, 30], [40, 90, 190], [30, 100, 60], [230, 200, 40], [220, 110, 30],
-                         [110, 70, 45], [200, 185, 150]], jnp.int32)
+                         [110, 70, 45], [200, 185, 150]], np.int32)
 
 
 class WorldState(NamedTuple):
@@ -141,7 +142,7 @@ def reset(key, town, cfg: WorldConfig) -> WorldState:
     width = jnp.clip(1.6 + 0.5 * size + jax.random.uniform(keys[2], (n,), minval=-0.06, maxval=0.06), 1.6, 2.1)
     height = jnp.clip(1.4 + 0.9 * size ** 2 + jax.random.uniform(keys[3], (n,), minval=-0.1, maxval=0.3), 1.4, 2.6)
     length, width, height = (a.at[EGO].set(v) for a, v in zip((length, width, height), EGO_SIZE_M))
-    paint = _CAR_PAINTS[jax.random.randint(keys[4], (n,), 0, _CAR_PAINTS.shape[0])]
+    paint = jnp.asarray(_CAR_PAINTS)[jax.random.randint(keys[4], (n,), 0, _CAR_PAINTS.shape[0])]
     color = jnp.clip(paint + jax.random.randint(keys[5], (n, 3), -12, 13), 0, 255)
     color = color.at[EGO].set(jnp.array(EGO_COLOR)).astype(jnp.uint8)
     route_keys = jax.random.split(keys[6], ROUTE_LEN)
@@ -176,7 +177,7 @@ def reset(key, town, cfg: WorldConfig) -> WorldState:
 # lane lie within [-_PACK_OFFSET_M, _PACK_OFFSET_M) (town.MAX_LANE_LENGTH_M is shorter); MAX_VEHICLES rows.
 _PACK_OFFSET_M, _PACK_STEPS_PER_M, _PACK_INDEX_BITS = 64.0, 1024, 9
 MAX_VEHICLES = 2 ** _PACK_INDEX_BITS - 1
-_NOBODY = jnp.int32(2 ** 31 - 1)
+_NOBODY = np.int32(2 ** 31 - 1)
 
 
 def _pack(position_m, index):

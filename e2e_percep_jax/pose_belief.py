@@ -1,0 +1,259 @@
+"""The global ego-pose belief: a heatmap over the town's ground plane, and a histogram filter through motion.
+
+Recognising a place is a look-up with several candidate answers, so the pose is decoded as a distribution,
+not regressed: a squared loss would predict the candidates' average.
+
+The grid (:class:`Grid`): the square ``[AREA_ORIGIN_M, AREA_ORIGIN_M + AREA_SIZE_M)`` of the town frame
+(every town's lanes lie in [-7, 427] m) in n x n cells of ``cell_m``, G = n * n, cell (i, j) with i along y
+(rows) and j along x (columns), flattened row-major; heading in H bins of width 2 pi / H, bin k centred on
+``-pi + (k + 0.5) 2 pi / H``.
+
+The network's belief head gives per frame (:func:`split_head`):
+  place_logit [..., G]; place_offset [..., G, 2], the position minus the cell's centre in cells (x, y);
+  heading_logit [..., H]; heading_offset [..., H], the heading minus the bin's centre in bins;
+  speed [...], in units of SPEED_SCALE_MPS.
+Training (:func:`loss_terms`): cross-entropy against Gaussian soft targets for place and heading, smooth-L1
+on the offsets of the true cell and bin, smooth-L1 on the speed. Read alone (:func:`decode`), the pose is
+the mode cell refined by its offset.
+
+The histogram filter (:func:`init_state`, :func:`filter_step`) keeps a belief [B, H, n, n] (probabilities)
+and a speed track [B]. Motion: the world's bicycle model driven by the recorded action (acceleration,
+steering), each heading bin's mass moved by its own displacement (a bilinear split over the neighbouring
+cells, which keeps the mass's mean exact) and the heading axis shifted by the common yaw change. Measurement:
+the head's place and heading probabilities, floored and tempered, multiplied in (Bayes' rule). The point
+estimate is the belief's mode refined by the head's offsets there. Pure JAX; it runs inside a ``lax.scan``.
+"""
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from e2e_percep_jax.geometry import wrap_angle
+from e2e_percep_jax.world import DT_S, WHEELBASE_M
+
+AREA_ORIGIN_M = -10.0
+AREA_SIZE_M = 440.0
+SPEED_SCALE_MPS = 10.0
+TARGET_STD_CELLS = 0.5  # std of the Gaussian soft targets, in cells (place) and bins (heading)
+# Filter defaults: the head's probabilities are mixed with this share of uniform mass (a frame that names
+# the wrong place cannot erase the right one), raised to MEASUREMENT_POWER (< 1: consecutive frames'
+# measurements are not independent), and the speed track moves this share toward the head's speed a frame.
+MEASUREMENT_FLOOR = 0.05
+MEASUREMENT_POWER = 0.5
+SPEED_GAIN = 0.2
+
+
+@dataclasses.dataclass(frozen=True)
+class Grid:
+    """The belief's cells: ``cell_m`` metres square over the area, ``heading_bins`` headings."""
+    cell_m: float
+    heading_bins: int
+
+    @property
+    def n(self) -> int:
+        return math.ceil(AREA_SIZE_M / self.cell_m)
+
+    @property
+    def num_cells(self) -> int:
+        return self.n * self.n
+
+    @property
+    def bin_rad(self) -> float:
+        return 2 * math.pi / self.heading_bins
+
+    @property
+    def head_size(self) -> int:
+        """Outputs of the belief head: logit + 2 offsets per cell, logit + offset per bin, speed."""
+        return 3 * self.num_cells + 2 * self.heading_bins + 1
+
+    def cell_centres(self) -> np.ndarray:
+        """Town (x, y) of every cell's centre, [G, 2], row-major (i along y, j along x)."""
+        c = AREA_ORIGIN_M + (np.arange(self.n) + 0.5) * self.cell_m
+        y, x = np.meshgrid(c, c, indexing="ij")
+        return np.stack([x.ravel(), y.ravel()], -1).astype(np.float32)
+
+    def bin_centres(self) -> np.ndarray:
+        """Heading of every bin's centre, [H] radians."""
+        return (-np.pi + (np.arange(self.heading_bins) + 0.5) * self.bin_rad).astype(np.float32)
+
+
+def grid_of(model_cfg) -> Grid:
+    return Grid(model_cfg.pose_cell_m, model_cfg.pose_heading_bins)
+
+
+def split_head(raw, grid: Grid) -> dict:
+    """The belief head's flat output [..., head_size] -> its named parts (module docstring)."""
+    g, h = grid.num_cells, grid.heading_bins
+    parts = jnp.split(raw, np.cumsum([g, 2 * g, h, h]), axis=-1)
+    return {"place_logit": parts[0], "place_offset": parts[1].reshape(raw.shape[:-1] + (g, 2)),
+            "heading_logit": parts[2], "heading_offset": parts[3], "speed": parts[4][..., 0]}
+
+
+def _yaw(pose):
+    return jnp.arctan2(pose[..., 3], pose[..., 2])
+
+
+def true_cell(xy, grid: Grid):
+    """(flat cell index [...] int32 of town points xy [..., 2] (clipped to the grid), offset from its centre
+    [..., 2] in cells)."""
+    ij = jnp.clip(jnp.floor((xy - AREA_ORIGIN_M) / grid.cell_m), 0, grid.n - 1)
+    offset = (xy - AREA_ORIGIN_M) / grid.cell_m - ij - 0.5
+    return (ij[..., 1] * grid.n + ij[..., 0]).astype(jnp.int32), offset
+
+
+def true_bin(yaw_rad, grid: Grid):
+    """(bin index [...] int32 of headings, heading minus the bin's centre in bins)."""
+    k = jnp.floor((wrap_angle(yaw_rad) + jnp.pi) / grid.bin_rad).astype(jnp.int32) % grid.heading_bins
+    return k, wrap_angle(yaw_rad - jnp.asarray(grid.bin_centres())[k]) / grid.bin_rad
+
+
+def place_target(xy, grid: Grid):
+    """Soft place target [..., G]: a Gaussian of TARGET_STD_CELLS cells around xy [..., 2], normalised."""
+    d2 = jnp.sum((xy[..., None, :] - jnp.asarray(grid.cell_centres())) ** 2, -1)
+    return jax.nn.softmax(-d2 / (2 * (TARGET_STD_CELLS * grid.cell_m) ** 2), -1)
+
+
+def heading_target(yaw_rad, grid: Grid):
+    """Soft heading target [..., H]: a wrapped Gaussian of TARGET_STD_CELLS bins around ``yaw_rad``, normalised."""
+    d = wrap_angle(yaw_rad[..., None] - jnp.asarray(grid.bin_centres()))
+    return jax.nn.softmax(-d ** 2 / (2 * (TARGET_STD_CELLS * grid.bin_rad) ** 2), -1)
+
+
+def _at(values, index):
+    """values [..., N, ...] taken at index [...] along the axis after the prefix."""
+    return jnp.take_along_axis(values, index.reshape(index.shape + (1,) * (values.ndim - index.ndim)),
+                               axis=index.ndim).squeeze(index.ndim)
+
+
+def loss_terms(head: dict, pose, grid: Grid) -> dict:
+    """Per-frame losses [...] of the belief head's parts against true poses [..., 5] (x m, y m, cos, sin, speed)."""
+    cell, offset = true_cell(pose[..., :2], grid)
+    k, heading_offset = true_bin(_yaw(pose), grid)
+    return {
+        "pose_place": optax.softmax_cross_entropy(head["place_logit"], place_target(pose[..., :2], grid)),
+        "pose_heading": optax.softmax_cross_entropy(head["heading_logit"], heading_target(_yaw(pose), grid)),
+        "pose_offset": (jnp.sum(optax.huber_loss(_at(head["place_offset"], cell), offset), -1)
+                        + optax.huber_loss(_at(head["heading_offset"], k), heading_offset)),
+        "pose_speed": optax.huber_loss(head["speed"], pose[..., 4] / SPEED_SCALE_MPS),
+    }
+
+
+def _pose_at(head: dict, cell, k, speed_mps, grid: Grid):
+    """The pose [..., 5] at flat cell ``cell`` and bin ``k``, refined by the head's offsets there."""
+    xy = jnp.asarray(grid.cell_centres())[cell] + _at(head["place_offset"], cell) * grid.cell_m
+    yaw = jnp.asarray(grid.bin_centres())[k] + _at(head["heading_offset"], k) * grid.bin_rad
+    return jnp.concatenate([xy, jnp.stack([jnp.cos(yaw), jnp.sin(yaw), speed_mps], -1)], -1)
+
+
+def decode(head: dict, grid: Grid):
+    """The head read alone: pose [..., 5] at the mode cell and mode bin, refined by their offsets."""
+    return _pose_at(head, jnp.argmax(head["place_logit"], -1), jnp.argmax(head["heading_logit"], -1),
+                    head["speed"] * SPEED_SCALE_MPS, grid)
+
+
+# ----------------------------------------------------------------------------- the histogram filter
+
+
+def init_state(batch_size: int, grid: Grid) -> dict:
+    """Before a drive's first frame: a uniform belief [B, H, n, n] and a zero speed track [B] (m/s)."""
+    shape = (batch_size, grid.heading_bins, grid.n, grid.n)
+    return {"belief": jnp.full(shape, 1.0 / math.prod(shape[1:]), jnp.float32),
+            "speed_mps": jnp.zeros((batch_size,), jnp.float32)}
+
+
+def motion(action, speed_mps, grid: Grid):
+    """The world's bicycle model (``world._drive_ego``) for one step of every heading bin's centre.
+
+    action [..., 2] (acceleration m/s², steering rad), speed_mps [...] before the step. Returns (speed after
+    [...], centre displacement [..., H, 2] metres of a vehicle heading along each bin's centre, yaw change [...]).
+    """
+    v_new = jnp.maximum(speed_mps + action[..., 0] * DT_S, 0.0)
+    ds = 0.5 * (speed_mps + v_new) * DT_S
+    dyaw = ds * jnp.tan(action[..., 1]) / WHEELBASE_M
+    yaw = jnp.asarray(grid.bin_centres())
+    unit = lambda a: jnp.stack([jnp.cos(a), jnp.sin(a)], -1)
+    # The rear axle moves ds along the mid-step heading; the centre sits half a wheelbase ahead of it.
+    mid = yaw + 0.5 * dyaw[..., None]
+    move = (ds[..., None, None] * unit(mid)
+            + 0.5 * WHEELBASE_M * (unit(yaw + dyaw[..., None]) - unit(yaw)))
+    return v_new, move, dyaw
+
+
+def _shift(x, axis: int, direction: int):
+    """x moved by one cell along ``axis`` (+1: towards higher indices), zeros entering, mass leaving lost."""
+    pad = [(0, 0)] * x.ndim
+    pad[axis] = (1, 0) if direction > 0 else (0, 1)
+    padded = jnp.pad(x, pad)
+    return jax.lax.slice_in_dim(padded, 0, x.shape[axis], axis=axis) if direction > 0 else \
+        jax.lax.slice_in_dim(padded, 1, x.shape[axis] + 1, axis=axis)
+
+
+def _split(x, shift_cells, axis: int):
+    """x [H, n, n] moved by ``shift_cells`` [H] (|shift| <= 1) along ``axis``, each cell's mass split
+    linearly between its own and the neighbouring cell (the mass's mean moves by exactly the shift)."""
+    w = lambda s: s[:, None, None]
+    return (w(1.0 - jnp.abs(shift_cells)) * x + w(jnp.maximum(shift_cells, 0.0)) * _shift(x, axis, 1)
+            + w(jnp.maximum(-shift_cells, 0.0)) * _shift(x, axis, -1))
+
+
+def predict(belief, move_m, dyaw, grid: Grid):
+    """One stream's belief [H, n, n] moved: bin k's mass by ``move_m[k]`` [H, 2] metres (at most one cell
+    per step), then the heading axis by ``dyaw`` radians, circularly, split between two bins."""
+    shift = jnp.clip(move_m / grid.cell_m, -1.0, 1.0)
+    belief = _split(_split(belief, shift[:, 0], 2), shift[:, 1], 1)
+    bins = dyaw / grid.bin_rad
+    whole = jnp.floor(bins)
+    frac = bins - whole
+    whole = whole.astype(jnp.int32)
+    return (1.0 - frac) * jnp.roll(belief, whole, 0) + frac * jnp.roll(belief, whole + 1, 0)
+
+
+def likelihood(head: dict, grid: Grid, floor: float = MEASUREMENT_FLOOR, power: float = MEASUREMENT_POWER):
+    """The measurement of one frame, [..., H, n, n]: the head's place and heading probabilities, each mixed
+    with ``floor`` of uniform mass and raised to ``power``."""
+    place = (1 - floor) * jax.nn.softmax(head["place_logit"], -1) + floor / grid.num_cells
+    heading = (1 - floor) * jax.nn.softmax(head["heading_logit"], -1) + floor / grid.heading_bins
+    place = place.reshape(place.shape[:-1] + (grid.n, grid.n))
+    return (heading[..., :, None, None] * place[..., None, :, :]) ** power
+
+
+def _normalised(belief):
+    return belief / jnp.sum(belief, axis=(-3, -2, -1), keepdims=True)
+
+
+def filter_step(state: dict, head: dict, prev_action, first, grid: Grid, *, floor: float = MEASUREMENT_FLOOR,
+                power: float = MEASUREMENT_POWER, speed_gain: float = SPEED_GAIN):
+    """One frame for B streams: motion by ``prev_action`` [B, 2] (the action from the last frame to this one),
+    then Bayes' rule with this frame's ``head`` outputs. Rows with ``first`` [B] set start from the
+    measurement alone (uniform prior, the head's speed). Returns (state, pose [B, 5] at the belief's mode)."""
+    head_speed = head["speed"] * SPEED_SCALE_MPS
+    v_new, move, dyaw = motion(prev_action, state["speed_mps"], grid)
+    moved = jax.vmap(lambda b, m, d: predict(b, m, d, grid))(state["belief"], move, dyaw)
+    prior = jnp.where(first[:, None, None, None], 1.0, moved)
+    belief = _normalised(prior * likelihood(head, grid, floor, power))
+    speed = jnp.where(first, head_speed, v_new + speed_gain * (head_speed - v_new))
+    return {"belief": belief, "speed_mps": speed}, estimate(belief, head, speed, grid)
+
+
+def estimate(belief, head: dict, speed_mps, grid: Grid):
+    """The pose [B, 5] at the belief's mode (cell and bin), refined by the head's offsets there."""
+    flat = jnp.argmax(belief.reshape(belief.shape[0], -1), -1)
+    k, cell = flat // grid.num_cells, flat % grid.num_cells
+    return _pose_at(head, cell, k, speed_mps, grid)
+
+
+def place_marginal(belief):
+    """P(cell) [B, n, n]: the belief summed over heading."""
+    return jnp.sum(belief, axis=-3)
+
+
+def negative_log_likelihood(belief, pose, grid: Grid):
+    """-log density [B] of the true poses [B, 5] under the belief (per m² and radian: each cell's
+    probability spread uniformly over its cell_m² x bin_rad)."""
+    cell, _ = true_cell(pose[:, :2], grid)
+    k, _ = true_bin(_yaw(pose), grid)
+    p = belief.reshape(belief.shape[0], grid.heading_bins, -1)[jnp.arange(belief.shape[0]), k, cell]
+    return -jnp.log(jnp.maximum(p, 1e-30)) + math.log(grid.cell_m ** 2 * grid.bin_rad)
