@@ -9,7 +9,9 @@
 ``Perceiver.step`` is a pure function of its arguments (the perceiver itself holds only the frozen
 config), so it goes inside the caller's ``jit``, ``vmap`` and ``lax.scan``. It runs the same posterior
 step as training's scanned rollout (:func:`e2e_percep_jax.model.filter_sequence`), so streaming a
-sequence frame by frame reproduces the training-time posterior.
+sequence frame by frame reproduces the training-time posterior. With the belief pose head (the presets)
+it also runs the pose belief's histogram filter (:mod:`e2e_percep_jax.pose_belief`), so the pose it
+returns sharpens as a drive goes on. The online evaluation perceives through this same ``step``.
 """
 import dataclasses
 import os
@@ -17,10 +19,9 @@ import os
 import jax.numpy as jnp
 import numpy as np
 
-from e2e_percep_jax import metrics, pixor
+from e2e_percep_jax import checkpoint, metrics, pixor, pose_belief
 from e2e_percep_jax import model as model_lib
 from e2e_percep_jax.config import Config
-from e2e_percep_jax.evaluate import NMS_IOU, restore_params
 
 
 def _check(name, x, shape, dtype):
@@ -35,15 +36,24 @@ class Perceiver:
     """The perception model of ``cfg`` as pure functions of (params, filter state, inputs)."""
     cfg: Config
 
+    @property
+    def belief(self) -> bool:
+        return self.cfg.model.pose_head == "belief"
+
     def init(self, batch_size: int) -> dict:
         """The filter state before the first frame of ``batch_size`` streams.
 
-        A dict of arrays: z1 [B, z1_dim], z2 [B, z2_dim], first [B] bool. Setting ``first[i]`` to True
-        restarts stream i's filter (e.g. at a new drive).
+        A dict of arrays: z1 [B, z1_dim], z2 [B, z2_dim], first [B] bool, and with the belief pose head
+        ``pose``: {belief [B, H, n, n] probabilities over (heading bin, cell row, cell column), speed_mps
+        [B]} (see :mod:`e2e_percep_jax.pose_belief`). Setting ``first[i]`` to True restarts stream i's
+        filter, pose belief included (e.g. at a new drive).
         """
-        return model_lib.init_filter_state(batch_size, self.cfg)
+        state = model_lib.init_filter_state(batch_size, self.cfg)
+        if self.belief:
+            state["pose"] = pose_belief.init_state(batch_size, pose_belief.grid_of(self.cfg.model))
+        return state
 
-    def step(self, params, state: dict, camera, lidar, action, key=None):
+    def step(self, params, state: dict, camera, lidar, action, key=None, start_pose=None):
         """Filters one frame of B streams and decodes it.
 
         camera, lidar: uint8 [B, R, R, 3] (the frame contract's images); action: float32 [B, 2], the
@@ -52,22 +62,34 @@ class Perceiver:
         posterior means. Returns (state, outputs) with outputs:
         ``det_cls`` [B, R, R, 1] vehicle probability, ``det_reg`` [B, R, R, 6] PIXOR regression
         (units in :mod:`e2e_percep_jax.pixor`), ``pose`` [B, 5] (x m, y m, cos ψ, sin ψ, speed m/s,
-        town frame), ``z`` [B, z1_dim + z2_dim], and the reconstructed images the variant has
-        (``roadmap``, ``camera``, ``lidar``: float32 [B, R, R, 3] in [0, 1]).
+        town frame; with the belief head: at the filtered belief's mode), ``z`` [B, z1_dim + z2_dim], the
+        reconstructed images the variant has (``roadmap``, ``camera``, ``lidar``: float32 [B, R, R, 3] in
+        [0, 1]), and with the belief head ``pose_place`` [B, n, n], the belief's probability of each cell
+        (row i along y, column j along x, ``pose_belief.Grid.cell_centres``).
+
+        ``start_pose`` [B, 5] (belief head only): the known-start protocol, an odometry for towns the model
+        has not seen. Streams starting a drive start their belief at this pose, and the belief then
+        follows the recorded actions through the world's bicycle model alone (no place measurement).
         """
         b, r = state["first"].shape[0], self.cfg.data.image_size
         _check("camera", camera, (b, r, r, 3), jnp.uint8)
         _check("lidar", lidar, (b, r, r, 3), jnp.uint8)
         _check("action", action, (b, 2), jnp.float32)
-        state, latent = model_lib.filter_step(params, state, camera, lidar, action, key, self.cfg)
+        latent_state, latent = model_lib.filter_step(params, state, camera, lidar, action, key, self.cfg)
         z = jnp.concatenate([latent["z1"], latent["z2"]], -1)
         decoded = model_lib.decode(params, z, self.cfg)
-        outputs = {"det_cls": decoded["det_cls"], "det_reg": decoded["det_reg"],
-                   "pose": model_lib.pose_to_metres(decoded["pose"]), "z": z}
+        outputs = {"det_cls": decoded["det_cls"], "det_reg": decoded["det_reg"], "z": z}
         outputs.update({k: jnp.clip(decoded[k], 0.0, 1.0) for k in model_lib.reconstructed_images(self.cfg.model.variant)})
-        return state, outputs
+        if not self.belief:
+            return latent_state, dict(outputs, pose=model_lib.pose_to_metres(decoded["pose"]))
+        head = model_lib.pose_belief_head(params, latent, self.cfg)
+        pose_state, outputs["pose"] = pose_belief.filter_step(state["pose"], head, action, state["first"],
+                                                              pose_belief.grid_of(self.cfg.model),
+                                                              start_pose=start_pose)
+        outputs["pose_place"] = pose_belief.place_marginal(pose_state["belief"])
+        return dict(latent_state, pose=pose_state), outputs
 
-    def boxes(self, outputs, score_threshold: float | None = None, iou_threshold: float = NMS_IOU):
+    def boxes(self, outputs, score_threshold: float | None = None, iou_threshold: float = metrics.NMS_IOU):
         """Host-side box decoding of :meth:`step`'s outputs: for each of the B streams, (boxes [M, 5]
         in the ego frame (x m, y m, yaw rad, length m, width m), scores [M]), highest score first,
         after greedy NMS on exact rotated IoU. ``score_threshold`` defaults to the config's."""
@@ -85,5 +107,5 @@ def load(workdir: str, step: int | None = None):
     """(Perceiver, params) of the training run in ``workdir`` at checkpoint ``step`` (default: latest)."""
     if not os.path.exists(os.path.join(workdir, "config.json")):
         raise FileNotFoundError(f"workdir={workdir!r}: no config.json; is it a training run directory?")
-    cfg, params, _ = restore_params(workdir, step=step)
+    cfg, params, _ = checkpoint.restore_params(workdir, step=step)
     return Perceiver(cfg), params

@@ -31,6 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from e2e_percep_jax import checkpoint
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import loss as loss_lib
 from e2e_percep_jax import model as model_lib
@@ -120,6 +121,8 @@ def frame_fn(cfg: Config, head: str | None):
     pose of each frame on its own; a missing head gives empty maps (no boxes) or a NaN pose."""
     def perceive(params, fstate, frame, prev_action, key, pictured):
         out = {} if head is None else predict(params, frame["camera"], frame["lidar"], cfg, head)
+        if "pose" in out:
+            out["pose"] = model_lib.pose_to_metres(out["pose"])
         decoded = {"det_cls": jnp.zeros_like(frame["det_cls"]), "det_reg": jnp.zeros_like(frame["det_reg"]),
                    "pose": jnp.full_like(frame["pose"], jnp.nan), **out}
         return fstate, decoded, {}  # no memory: the filter state passes through; no reconstructions
@@ -191,7 +194,7 @@ def trained_params(cfg: Config, workdir: str, run: str, log=print):
     if train_lib.check_run(cfg, path) != cfg.train.num_steps:
         log(f"{run}: training in {path}")
         train_lib.train(cfg, path, objective=objective)
-    _, params, step = eval_lib.restore_params(path, cfg, cfg.train.num_steps, objective)
+    _, params, step = checkpoint.restore_params(path, cfg, cfg.train.num_steps, objective)
     return params, step
 
 

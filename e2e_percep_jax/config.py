@@ -88,6 +88,9 @@ class EvalConfig:
     town_seed: int = DEFAULT_TOWN_SEED
     chunk_steps: int = 100  # frames per scanned chunk; memory is flat in num_steps
     score_threshold: float = 0.5
+    # The pose protocol: False = global (the belief starts uniform over the town); True = known start (the
+    # belief starts at each drive's true first pose, then follows the actions alone: odometry).
+    known_start: bool = False
 
 
 @dataclasses.dataclass(frozen=True)
@@ -211,6 +214,8 @@ def validate(cfg: Config) -> Config:
         raise ValueError(f"--train.pose_weight={cfg.train.pose_weight}: must be >= 0 (0: no pose loss)")
     if not cfg.train.max_grad_norm >= 0:
         raise ValueError(f"--train.max_grad_norm={cfg.train.max_grad_norm}: must be >= 0 (0: no clipping)")
+    if cfg.eval.known_start and cfg.model.pose_head != "belief":
+        raise ValueError("--eval.known_start: needs the belief pose head (--model.pose_head=belief)")
     if not 0.0 < cfg.eval.score_threshold < 1.0:
         raise ValueError(f"--eval.score_threshold={cfg.eval.score_threshold}: must lie in (0, 1)")
     return cfg

@@ -60,7 +60,6 @@ import cv2
 import jax
 import jax.numpy as jnp
 import numpy as np
-import orbax.checkpoint as ocp
 
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import geometry as geo
@@ -68,16 +67,20 @@ from e2e_percep_jax import metrics as metrics_lib
 from e2e_percep_jax import model as model_lib
 from e2e_percep_jax import panels
 from e2e_percep_jax import pixor
+from e2e_percep_jax import pose_belief
+from e2e_percep_jax import render
 from e2e_percep_jax import sensors
+from e2e_percep_jax import summary
 from e2e_percep_jax import town as town_lib
 from e2e_percep_jax import world
+from e2e_percep_jax.api import Perceiver
 from e2e_percep_jax.config import Config
 
 IOU_THRESHOLDS = (0.1, 0.3, 0.5, 0.7)
 DEDUP_CELL_M = 0.5
 TOP_K = 64
 SCORE_FLOOR = 0.05
-NMS_IOU = 0.3
+NMS_IOU = metrics_lib.NMS_IOU
 RESET_STREAM, SAMPLE_STREAM = 0, 1  # fold_in data of PRNGKey(cfg.eval.seed)
 _COMPILED = {}  # compiled chunk programs by everything they depend on
 
@@ -97,29 +100,7 @@ PAPER_VARIANT_ROW = {"full": "Inputs and roadmap (full)",
                      "no_roadmap_recon": "No roadmap reconstruction (no_roadmap_recon)"}
 
 
-# ----------------------------------------------------------------------------- restoring a run
-
-
-def restore_params(workdir: str, cfg: Config | None = None, step: int | None = None, objective=None):
-    """(cfg, params, step) of the run in ``workdir``: its config.json (unless ``cfg`` is given) and the
-    params of checkpoint ``step`` (default: the latest), restored with the same abstract train state
-    that ``train.train`` saves for ``objective`` (a ``train.Objective``; default: the perception
-    model). Raises FileNotFoundError if there is no checkpoint."""
-    from e2e_percep_jax import train as train_lib  # imported lazily: evaluation itself needs no optax
-    workdir = os.path.abspath(workdir)
-    if cfg is None:
-        with open(os.path.join(workdir, "config.json")) as f:
-            cfg = Config.from_json(f.read())
-    options = ocp.CheckpointManagerOptions(read_only=True, create=False)
-    with ocp.CheckpointManager(os.path.join(workdir, "checkpoints"), options=options) as manager:
-        step = manager.latest_step() if step is None else step
-        if step is None:
-            raise FileNotFoundError(f"no checkpoint in {workdir}/checkpoints")
-        sharding = jax.sharding.SingleDeviceSharding(jax.devices()[0])
-        abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding),
-                                jax.eval_shape(lambda: train_lib.init_state(cfg, objective or train_lib.PERCEPTION)))
-        state = manager.restore(step, args=ocp.args.StandardRestore(abstract))
-    return cfg, state.params, step
+# ----------------------------------------------------------------------------- run directories
 
 
 def eval_dir(run: str, cfg: Config) -> str:
@@ -193,17 +174,24 @@ def _to_uint8(image):
 
 
 def model_frame_fn(cfg: Config, sample: bool):
-    """The perception model's ``frame_fn`` (see :func:`make_chunk_fn`): one filtering step and its decoding,
-    plus the reconstructions of the ``pictured`` worlds."""
+    """The perception model's ``frame_fn`` (see :func:`make_chunk_fn`): one step of the inference API's
+    :class:`~e2e_percep_jax.api.Perceiver` (under ``--eval.known_start`` from each drive's true first
+    pose), plus the reconstructions and the pose belief over the town of the ``pictured`` worlds, and the
+    belief's negative log-likelihood of the true pose."""
+    perceiver = Perceiver(cfg)
     recon_keys = model_lib.reconstructed_images(cfg.model.variant)
 
     def frame_fn(params, fstate, frame, prev_action, key, pictured):
-        fstate, post = model_lib.filter_step(params, fstate, frame["camera"], frame["lidar"], prev_action,
-                                             key if sample else None, cfg)
-        z = jnp.concatenate([post["z1"], post["z2"]], -1)
-        decoded = model_lib.decode(params, z, cfg)  # image heads unused here: compiled away
-        pictured_decoded = model_lib.decode(params, z[pictured], cfg)
-        return fstate, decoded, {f"recon_{k}": _to_uint8(pictured_decoded[k]) for k in recon_keys}
+        start = frame["pose"] if cfg.eval.known_start else None
+        fstate, out = perceiver.step(params, fstate, frame["camera"], frame["lidar"], prev_action,
+                                     key if sample else None, start_pose=start)
+        decoded = {k: out[k] for k in ("det_cls", "det_reg", "pose")}  # image heads unused: compiled away
+        pictures = {f"recon_{k}": _to_uint8(out[k][pictured]) for k in recon_keys}
+        if perceiver.belief:
+            decoded["pose_nll"] = pose_belief.negative_log_likelihood(
+                fstate["pose"], frame["pose"], pose_belief.grid_of(cfg.model))
+            pictures["pose_place"] = out["pose_place"][pictured]
+        return fstate, decoded, pictures
 
     return frame_fn
 
@@ -222,14 +210,15 @@ def make_chunk_fn(cfg: Config, town, sample: bool, top_k: int = TOP_K, floor: fl
     two worlds' camera, lidar, roadmap and reconstructions ``recon_<name>``.
 
     ``heads(decoded, frame) -> decoded``, traced inside the program, may replace the model's decoded
-    det_cls / det_reg / pose (normalised) before scoring: tests feed the world's own targets through
+    det_cls / det_reg / pose (metres) before scoring: tests feed the world's own targets through
     the same candidate / NMS / matching path (an oracle).
 
     ``frame_fn(params, fstate, frame, prev_action, key, pictured) -> (fstate, decoded, recon)``
     perceives one frame of the E worlds (default: :func:`model_frame_fn`, the filtered model): frame is
-    the frame contract [E, ...], prev_action [E, 2] the action from t-1 to t, decoded as the model's
-    ``decode`` (det_cls, det_reg, normalised pose), recon the reconstructed images [2, R, R, 3] of the
-    worlds ``pictured`` (int32 [2]), or empty.
+    the frame contract [E, ...], prev_action [E, 2] the action from t-1 to t, decoded: det_cls, det_reg
+    as the model's ``decode``, pose [E, 5] in metres, optionally pose_nll [E] (the belief's negative
+    log-likelihood of the true pose); recon: pictures [2, ...] of the worlds ``pictured`` (int32 [2]):
+    reconstructed images [2, R, R, 3] and the pose belief ``pose_place`` [2, n, n], or empty.
     A baseline's memoryless model passes ``fstate`` through untouched.
     """
     image_size = cfg.data.image_size
@@ -248,8 +237,8 @@ def make_chunk_fn(cfg: Config, town, sample: bool, top_k: int = TOP_K, floor: fl
         cand_boxes, cand_scores, saturated = detection_candidates(decoded["det_cls"], decoded["det_reg"], top_k, floor)
         out = {"cand_boxes": cand_boxes, "cand_scores": cand_scores, "saturated": saturated,
                "boxes": frame["boxes"], "boxes_valid": frame["boxes_valid"],
-               "boxes_occluded": frame["boxes_occluded"], "pose": frame["pose"],
-               "pose_pred": model_lib.pose_to_metres(decoded["pose"])}
+               "boxes_occluded": frame["boxes_occluded"], "pose": frame["pose"], "pose_pred": decoded["pose"],
+               "pose_nll": decoded.get("pose_nll", jnp.full(frame["pose"].shape[:1], jnp.nan))}
         out.update({k: frame[k][pictured] for k in ("camera", "lidar", "roadmap")}, pictured=pictured, **recon)
         return fstate, out
 
@@ -315,6 +304,32 @@ def mean_pose(poses):
     poses = np.asarray(poses, np.float64)
     heading = math.atan2(poses[:, 3].mean(), poses[:, 2].mean())
     return np.array([poses[:, 0].mean(), poses[:, 1].mean(), math.cos(heading), math.sin(heading), poses[:, 4].mean()])
+
+
+CONVERGED_M = 10.0  # a drive has converged from the first frame after which its location error stays below this
+
+
+def drive_pose_summary(drives_true, drives_pred) -> dict:
+    """Per-drive pose figures from each drive's true and estimated poses (lists of [5], frame by frame):
+    ``converged_frame`` (per drive: the first frame from which the location error stays below CONVERGED_M,
+    None if it never does) with its median over the drives that converge and their share, and
+    ``drift_per_100m``: the location error at the drives' last frames over the distance they drove
+    (summed over drives), per 100 m: how fast an odometry from a known start drifts."""
+    converged, end_error, distance = [], 0.0, 0.0
+    for true, pred in zip(drives_true, drives_pred):
+        if not true:
+            continue
+        true, pred = np.asarray(true, np.float64), np.asarray(pred, np.float64)
+        error = np.linalg.norm(pred[:, :2] - true[:, :2], axis=-1)
+        above = np.nonzero(~(error < CONVERGED_M))[0]  # NaN (no pose) counts as not converged
+        converged.append(0 if not len(above) else (None if above[-1] == len(error) - 1 else int(above[-1]) + 1))
+        end_error += error[-1]
+        distance += np.sum(np.linalg.norm(np.diff(true[:, :2], axis=0), axis=-1))
+    done = [c for c in converged if c is not None]
+    return {"converged_frame": {"per_drive": converged, "within_m": CONVERGED_M,
+                                "share": len(done) / max(len(converged), 1),
+                                "median": float(np.median(done)) if done else None},
+            "drift_per_100m": summary.defined(float(100.0 * end_error / distance)) if distance > 0 else None}
 
 
 def _pose_summary(acc):
@@ -454,6 +469,18 @@ def report_markdown(m: dict) -> str:
     for row, (loc, head) in PAPER_POSE.items():
         mark = " (same variant)" if is_variant and PAPER_VARIANT_ROW[variant] == row else ""
         lines.append(f"| paper: {row}{mark} | {loc} | {head} | - |")
+    loc, head = pose["location_m"], pose["heading_rad"]
+    share = lambda d, bound: _fmt(d.get("within", {}).get(bound), True)
+    conv = pose.get("converged_frame", {})
+    lines += ["", f"Pose protocol: {'known start (odometry: the belief starts at the true first pose and follows the actions)' if pose.get('known_start') else 'global (no start pose given)'}.",
+              "", "| location p90 (m) | within 5 / 10 / 50 m | heading p90 (rad) | within 0.1 rad | "
+              f"drives converged (< {conv.get('within_m', CONVERGED_M):g} m to the end), median frame | "
+              "belief NLL of the true pose (nats per m² rad) | drift (m per 100 m driven) |",
+              "|---|---|---|---|---|---|---|",
+              f"| {_fmt(loc.get('p90'), digits=2)} | {share(loc, '5')} / {share(loc, '10')} / {share(loc, '50')} | "
+              f"{_fmt(head.get('p90'), digits=3)} | {share(head, '0.1')} | {_fmt(conv.get('share'), True)}, "
+              f"{_fmt(conv.get('median'), digits=0)} | {_fmt(pose.get('nll_mean'), digits=2)} | "
+              f"{_fmt(pose.get('drift_per_100m'), digits=2)} |"]
     by = pose["location_m_by_step"]
     edges = by["bin_edges"] + [None]
     lines += ["", "Baseline: always the mean of this drive's true poses (x, y, speed averaged; heading the "
@@ -503,7 +530,7 @@ def evaluate(cfg: Config, params, out_dir: str, *, sample: bool = False, video_f
     params = jax.device_put(params)
     t0 = time.perf_counter()
     wstate = start_worlds(start_keys(cfg), town, cfg)
-    fstate = model_lib.init_filter_state(e, cfg)
+    fstate = Perceiver(cfg).init(e)
     sample_root = jax.random.fold_in(jax.random.PRNGKey(ev.seed), SAMPLE_STREAM)
     cache_key = (cfg.world, cfg.data.image_size, cfg.model, ev.chunk_steps, e, ev.town_seed, sample, top_k,
                  score_floor, heads, frame_fn, jax.tree.structure(params), tuple(x.shape for x in jax.tree.leaves(params)))
@@ -519,9 +546,18 @@ def evaluate(cfg: Config, params, out_dir: str, *, sample: bool = False, video_f
     det_acc = metrics_lib.DetectionAccumulator(IOU_THRESHOLDS)
     pose_acc = metrics_lib.PoseErrorAccumulator()
     true_poses, saturated, done = [], 0, 0
+    drives_true, drives_pred = [[] for _ in range(e)], [[] for _ in range(e)]  # per world: poses [5] per frame
+    nll = []
     images, video = [], None
     video_path = os.path.join(out_dir, "drive.mp4")
     panel_px = 192
+    area = (pose_belief.AREA_ORIGIN_M,) * 2 + (pose_belief.AREA_ORIGIN_M + pose_belief.AREA_SIZE_M,) * 2
+    town_view = render.TopDown(town, area, px_per_m=2 * panel_px / pose_belief.AREA_SIZE_M)
+
+    def with_map(picture, frame, w, frame_index):  # the example rows with the town map on their right
+        path = lambda poses: np.asarray(poses[:frame_index + 1])[:, :2]
+        town_map = panels.map_panel(town_view, path(drives_true[w]), path(drives_pred[w]), frame.get("pose_place"))
+        return np.concatenate([picture, town_map], 1)
     tick = time.perf_counter()
 
     def dispatch(i, wstate, fstate):
@@ -547,11 +583,14 @@ def evaluate(cfg: Config, params, out_dir: str, *, sample: bool = False, video_f
                 if hosts is not None:
                     boxes, scores, pose_pred[t, w] = hosts[w](boxes, scores, pose_pred[t, w], out["pose"][t, w])
                 det_acc.add_frame(boxes, scores, out["boxes"][t, w], out["boxes_valid"][t, w], out["boxes_occluded"][t, w])
+                drives_true[w].append(out["pose"][t, w])
+                drives_pred[w].append(pose_pred[t, w])
                 saturated += bool(out["saturated"][t, w])
                 done += 1
                 shown = scores >= ev.score_threshold
                 if w == 0 and frame_index < video_frames:
-                    picture = example_rows(pictured_frame(out, t, 0), boxes[shown], scores[shown], panel_px)
+                    frame = pictured_frame(out, t, 0)
+                    picture = with_map(example_rows(frame, boxes[shown], scores[shown], panel_px), frame, 0, frame_index)
                     cv2.putText(picture, f"world 0, frame {frame_index}", (4 * panel_px - 150, 2 * panel_px - 8),
                                 cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
                     if video is None:
@@ -564,6 +603,7 @@ def evaluate(cfg: Config, params, out_dir: str, *, sample: bool = False, video_f
             valid = frame_index < per_world
             pose_acc.add(metrics_lib.pose_errors(pose_pred[t][valid], out["pose"][t][valid]), frame_index)
             true_poses.append(out["pose"][t][valid])
+            nll.append(out["pose_nll"][t][valid])
         if done == 0:
             log(f"eval: warming up the traffic, step {min((i + 1) * c, warmup)}/{warmup}")
             tick = time.perf_counter()  # frames/s counts driven frames only
@@ -601,7 +641,9 @@ def evaluate(cfg: Config, params, out_dir: str, *, sample: bool = False, video_f
                              for t in IOU_THRESHOLDS},
             "pr_curves": {key(t): {s: _curve_summary(results[t][s]) for s in metrics_lib.SUBSETS} for t in IOU_THRESHOLDS},
         },
-        "pose": _pose_summary(pose_acc),
+        "pose": dict(_pose_summary(pose_acc), **drive_pose_summary(drives_true, drives_pred),
+                     nll_mean=summary.defined(float(np.mean(np.concatenate(nll), dtype=np.float64))),
+                     known_start=ev.known_start),
         "examples": [{"world": int(w), "frame": int(i), "vehicles_in_view": int(np.sum(frame["boxes_valid"]))}
                      for i, w, frame, _, _ in chosen],
         "baseline": {"description": "constant pose = mean of the drive's true poses (circular mean heading); no boxes",
@@ -616,10 +658,10 @@ def evaluate(cfg: Config, params, out_dir: str, *, sample: bool = False, video_f
         f.write(report_markdown(metrics))
     cv2.imwrite(os.path.join(out_dir, "pr_curves.png"), pr_curves_image(results))
     if chosen:
-        sep = np.full((6, 4 * panel_px, 3), 255, np.uint8)
+        sep = np.full((6, 6 * panel_px, 3), 255, np.uint8)  # four panels and the 2 x 2 map
         rows = []
-        for _, _, frame, boxes, scores in chosen:
-            rows += [example_rows(frame, boxes, scores, panel_px), sep]
+        for frame_index, w, frame, boxes, scores in chosen:
+            rows += [with_map(example_rows(frame, boxes, scores, panel_px), frame, w, frame_index), sep]
         cv2.imwrite(os.path.join(out_dir, "examples.png"), cv2.cvtColor(np.concatenate(rows[:-1], 0), cv2.COLOR_RGB2BGR))
     log(f"eval: wrote {out_dir}: AP@0.5 {_fmt(metrics['detection']['ap']['0.5']['all'], True)}, "
         f"location error {_fmt(metrics['pose']['location_m']['mean'], digits=2)} m, "
@@ -630,7 +672,8 @@ def evaluate(cfg: Config, params, out_dir: str, *, sample: bool = False, video_f
 def pictured_frame(out, t, slot):
     """Frame t of a chunk's ``out`` as seen in pictured slot ``slot`` (0: world 0, 1: the most crowded
     world): its images, reconstructions and ground-truth boxes, as NumPy, for :func:`example_rows`."""
-    frame = {k: np.array(out[k][t, slot]) for k in out if k in ("camera", "lidar", "roadmap") or k.startswith("recon_")}
+    frame = {k: np.array(out[k][t, slot]) for k in out
+             if k in ("camera", "lidar", "roadmap", "pose_place") or k.startswith("recon_")}
     w = out["pictured"][t, slot]
     frame.update({k: np.array(out[k][t, w]) for k in ("boxes", "boxes_valid", "boxes_occluded")})
     return frame

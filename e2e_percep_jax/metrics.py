@@ -27,6 +27,7 @@ import numpy as np
 from e2e_percep_jax import geometry as geo
 
 SUBSETS = ("all", "visible", "occluded")
+NMS_IOU = 0.3  # the evaluation's and the inference API's greedy NMS threshold (rotated IoU)
 
 
 def _as_boxes(boxes):
@@ -280,8 +281,13 @@ def pose_errors(pred_pose, true_pose):
     )
 
 
+# Shares of frames reported per error kind: error within each bound (location m, heading rad).
+WITHIN = {"location_m": (5.0, 10.0, 50.0), "heading_rad": (0.1,)}
+
+
 class PoseErrorAccumulator:
-    """Mean and median pose errors, and mean location error by steps since the start of a drive.
+    """Mean, median and 90th percentile of the pose errors, the share of frames within the bounds of
+    :data:`WITHIN`, and mean location error by steps since the start of a drive.
 
     Step bins are ``[edge_i, edge_{i+1})``, the last one open-ended. For an exact median every error
     is kept, as float32 in one growing buffer (12 bytes per step: 1.2 MB per 100,000 steps); the
@@ -319,13 +325,18 @@ class PoseErrorAccumulator:
     def results(self):
         """Summary dict (nan where there is no data).
 
-        ``{"location_m" | "heading_rad" | "speed_mps": {"mean": float, "median": float},
-        "location_m_by_step": {"bin_edges": [B], "mean": [B], "count": [B]}}``
+        ``{"location_m" | "heading_rad" | "speed_mps": {"mean": float, "median": float, "p90": float,
+        "within": {bound: share}}, "location_m_by_step": {"bin_edges": [B], "mean": [B], "count": [B]}}``
+        (a NaN error, a missing estimate, counts as outside every bound).
         """
         out = {}
         for name, values in zip(PoseErrors._fields, self._values[:, :self._size]):
-            out[name] = {"mean": float(np.mean(values, dtype=np.float64)) if values.size else float("nan"),
-                         "median": float(np.median(values)) if values.size else float("nan")}
+            some = values.size > 0
+            out[name] = {"mean": float(np.mean(values, dtype=np.float64)) if some else float("nan"),
+                         "median": float(np.median(values)) if some else float("nan"),
+                         "p90": float(np.percentile(values, 90)) if some else float("nan"),
+                         "within": {f"{bound:g}": float(np.mean(values <= bound)) if some else float("nan")
+                                    for bound in WITHIN.get(name, ())}}
         with np.errstate(invalid="ignore", divide="ignore"):
             mean = self._bin_sum / self._bin_count
         out["location_m_by_step"] = {"bin_edges": self.step_bin_edges.copy(), "mean": mean,

@@ -13,6 +13,7 @@ from e2e_percep_jax import geometry as geo
 VISIBLE_RGB = (60, 230, 60)
 OCCLUDED_RGB = (255, 150, 30)
 PREDICTED_RGB = (40, 220, 255)
+ESTIMATE_RGB = (255, 60, 60)  # the estimated ego pose on the map
 _SHIFT = 4  # cv2 fractional bits: sub-pixel box corners
 _TITLES = ("camera", "lidar", "roadmap", "boxes")
 
@@ -77,3 +78,30 @@ def frame_panel(frame, panel_px=256, pred_boxes=None, pred_scores=None, titles=T
             cv2.putText(view, title, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 3, cv2.LINE_AA)
             cv2.putText(view, title, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
     return np.concatenate(views, axis=1)
+
+
+def map_panel(view, true_xy, pred_xy, place=None):
+    """uint8 [S, S, 3]: the pose belief's area of the town from above (north up; ``view`` a square
+    ``render.TopDown`` of that area), the belief over it (``place`` [n, n], row i along y; brighter is more
+    probable), the true path so far (green line, ``true_xy`` [K, 2] town metres) and the estimated poses
+    (red dots, ``pred_xy`` [K, 2]), the latest of each ringed."""
+    img = view.draw()
+    size = img.shape[1::-1]
+    if place is not None:
+        p = np.flipud(np.asarray(place, np.float64))  # image rows run south
+        heat = cv2.resize((p / max(p.max(), 1e-30)).astype(np.float32), size, interpolation=cv2.INTER_NEAREST)
+        colour = cv2.cvtColor(cv2.applyColorMap((heat * 255).astype(np.uint8), cv2.COLORMAP_INFERNO), cv2.COLOR_BGR2RGB)
+        alpha = (0.85 * heat)[..., None]
+        img = (img * (1 - alpha) + colour * alpha).astype(np.uint8)
+    true_px, pred_px = view._px(np.reshape(true_xy, (-1, 2))), view._px(np.reshape(pred_xy, (-1, 2)))
+    if len(true_px):
+        cv2.polylines(img, [true_px], False, VISIBLE_RGB, 1, cv2.LINE_AA, _SHIFT)
+        cv2.circle(img, tuple(true_px[-1]), 6 << _SHIFT, VISIBLE_RGB, 2, cv2.LINE_AA, _SHIFT)
+    for xy in pred_px:
+        cv2.circle(img, tuple(xy), 1 << _SHIFT, ESTIMATE_RGB, -1, cv2.LINE_AA, _SHIFT)
+    if len(pred_px):
+        cv2.circle(img, tuple(pred_px[-1]), 6 << _SHIFT, ESTIMATE_RGB, 2, cv2.LINE_AA, _SHIFT)
+    for colour, thick in (((0, 0, 0), 3), ((255, 255, 255), 1)):
+        cv2.putText(img, "town: true path, estimate, belief", (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
+                    colour, thick, cv2.LINE_AA)
+    return img

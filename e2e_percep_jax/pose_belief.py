@@ -4,7 +4,7 @@ Recognising a place is a look-up with several candidate answers, so the pose is 
 not regressed: a squared loss would predict the candidates' average.
 
 The grid (:class:`Grid`): the square ``[AREA_ORIGIN_M, AREA_ORIGIN_M + AREA_SIZE_M)`` of the town frame
-(every town's lanes lie in [-7, 427] m) in n x n cells of ``cell_m``, G = n * n, cell (i, j) with i along y
+in n x n cells of ``cell_m``, G = n * n, cell (i, j) with i along y
 (rows) and j along x (columns), flattened row-major; heading in H bins of width 2 pi / H, bin k centred on
 ``-pi + (k + 0.5) 2 pi / H``.
 
@@ -16,10 +16,11 @@ Training (:func:`loss_terms`): cross-entropy against Gaussian soft targets for p
 on the offsets of the true cell and bin, smooth-L1 on the speed. Read alone (:func:`decode`), the pose is
 the mode cell refined by its offset.
 
-The histogram filter (:func:`init_state`, :func:`filter_step`) keeps a belief [B, H, n, n] (probabilities)
-and a speed track [B]. Motion: the world's bicycle model driven by the recorded action (acceleration,
-steering), each heading bin's mass moved by its own displacement (a bilinear split over the neighbouring
-cells, which keeps the mass's mean exact) and the heading axis shifted by the common yaw change. Measurement:
+The histogram filter (:func:`init_state`, :func:`filter_step`) keeps a belief [B, H, n, n] (probabilities),
+a speed track [B] and a heading offset [B] shared by all bins. Motion: the world's bicycle model driven by
+the recorded action (acceleration, steering), each heading bin's mass moved by its own displacement (a
+bilinear split over the neighbouring cells, which keeps the mass's mean exact) and the common yaw change
+added to the offset, whole bins rolling the heading axis. Measurement:
 the head's place and heading probabilities, floored and tempered, multiplied in (Bayes' rule). The point
 estimate is the belief's mode refined by the head's offsets there. Pure JAX; it runs inside a ``lax.scan``.
 """
@@ -34,8 +35,10 @@ import optax
 from e2e_percep_jax.geometry import wrap_angle
 from e2e_percep_jax.world import DT_S, WHEELBASE_M
 
-AREA_ORIGIN_M = -10.0
-AREA_SIZE_M = 440.0
+# Every town's lanes lie in [-7, 427] m; the margin keeps a vehicle's belief off the grid's edge, where the
+# filter's motion would push mass off the grid.
+AREA_ORIGIN_M = -30.0
+AREA_SIZE_M = 480.0
 SPEED_SCALE_MPS = 10.0
 TARGET_STD_CELLS = 0.5  # std of the Gaussian soft targets, in cells (place) and bins (heading)
 # Filter defaults: the head's probabilities are mixed with this share of uniform mass (a frame that names
@@ -158,22 +161,25 @@ def decode(head: dict, grid: Grid):
 
 
 def init_state(batch_size: int, grid: Grid) -> dict:
-    """Before a drive's first frame: a uniform belief [B, H, n, n] and a zero speed track [B] (m/s)."""
+    """Before a drive's first frame: a uniform belief [B, H, n, n], a zero speed track [B] (m/s) and a zero
+    heading offset [B] (rad: bin k of the belief stands for heading ``bin_centres[k] + yaw_offset_rad``)."""
     shape = (batch_size, grid.heading_bins, grid.n, grid.n)
     return {"belief": jnp.full(shape, 1.0 / math.prod(shape[1:]), jnp.float32),
-            "speed_mps": jnp.zeros((batch_size,), jnp.float32)}
+            "speed_mps": jnp.zeros((batch_size,), jnp.float32),
+            "yaw_offset_rad": jnp.zeros((batch_size,), jnp.float32)}
 
 
-def motion(action, speed_mps, grid: Grid):
-    """The world's bicycle model (``world._drive_ego``) for one step of every heading bin's centre.
+def motion(action, speed_mps, yaw_offset_rad, grid: Grid):
+    """The world's bicycle model (``world._drive_ego``) for one step of every heading bin.
 
-    action [..., 2] (acceleration m/s², steering rad), speed_mps [...] before the step. Returns (speed after
-    [...], centre displacement [..., H, 2] metres of a vehicle heading along each bin's centre, yaw change [...]).
+    action [..., 2] (acceleration m/s², steering rad), speed_mps and yaw_offset_rad [...] before the step.
+    Returns (speed after [...], centre displacement [..., H, 2] metres of a vehicle heading along each bin
+    (its centre plus the offset), yaw change [...]).
     """
     v_new = jnp.maximum(speed_mps + action[..., 0] * DT_S, 0.0)
     ds = 0.5 * (speed_mps + v_new) * DT_S
     dyaw = ds * jnp.tan(action[..., 1]) / WHEELBASE_M
-    yaw = jnp.asarray(grid.bin_centres())
+    yaw = jnp.asarray(grid.bin_centres()) + yaw_offset_rad[..., None]
     unit = lambda a: jnp.stack([jnp.cos(a), jnp.sin(a)], -1)
     # The rear axle moves ds along the mid-step heading; the centre sits half a wheelbase ahead of it.
     mid = yaw + 0.5 * dyaw[..., None]
@@ -186,9 +192,8 @@ def _shift(x, axis: int, direction: int):
     """x moved by one cell along ``axis`` (+1: towards higher indices), zeros entering, mass leaving lost."""
     pad = [(0, 0)] * x.ndim
     pad[axis] = (1, 0) if direction > 0 else (0, 1)
-    padded = jnp.pad(x, pad)
-    return jax.lax.slice_in_dim(padded, 0, x.shape[axis], axis=axis) if direction > 0 else \
-        jax.lax.slice_in_dim(padded, 1, x.shape[axis] + 1, axis=axis)
+    start = 0 if direction > 0 else 1
+    return jax.lax.slice_in_dim(jnp.pad(x, pad), start, start + x.shape[axis], axis=axis)
 
 
 def _split(x, shift_cells, axis: int):
@@ -199,16 +204,15 @@ def _split(x, shift_cells, axis: int):
             + w(jnp.maximum(-shift_cells, 0.0)) * _shift(x, axis, -1))
 
 
-def predict(belief, move_m, dyaw, grid: Grid):
+def predict(belief, move_m, yaw_offset_rad, grid: Grid):
     """One stream's belief [H, n, n] moved: bin k's mass by ``move_m[k]`` [H, 2] metres (at most one cell
-    per step), then the heading axis by ``dyaw`` radians, circularly, split between two bins."""
+    per step), then the heading by the common yaw change already added to ``yaw_offset_rad`` []: whole
+    bins roll the heading axis and the rest stays in the offset, so heading never diffuses (a diffused
+    heading would shorten the mean path). Returns (belief, offset within half a bin)."""
     shift = jnp.clip(move_m / grid.cell_m, -1.0, 1.0)
     belief = _split(_split(belief, shift[:, 0], 2), shift[:, 1], 1)
-    bins = dyaw / grid.bin_rad
-    whole = jnp.floor(bins)
-    frac = bins - whole
-    whole = whole.astype(jnp.int32)
-    return (1.0 - frac) * jnp.roll(belief, whole, 0) + frac * jnp.roll(belief, whole + 1, 0)
+    whole = jnp.round(yaw_offset_rad / grid.bin_rad)
+    return jnp.roll(belief, whole.astype(jnp.int32), 0), yaw_offset_rad - whole * grid.bin_rad
 
 
 def likelihood(head: dict, grid: Grid, floor: float = MEASUREMENT_FLOOR, power: float = MEASUREMENT_POWER):
@@ -224,18 +228,31 @@ def _normalised(belief):
     return belief / jnp.sum(belief, axis=(-3, -2, -1), keepdims=True)
 
 
-def filter_step(state: dict, head: dict, prev_action, first, grid: Grid, *, floor: float = MEASUREMENT_FLOOR,
-                power: float = MEASUREMENT_POWER, speed_gain: float = SPEED_GAIN):
+def filter_step(state: dict, head: dict, prev_action, first, grid: Grid, *, start_pose=None,
+                floor: float = MEASUREMENT_FLOOR, power: float = MEASUREMENT_POWER, speed_gain: float = SPEED_GAIN):
     """One frame for B streams: motion by ``prev_action`` [B, 2] (the action from the last frame to this one),
     then Bayes' rule with this frame's ``head`` outputs. Rows with ``first`` [B] set start from the
-    measurement alone (uniform prior, the head's speed). Returns (state, pose [B, 5] at the belief's mode)."""
+    measurement alone (uniform prior, the head's speed). Returns (state, pose [B, 5] at the belief's mode).
+
+    ``start_pose`` [B, 5] (the known-start protocol, an odometry): rows with ``first`` set start as a point
+    mass at that pose and speed, no measurement is taken, and the pose is the belief's mean: the filter's
+    motion model alone integrates the recorded actions.
+    """
+    v_new, move, dyaw = motion(prev_action, state["speed_mps"], state["yaw_offset_rad"], grid)
+    moved, offset = jax.vmap(lambda b, m, o: predict(b, m, o, grid))(state["belief"], move,
+                                                                     state["yaw_offset_rad"] + dyaw)
+    rows = lambda x: first.reshape(first.shape + (1,) * (x.ndim - 1))
+    if start_pose is not None:
+        start_belief, start_offset = start_at(start_pose, grid)
+        new = {"belief": _normalised(jnp.where(rows(moved), start_belief, moved)),
+               "speed_mps": jnp.where(first, start_pose[:, 4], v_new),
+               "yaw_offset_rad": jnp.where(first, start_offset, offset)}
+        return new, mean_pose(new, grid)
     head_speed = head["speed"] * SPEED_SCALE_MPS
-    v_new, move, dyaw = motion(prev_action, state["speed_mps"], grid)
-    moved = jax.vmap(lambda b, m, d: predict(b, m, d, grid))(state["belief"], move, dyaw)
-    prior = jnp.where(first[:, None, None, None], 1.0, moved)
-    belief = _normalised(prior * likelihood(head, grid, floor, power))
-    speed = jnp.where(first, head_speed, v_new + speed_gain * (head_speed - v_new))
-    return {"belief": belief, "speed_mps": speed}, estimate(belief, head, speed, grid)
+    new = {"belief": _normalised(jnp.where(rows(moved), 1.0, moved) * likelihood(head, grid, floor, power)),
+           "speed_mps": jnp.where(first, head_speed, v_new + speed_gain * (head_speed - v_new)),
+           "yaw_offset_rad": jnp.where(first, 0.0, offset)}
+    return new, estimate(new["belief"], head, new["speed_mps"], grid)
 
 
 def estimate(belief, head: dict, speed_mps, grid: Grid):
@@ -245,15 +262,51 @@ def estimate(belief, head: dict, speed_mps, grid: Grid):
     return _pose_at(head, cell, k, speed_mps, grid)
 
 
+def _linear_split(u, size: int):
+    """Weights [..., size] that place continuous index ``u`` [...] between its two nearest integers."""
+    lo = jnp.floor(u)
+    frac = (u - lo)[..., None]
+    lo = lo.astype(jnp.int32)
+    return jax.nn.one_hot(lo, size) * (1.0 - frac) + jax.nn.one_hot(lo + 1, size) * frac
+
+
+def start_at(pose, grid: Grid):
+    """(belief [B, H, n, n], heading offset [B]) holding poses [B, 5] exactly: bilinear over the four
+    nearest cell centres, all in the nearest heading bin with the rest in the offset, so the belief's mean
+    (:func:`mean_pose`) is the pose."""
+    u = (pose[:, :2] - AREA_ORIGIN_M) / grid.cell_m - 0.5  # in cell-centre units
+    k, offset = true_bin(_yaw(pose), grid)
+    near = jnp.round(offset).astype(jnp.int32)  # offset is within half a bin of bin k's centre
+    wk = jax.nn.one_hot((k + near) % grid.heading_bins, grid.heading_bins)
+    wx, wy = _linear_split(u[:, 0], grid.n), _linear_split(u[:, 1], grid.n)
+    return wk[:, :, None, None] * wy[:, None, :, None] * wx[:, None, None, :], (offset - near) * grid.bin_rad
+
+
+def mean_pose(state: dict, grid: Grid):
+    """The belief's mean pose [B, 5]: position over the cell centres; heading over the bins within half a
+    turn of the heading marginal's mode (unwrapped there), plus the heading offset."""
+    belief = state["belief"]
+    place = place_marginal(belief).reshape(belief.shape[0], -1)
+    xy = place @ jnp.asarray(grid.cell_centres()) / jnp.sum(place, -1, keepdims=True)
+    heading = jnp.sum(belief, axis=(-2, -1))  # [B, H]
+    h = grid.heading_bins
+    mode = jnp.argmax(heading, -1)
+    rel = (jnp.arange(h)[None, :] - mode[:, None] + h // 2) % h - h // 2  # bins from the mode
+    shift = jnp.sum(heading * rel, -1) / jnp.sum(heading, -1)
+    yaw = jnp.asarray(grid.bin_centres())[mode] + shift * grid.bin_rad + state["yaw_offset_rad"]
+    return jnp.concatenate([xy, jnp.stack([jnp.cos(yaw), jnp.sin(yaw), state["speed_mps"]], -1)], -1)
+
+
 def place_marginal(belief):
     """P(cell) [B, n, n]: the belief summed over heading."""
     return jnp.sum(belief, axis=-3)
 
 
-def negative_log_likelihood(belief, pose, grid: Grid):
-    """-log density [B] of the true poses [B, 5] under the belief (per m² and radian: each cell's
+def negative_log_likelihood(state: dict, pose, grid: Grid):
+    """-log density [B] of the true poses [B, 5] under the filter's belief (per m² and radian: each cell's
     probability spread uniformly over its cell_m² x bin_rad)."""
+    belief = state["belief"]
     cell, _ = true_cell(pose[:, :2], grid)
-    k, _ = true_bin(_yaw(pose), grid)
+    k, _ = true_bin(_yaw(pose) - state["yaw_offset_rad"], grid)
     p = belief.reshape(belief.shape[0], grid.heading_bins, -1)[jnp.arange(belief.shape[0]), k, cell]
     return -jnp.log(jnp.maximum(p, 1e-30)) + math.log(grid.cell_m ** 2 * grid.bin_rad)

@@ -8,7 +8,7 @@ import math
 import numpy as np
 
 
-def _defined(value):
+def defined(value):
     """None for an undefined number (None, or NaN: a head the evaluated method lacks)."""
     return None if value is None or not math.isfinite(value) else value
 
@@ -18,11 +18,15 @@ def summary_metrics(metrics: dict) -> dict:
     row = {}
     for iou, by_subset in metrics["detection"]["ap"].items():  # the evaluation's IoUs and subsets, in order
         for subset, ap in by_subset.items():
-            ap = _defined(ap)
+            ap = defined(ap)
             row[f"AP@{iou} {subset} (%)"] = None if ap is None else 100.0 * ap
+    pose = metrics["pose"]
     for name, unit in (("location", "m"), ("heading", "rad"), ("speed", "mps")):
-        for stat in ("mean", "median"):
-            row[f"{name} {stat} ({unit.replace('mps', 'm/s')})"] = _defined(metrics["pose"][f"{name}_{unit}"][stat])
+        for stat in ("mean", "median", "p90"):  # evaluations saved before p90 existed: None
+            row[f"{name} {stat} ({unit.replace('mps', 'm/s')})"] = defined(pose[f"{name}_{unit}"].get(stat))
+        for bound, share in pose[f"{name}_{unit}"].get("within", {}).items():
+            row[f"{name} within {bound} {unit} (%)"] = None if defined(share) is None else 100.0 * share
+    row["drift per 100 m (m)"] = defined(pose.get("drift_per_100m"))
     return row
 
 

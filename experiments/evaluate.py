@@ -30,7 +30,7 @@ FLAGS = flags.FLAGS
 
 
 def main(argv):
-    from e2e_percep_jax import evaluate as eval_lib
+    from e2e_percep_jax import checkpoint, evaluate as eval_lib
     allocator.keep_freed_buffers()
     try:
         config_lib.check_launch(argv)
@@ -49,7 +49,7 @@ def main(argv):
         cfg = config_lib.validate(config_lib.replace(cfg, eval=overrides))
         if FLAGS.video_frames < 0 or FLAGS.num_examples < 0:
             raise ValueError("--video_frames and --num_examples must be >= 0")
-        cfg, params, step = eval_lib.restore_params(FLAGS.workdir, cfg, FLAGS.step)
+        cfg, params, step = checkpoint.restore_params(FLAGS.workdir, cfg, FLAGS.step)
     except (ValueError, FileNotFoundError) as e:
         sys.exit(f"error: {e}")
     extra = {k: FLAGS[k].value for k in ("top_k", "score_floor", "nms_iou") if FLAGS[k].value is not None}

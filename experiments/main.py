@@ -26,6 +26,7 @@ def run(cfg: config_lib.Config, workdir: str, video_frames: int = 300, log=print
     """Trains ``cfg`` in ``workdir`` (resuming) and evaluates its final checkpoint into ``workdir/eval``
     (``eval_town<seed>`` for a held-out ``--eval.town_seed``). Returns the evaluation's metrics (read
     back if that checkpoint was already evaluated under the same config)."""
+    from e2e_percep_jax import checkpoint
     from e2e_percep_jax import evaluate as eval_lib
     from e2e_percep_jax import train as train_lib
     if train_lib.check_run(cfg, workdir) != cfg.train.num_steps:
@@ -35,7 +36,7 @@ def run(cfg: config_lib.Config, workdir: str, video_frames: int = 300, log=print
     if done is not None:
         log(f"{out_dir} already evaluates step {step} under this config; nothing to do")
         return done
-    cfg, params, step = eval_lib.restore_params(workdir, cfg, step)
+    cfg, params, step = checkpoint.restore_params(workdir, cfg, step)
     return eval_lib.evaluate(cfg, params, out_dir, video_frames=video_frames, workdir=os.path.abspath(workdir),
                              checkpoint_step=step, log=log)
 

@@ -30,7 +30,7 @@ VIDEO_FRAMES = 40
 _MEMORY_SCRIPT = textwrap.dedent("""
     import json, os, resource, sys
     import orbax.checkpoint as ocp
-    from e2e_percep_jax import config as C, evaluate as ev, train as T
+    from e2e_percep_jax import checkpoint, config as C, evaluate as ev, train as T
     run = sys.argv[1]
     cfg = C.replace(C.get_config("tiny"), eval=dict(num_steps=200, num_worlds=4, chunk_steps=25))
     os.makedirs(run)
@@ -38,7 +38,7 @@ _MEMORY_SCRIPT = textwrap.dedent("""
         f.write(cfg.to_json())
     with T._checkpoint_manager(run) as manager:
         manager.save(7, args=ocp.args.StandardSave(T.init_state(cfg)))
-    restored_cfg, params, step = ev.restore_params(run)
+    restored_cfg, params, step = checkpoint.restore_params(run)
     assert restored_cfg == cfg and step == 7, (restored_cfg, step)
     page = os.sysconf("SC_PAGE_SIZE")
     rss = lambda: int(open("/proc/self/statm").read().split()[1]) * page / 2**20
@@ -103,7 +103,7 @@ def test_oracle_targets_through_the_decode_path_and_a_known_pose_offset(memory_r
         c, s = pose[:, 2], pose[:, 3]
         moved = jnp.stack([pose[:, 0] + 3.0, pose[:, 1] + 4.0, c * np.cos(turn) - s * np.sin(turn),
                            s * np.cos(turn) + c * np.sin(turn), pose[:, 4] + 1.5], -1)
-        return dict(decoded, det_cls=frame["det_cls"], det_reg=frame["det_reg"], pose=model_lib.normalise_pose(moved))
+        return dict(decoded, det_cls=frame["det_cls"], det_reg=frame["det_reg"], pose=moved)
 
     m = eval_lib.evaluate(cfg, params, str(tmp_path), video_frames=0, heads=oracle, log=lambda _: None)
     det = m["detection"]

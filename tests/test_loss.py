@@ -48,10 +48,40 @@ def setup():
     return cfg, model.init_params(jax.random.PRNGKey(0), cfg), synthetic_batch(1, cfg)
 
 
-def test_every_term_matches_numpy_per_sequence(setup):
+def np_belief_terms(head, pose):
+    """The belief head's per-frame losses, by hand: 10 m cells from -30 m (48 x 48), 36 heading bins,
+    Gaussian soft targets of half a cell / bin, smooth-L1 on the true cell's and bin's offsets and the speed."""
+    def log_softmax(x):
+        x = x - x.max(-1, keepdims=True)
+        return x - np.log(np.sum(np.exp(x), -1, keepdims=True))
+    wrap = lambda a: (a + np.pi) % (2 * np.pi) - np.pi
+    centre = -30.0 + 10.0 * (np.arange(48) + 0.5)
+    cx, cy = np.meshgrid(centre, centre)  # row i along y, column j along x
+    target = np.exp(-((pose[..., :1] - cx.ravel()) ** 2 + (pose[..., 1:2] - cy.ravel()) ** 2) / (2 * 5.0 ** 2))
+    yaw, width = np.arctan2(pose[..., 3], pose[..., 2]), 2 * np.pi / 36
+    bins = -np.pi + (np.arange(36) + 0.5) * width
+    heading_target = np.exp(-wrap(yaw[..., None] - bins) ** 2 / (2 * (width / 2) ** 2))
+    j, i = np.floor((pose[..., 0] + 30) / 10).astype(int), np.floor((pose[..., 1] + 30) / 10).astype(int)
+    k = np.floor((yaw + np.pi) / width).astype(int) % 36
+    offset = np.stack([(pose[..., 0] + 30) / 10 - j - 0.5, (pose[..., 1] + 30) / 10 - i - 0.5], -1)
+    place_offset = np.take_along_axis(head["place_offset"], (i * 48 + j)[..., None, None], axis=-2)[..., 0, :]
+    heading_offset = np.take_along_axis(head["heading_offset"], k[..., None], axis=-1)[..., 0]
+    return {"pose_place": -np.sum(target / target.sum(-1, keepdims=True) * log_softmax(head["place_logit"]), -1),
+            "pose_heading": -np.sum(heading_target / heading_target.sum(-1, keepdims=True)
+                                    * log_softmax(head["heading_logit"]), -1),
+            "pose_offset": (np.sum(np_smooth_l1(place_offset - offset), -1)
+                            + np_smooth_l1(heading_offset - wrap(yaw - bins[k]) / width)),
+            "pose_speed": np_smooth_l1(head["speed"] - pose[..., 4] / 10)}
+
+
+@pytest.mark.parametrize("pose_head", ["belief", "regression", "reference"])
+def test_every_term_matches_numpy_per_sequence(setup, pose_head):
     """With posterior means (key None) the loss is deterministic: recompute each term in NumPy from
     the model's outputs, summed over pixels and time, divided by B (perception terms times 32)."""
     cfg, params, batch = setup
+    if pose_head != "belief":
+        cfg = config.replace(cfg, model=dict(pose_head=pose_head))
+        params = model.init_params(jax.random.PRNGKey(0), cfg)
     total, metrics = loss.loss_fn(params, batch, None, cfg)
     out = jax.tree.map(np.asarray, model.filter_sequence(params, batch["camera"], batch["lidar"], batch["action"],
                                                           None, cfg))
@@ -67,8 +97,14 @@ def test_every_term_matches_numpy_per_sequence(setup):
     want["det_cls"] = w * np.sum(np_focal(pred["det_logit"], batch["det_cls"])) / b
     positive = batch["det_cls"] > 0.5
     want["det_reg"] = w * 0.1 * np.sum(np.where(positive, np_smooth_l1(pred["det_reg"] - batch["det_reg"]), 0)) / b
-    pose_target = (batch["pose"] - [200, 200, 0, 0, 0]) / [100, 100, 1, 1, 10]
-    want["pose"] = w * np.sum(np_smooth_l1(pred["pose"] - pose_target)) / b
+    pose = batch["pose"].astype(np.float64)
+    if pose_head == "regression":
+        want["pose"] = w * np.sum(np_smooth_l1(pred["pose"] - (pose - [200, 200, 0, 0, 0]) / [100, 100, 1, 1, 10])) / b
+    elif pose_head == "reference":  # 10 x smooth-L1 on metres, cos / sin and m/s
+        want["pose"] = w * 10 * np.sum(np_smooth_l1(pred["pose"] * [100, 100, 1, 1, 10] + [200, 200, 0, 0, 0] - pose)) / b
+    else:
+        head = jax.tree.map(lambda x: np.asarray(x, np.float64), model.pose_belief_head(params, out, cfg))
+        want.update({k: w * np.sum(v) / b for k, v in np_belief_terms(head, pose).items()})
     want["total"] = sum(want.values())
     assert set(metrics) == set(want)
     for k in want:
@@ -98,7 +134,8 @@ def test_variant_selects_the_reconstruction_terms_and_decoders(variant, images):
     assert {k[len("image_decoders_"):] for k in params["params"] if k.startswith("image_decoders_")} == images
     _, metrics = jax.eval_shape(lambda p, b: loss.loss_fn(p, b, jax.random.PRNGKey(0), cfg), params,
                                 synthetic_batch(0, cfg))
-    assert set(metrics) == {f"recon_{k}" for k in images} | {"kl", "det_cls", "det_reg", "pose", "total"}
+    assert set(metrics) == {f"recon_{k}" for k in images} | {"kl", "det_cls", "det_reg", "total", "pose_place",
+                                                             "pose_heading", "pose_offset", "pose_speed"}
 
 
 def test_gradients_finite_and_reach_every_network():

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from e2e_percep_jax import config, loss, model
+from e2e_percep_jax import config, loss, model, pose_belief
 from e2e_percep_jax.model import PerceptionModel
 
 TINY = config.get_config("tiny")
@@ -68,7 +68,11 @@ def test_every_network_output_shape(r):
     decoded = apply(PerceptionModel.decode, vec(m.z1_dim + m.z2_dim))
     assert {k: v.shape for k, v in decoded.items()} == {
         "camera": (n, r, r, 3), "lidar": (n, r, r, 3), "roadmap": (n, r, r, 3), "det_logit": (n, r, r, 1),
-        "det_cls": (n, r, r, 1), "det_reg": (n, r, r, 6), "pose": (n, 5)}
+        "det_cls": (n, r, r, 1), "det_reg": (n, r, r, 6)}  # the belief head reads features, not z
+    grid = pose_belief.grid_of(m)
+    assert grid.n == 48 and grid.head_size == 3 * 48 * 48 + 2 * 36 + 1  # 480 m in 10 m cells, 36 bins
+    assert apply(PerceptionModel.pose_belief, vec(2 * m.feature_dim), vec(m.z1_dim),
+                 vec(m.z2_dim)).shape == (n, grid.head_size)
     trunk = jax.eval_shape(lambda z: model.Trunk(model.conv_widths(cfg.model, r), m.feature_dim).init_with_output(
         jax.random.PRNGKey(0), z)[0], vec(m.z1_dim + m.z2_dim))
     assert trunk.shape == (n, r // 2, r // 2, 4)
@@ -79,6 +83,7 @@ def test_every_network_output_shape(r):
                          params, seq, seq, jax.ShapeDtypeStruct((b, t1, 2), jnp.float32))
     assert out["z1"].shape == out["q_z1_scale"].shape == out["p_z1_loc"].shape == (b, t1, m.z1_dim)
     assert out["z2"].shape == out["z2_scale"].shape == (b, t1, m.z2_dim)
+    assert out["features"].shape == (b, t1, 2 * m.feature_dim)
 
 
 def conv(k, cin, cout):
@@ -90,8 +95,9 @@ def dense(cin, cout):
 
 
 def test_paper_parameter_count_by_hand():
-    """R = 128 with the paper's widths; every layer written out (equals the torch peer's count)."""
-    cfg = config.get_config("paper")
+    """R = 128 with the paper's widths; every layer written out (with the regression pose head it equals the
+    torch peer's count; the belief head replaces that head)."""
+    cfg = with_sizes(config.get_config("paper"), pose_head="regression")
     encoder = (conv(5, 3, 32) + conv(3, 32, 64) + conv(3, 64, 128) + conv(3, 128, 256) + conv(3, 256, 256)
                + conv(4, 256, 256))
     trunk = conv(4, 288, 256) + conv(3, 256, 256) + conv(3, 256, 128) + conv(3, 128, 64) + conv(3, 64, 32)
@@ -115,6 +121,11 @@ def test_paper_parameter_count_by_hand():
     assert count("full") == full
     assert count("no_input_recon") == full - 2 * image_decoder
     assert count("no_roadmap_recon") == full - image_decoder
+    # The belief head: features 512 + z1 32 + z2 256 in; logit and (x, y) offset per 10 m cell of the
+    # 480 m area (48 x 48), logit and offset per heading bin (36), speed.
+    belief = dense(800, 256) + dense(256, 256) + dense(256, 3 * 48 * 48 + 2 * 36 + 1)
+    cfg = config.get_config("paper")
+    assert count("full") == full - pose + belief
 
 
 # ----------------------------------------------------------------------------- layers vs NumPy (torch semantics)
@@ -211,7 +222,17 @@ def test_layers_match_numpy_torch_semantics():
     np.testing.assert_allclose(got["det_cls"][0], 1 / (1 + np.exp(-logit)), rtol=1e-4, atol=1e-6)
     np.testing.assert_allclose(got["det_reg"][0], leaky(np_transposed(p["Deconv2x_1"], 2, 2, 1)(h)),
                                rtol=1e-4, atol=1e-5)
-    np.testing.assert_allclose(got["pose"][0], np_mlp(params["pose_head"], z), rtol=1e-4, atol=1e-5)
+    features, z1_loc, z2_loc = (np.asarray(jax.random.normal(jax.random.PRNGKey(i), (d,)))
+                                for i, d in ((6, 2 * cfg.model.feature_dim), (7, cfg.model.z1_dim), (8, cfg.model.z2_dim)))
+    got = net.apply({"params": params}, *(jnp.asarray(v[None], jnp.float32) for v in (features, z1_loc, z2_loc)),
+                    method=PerceptionModel.pose_belief)
+    np.testing.assert_allclose(got[0], np_mlp(params["pose_belief_head"], np.concatenate([features, z1_loc, z2_loc])),
+                               rtol=1e-4, atol=1e-5)
+    regression = with_sizes(cfg, pose_head="regression")
+    reg_params = model.init_params(jax.random.PRNGKey(3), regression)["params"]
+    got = model.build_model(regression).apply({"params": reg_params}, jnp.asarray(z[None], jnp.float32),
+                                              method=PerceptionModel.decode)
+    np.testing.assert_allclose(got["pose"][0], np_mlp(reg_params["pose_head"], z), rtol=1e-4, atol=1e-5)
 
     z1 = z[:cfg.model.z1_dim]
     loc, scale = net.apply({"params": params}, jnp.asarray(z1[None], jnp.float32),

@@ -1,0 +1,29 @@
+"""Restoring a training run's parameters from its orbax checkpoints (no evaluation code, no cv2)."""
+import os
+
+import jax
+import orbax.checkpoint as ocp
+
+from e2e_percep_jax import train as train_lib
+from e2e_percep_jax.config import Config
+
+
+def restore_params(workdir: str, cfg: Config | None = None, step: int | None = None, objective=None):
+    """(cfg, params, step) of the run in ``workdir``: its config.json (unless ``cfg`` is given) and the
+    params of checkpoint ``step`` (default: the latest), restored with the same abstract train state
+    that ``train.train`` saves for ``objective`` (a ``train.Objective``; default: the perception
+    model). Raises FileNotFoundError if there is no checkpoint."""
+    workdir = os.path.abspath(workdir)
+    if cfg is None:
+        with open(os.path.join(workdir, "config.json")) as f:
+            cfg = Config.from_json(f.read())
+    options = ocp.CheckpointManagerOptions(read_only=True, create=False)
+    with ocp.CheckpointManager(os.path.join(workdir, "checkpoints"), options=options) as manager:
+        step = manager.latest_step() if step is None else step
+        if step is None:
+            raise FileNotFoundError(f"no checkpoint in {workdir}/checkpoints")
+        sharding = jax.sharding.SingleDeviceSharding(jax.devices()[0])
+        abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding),
+                                jax.eval_shape(lambda: train_lib.init_state(cfg, objective or train_lib.PERCEPTION)))
+        state = manager.restore(step, args=ocp.args.StandardRestore(abstract))
+    return cfg, state.params, step
