@@ -80,9 +80,11 @@ def build_model(cfg: Config, head: str) -> SingleFrameModel:
 def init_params(key, cfg: Config, head: str):
     """The perception model's own initialisation (``model.init_params``: LeCun-normal kernels, zero
     biases, drawn as one vector, fast to compile), of a perception model whose latent is as wide as the
-    features (z1 + z2 = 2F) so that its decoders fit them, restricted to the networks ``head`` uses."""
+    features (z1 + z2 = 2F) so that its decoders fit them, with the regression pose head, restricted to the
+    networks ``head`` uses."""
     build_model(cfg, head)  # checks the head
-    wide = config_lib.replace(cfg, model=dict(z1_dim=cfg.model.feature_dim, z2_dim=cfg.model.feature_dim))
+    wide = config_lib.replace(cfg, model=dict(z1_dim=cfg.model.feature_dim, z2_dim=cfg.model.feature_dim,
+                                              pose_head="regression"))
     params = model_lib.init_params(key, wide)["params"]
     used = ("camera_encoder", "lidar_encoder", "pixor_decoder" if head == "detection" else "pose_head")
     return {"params": {k: params[k] for k in used}}

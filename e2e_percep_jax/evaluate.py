@@ -37,17 +37,25 @@ swept over the score threshold, and cutting at 0.5 would end every curve at the 
 0.5 and count the missing area as zero precision. The floor (not 0) keeps the host's NMS cheap;
 the curve is exact above it.
 
-Ego pose: location error (m, x-y distance), heading error (rad, wrapped to [0, pi]) and speed error
-(m/s), mean and median, and mean location error binned by steps since the drive's start. Baseline
+Ego pose: the model's pose is the inference API's (with the belief head, the histogram filter's
+estimate; ``pose_belief.py``), under one of two protocols: global (``--eval.known_start`` off: nothing
+about the start is given) or known start (the belief starts at each drive's true first pose and then
+follows the recorded actions alone: an odometry, for towns the model has not seen). Location error (m,
+x-y distance), heading error (rad, wrapped to [0, pi]) and speed error (m/s): mean, median, 90th
+percentile and the share of frames within 5 / 10 / 50 m and 0.1 rad; mean location error binned by
+steps since the drive's start; per drive the frame from which the error stays under CONVERGED_M; the
+drift (the drives' last location errors over the distance they drove, per 100 m); and the belief's
+negative log-likelihood of the true pose. Baseline
 row: a constant pose, the mean of the evaluation drive's own true poses (x, y and speed averaged,
 heading the circular mean; an oracle constant that knows where the drives went, so a model must beat
 it to show it localises), and no boxes (AP 0).
 
 Outputs in ``out_dir`` (:func:`evaluate`): metrics.json, report.md (the paper's Tables I and II with
 this run, the baseline and the paper's rows), pr_curves.png (cv2), examples.png (the paper's Fig. 6
-layout: the frames with the most vehicles in view over all E drives, one per part of the drives) and
-drive.mp4 (the same panels for world 0's first ``video_frames`` frames). Memory is flat in N: the host
-keeps per-frame pose errors and true poses (~30 bytes a frame) and at most ``num_examples`` pictures.
+layout: the frames with the most vehicles in view over all E drives, one per part of the drives, each
+with the town map: true path, estimates and the belief) and drive.mp4 (the same panels for world 0's first
+``video_frames`` frames). Memory is flat in N: the host keeps per-frame pose errors and true and estimated
+poses (~110 bytes a frame) and at most ``num_examples`` pictures.
 """
 import dataclasses
 import functools
@@ -105,9 +113,11 @@ PAPER_VARIANT_ROW = {"full": "Inputs and roadmap (full)",
 
 def eval_dir(run: str, cfg: Config) -> str:
     """Where a run's evaluation goes: ``<run>/eval`` on the training town, ``<run>/eval_town<seed>`` on a
-    held-out one (so a held-out evaluation never overwrites, nor is mistaken for, the training town's)."""
+    held-out one (so a held-out evaluation never overwrites, nor is mistaken for, the training town's), with
+    ``_known_start`` appended under the known-start pose protocol."""
     seed = cfg.eval.town_seed
-    return os.path.join(run, "eval" if seed == cfg.world.town_seed else f"eval_town{seed}")
+    name = "eval" if seed == cfg.world.town_seed else f"eval_town{seed}"
+    return os.path.join(run, name + ("_known_start" if cfg.eval.known_start else ""))
 
 
 def finished_evaluation(out_dir: str, label: str, checkpoint_step: int | None, cfg: Config) -> dict | None:
@@ -532,8 +542,9 @@ def evaluate(cfg: Config, params, out_dir: str, *, sample: bool = False, video_f
     wstate = start_worlds(start_keys(cfg), town, cfg)
     fstate = Perceiver(cfg).init(e)
     sample_root = jax.random.fold_in(jax.random.PRNGKey(ev.seed), SAMPLE_STREAM)
-    cache_key = (cfg.world, cfg.data.image_size, cfg.model, ev.chunk_steps, e, ev.town_seed, sample, top_k,
-                 score_floor, heads, frame_fn, jax.tree.structure(params), tuple(x.shape for x in jax.tree.leaves(params)))
+    cache_key = (cfg.world, cfg.data.image_size, cfg.model, ev.chunk_steps, e, ev.town_seed, ev.known_start, sample,
+                 top_k, score_floor, heads, frame_fn, jax.tree.structure(params),
+                 tuple(x.shape for x in jax.tree.leaves(params)))
     if cache_key not in _COMPILED:  # one compile per program, reused by later evaluations in the process
         _COMPILED[cache_key] = make_chunk_fn(cfg, town, sample, top_k, score_floor, heads, frame_fn).lower(
             params, wstate, fstate, sample_root, jnp.int32(0)).compile()

@@ -87,12 +87,13 @@ def map_panel(view, true_xy, pred_xy, place=None):
     (red dots, ``pred_xy`` [K, 2]), the latest of each ringed."""
     img = view.draw()
     size = img.shape[1::-1]
-    if place is not None:
+    if place is not None:  # blended per cell, then scaled up: no full-size float temporaries
         p = np.flipud(np.asarray(place, np.float64))  # image rows run south
-        heat = cv2.resize((p / max(p.max(), 1e-30)).astype(np.float32), size, interpolation=cv2.INTER_NEAREST)
-        colour = cv2.cvtColor(cv2.applyColorMap((heat * 255).astype(np.uint8), cv2.COLORMAP_INFERNO), cv2.COLOR_BGR2RGB)
-        alpha = (0.85 * heat)[..., None]
-        img = (img * (1 - alpha) + colour * alpha).astype(np.uint8)
+        heat = (255 * p / max(p.max(), 1e-30)).astype(np.uint8)
+        colour = cv2.cvtColor(cv2.applyColorMap(heat, cv2.COLORMAP_INFERNO), cv2.COLOR_BGR2RGB)
+        alpha = cv2.resize((0.85 * heat).astype(np.uint8), size, interpolation=cv2.INTER_NEAREST)[..., None]
+        colour = cv2.resize(colour, size, interpolation=cv2.INTER_NEAREST)
+        img = ((img.astype(np.uint16) * (255 - alpha) + colour.astype(np.uint16) * alpha) // 255).astype(np.uint8)
     true_px, pred_px = view._px(np.reshape(true_xy, (-1, 2))), view._px(np.reshape(pred_xy, (-1, 2)))
     if len(true_px):
         cv2.polylines(img, [true_px], False, VISIBLE_RGB, 1, cv2.LINE_AA, _SHIFT)

@@ -20,9 +20,10 @@ The histogram filter (:func:`init_state`, :func:`filter_step`) keeps a belief [B
 a speed track [B] and a heading offset [B] shared by all bins. Motion: the world's bicycle model driven by
 the recorded action (acceleration, steering), each heading bin's mass moved by its own displacement (a
 bilinear split over the neighbouring cells, which keeps the mass's mean exact) and the common yaw change
-added to the offset, whole bins rolling the heading axis. Measurement:
-the head's place and heading probabilities, floored and tempered, multiplied in (Bayes' rule). The point
-estimate is the belief's mode refined by the head's offsets there. Pure JAX; it runs inside a ``lax.scan``.
+added to the offset, whole bins rolling the heading axis. Measurement: the head's place and heading
+probabilities, floored and tempered, multiplied in (Bayes' rule). The point estimate (:func:`estimate`):
+the belief's mode, its position the belief's mean over the 3 x 3 cells around the mode cell, its heading
+the mode bin refined by the head's offset. Pure JAX; it runs inside a ``lax.scan``.
 """
 import dataclasses
 import math
@@ -229,10 +230,12 @@ def _normalised(belief):
 
 
 def filter_step(state: dict, head: dict, prev_action, first, grid: Grid, *, start_pose=None,
-                floor: float = MEASUREMENT_FLOOR, power: float = MEASUREMENT_POWER, speed_gain: float = SPEED_GAIN):
+                floor: float = MEASUREMENT_FLOOR, power: float = MEASUREMENT_POWER, speed_gain: float = SPEED_GAIN,
+                position: str = "local_mean"):
     """One frame for B streams: motion by ``prev_action`` [B, 2] (the action from the last frame to this one),
     then Bayes' rule with this frame's ``head`` outputs. Rows with ``first`` [B] set start from the
-    measurement alone (uniform prior, the head's speed). Returns (state, pose [B, 5] at the belief's mode).
+    measurement alone (uniform prior, the head's speed). Returns (state, pose [B, 5] at the belief's mode,
+    :func:`estimate`).
 
     ``start_pose`` [B, 5] (the known-start protocol, an odometry): rows with ``first`` set start as a point
     mass at that pose and speed, no measurement is taken, and the pose is the belief's mean: the filter's
@@ -252,14 +255,27 @@ def filter_step(state: dict, head: dict, prev_action, first, grid: Grid, *, star
     new = {"belief": _normalised(jnp.where(rows(moved), 1.0, moved) * likelihood(head, grid, floor, power)),
            "speed_mps": jnp.where(first, head_speed, v_new + speed_gain * (head_speed - v_new)),
            "yaw_offset_rad": jnp.where(first, 0.0, offset)}
-    return new, estimate(new["belief"], head, new["speed_mps"], grid)
+    return new, estimate(new["belief"], head, new["speed_mps"], grid, position)
 
 
-def estimate(belief, head: dict, speed_mps, grid: Grid):
-    """The pose [B, 5] at the belief's mode (cell and bin), refined by the head's offsets there."""
+POSITIONS = ("local_mean", "head_offset")
+
+
+def estimate(belief, head: dict, speed_mps, grid: Grid, position: str = "local_mean"):
+    """The pose [B, 5] at the belief's mode (cell and bin). Heading: the mode bin refined by the head's
+    heading offset there. Position (``position``): ``local_mean``, the belief's mean over the 3 x 3 cells
+    around the mode (it keeps what motion has integrated within a cell), or ``head_offset``, the mode cell
+    refined by the head's offset there."""
     flat = jnp.argmax(belief.reshape(belief.shape[0], -1), -1)
     k, cell = flat // grid.num_cells, flat % grid.num_cells
-    return _pose_at(head, cell, k, speed_mps, grid)
+    pose = _pose_at(head, cell, k, speed_mps, grid)
+    if position == "head_offset":
+        return pose
+    near = lambda index: jnp.abs(jnp.arange(grid.n)[None, :] - index[:, None]) <= 1  # [B, n]
+    window = place_marginal(belief) * (near(cell // grid.n)[:, :, None] & near(cell % grid.n)[:, None, :])
+    window = window.reshape(belief.shape[0], -1)
+    xy = window @ jnp.asarray(grid.cell_centres()) / jnp.sum(window, -1, keepdims=True)
+    return jnp.concatenate([xy, pose[:, 2:]], -1)
 
 
 def _linear_split(u, size: int):

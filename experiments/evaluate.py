@@ -1,10 +1,12 @@
 """Evaluates a trained run online (DESIGN §5) and writes RUN/eval/ (RUN/eval_town<seed>/ on a held-out
-``--eval.town_seed``): metrics.json, report.md, pr_curves.png, examples.png, drive.mp4.
+``--eval.town_seed``, with ``_known_start`` under ``--eval.known_start``): metrics.json, report.md,
+pr_curves.png, examples.png, drive.mp4.
 
     python experiments/evaluate.py --workdir=runs/demo [--eval.num_steps=2000 --sample --video_frames=300]
 
 The run's config.json is the config; ``--eval.<field>`` flags override its evaluation section
-(number of frames, worlds, start-key seed, town, chunk size, score threshold). Other sections are the
+(number of frames, worlds, start-key seed, town, chunk size, score threshold, the pose protocol:
+``--eval.known_start`` starts the pose belief at each drive's true first pose). Other sections are the
 trained model's and cannot change. A bad flag prints one line and exits with status 1.
 """
 import os
@@ -18,7 +20,7 @@ from e2e_percep_jax import config as config_lib
 config_lib.define_flags()
 flags.DEFINE_string("workdir", None, "run directory holding config.json and checkpoints/")
 flags.DEFINE_string("out_dir", None, "where the report goes (default: WORKDIR/eval, or WORKDIR/eval_town<seed> "
-                    "with a held-out --eval.town_seed)")
+                    "with a held-out --eval.town_seed; _known_start appended under --eval.known_start)")
 flags.DEFINE_integer("step", None, "checkpoint step to evaluate (default: the latest)")
 flags.DEFINE_boolean("sample", False, "filter with posterior samples instead of the posterior mean")
 flags.DEFINE_integer("video_frames", 300, "frames of world 0 in drive.mp4 (0: no video)")

@@ -8,7 +8,7 @@ import pytest
 import e2e_percep_jax as e2e
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import model as model_lib
-from e2e_percep_jax import pixor
+from e2e_percep_jax import pixor, pose_belief
 from e2e_percep_jax import train as train_lib
 
 CFG = config_lib.get_config("tiny")
@@ -77,6 +77,30 @@ def test_step_inside_a_users_jit_and_scan(params):
     streamed = _stream(perceiver, params, camera, lidar, action)
     np.testing.assert_allclose(poses, streamed["pose"], rtol=1e-5, atol=1e-4)
     assert poses.shape == (2, 3, 5)
+
+
+def test_pose_belief_through_the_api_known_start_and_global(params):
+    """The belief head's outputs: ``pose_place`` is a distribution over the cells; with ``start_pose`` the
+    pose is the known start on a stream's first frame, then that start moved by the actions alone (the
+    filter's bicycle model, the same as ``pose_belief``'s), whatever the images."""
+    perceiver = e2e.Perceiver(CFG)
+    camera, lidar, action = _inputs(2, 4, seed=4)
+    start = jnp.asarray([[100.0, 200.0, 1.0, 0.0, 5.0], [300.0, 50.0, 0.0, 1.0, 8.0]], jnp.float32)
+    step = jax.jit(perceiver.step)
+    state, global_state = perceiver.init(2), perceiver.init(2)
+    grid = pose_belief.grid_of(CFG.model)
+    track = pose_belief.init_state(2, grid)
+    for t in range(4):
+        state, out = step(params, state, camera[:, t], lidar[:, t], action[:, t], start_pose=start)
+        track, want = pose_belief.filter_step(track, None, action[:, t], jnp.asarray([t == 0] * 2), grid,
+                                              start_pose=start)
+        np.testing.assert_allclose(out["pose"], want, rtol=1e-6, atol=1e-4)
+        if t == 0:
+            np.testing.assert_allclose(out["pose"], start, atol=1e-4)
+        global_state, global_out = step(params, global_state, camera[:, t], lidar[:, t], action[:, t])
+        np.testing.assert_allclose(jnp.sum(global_out["pose_place"], (1, 2)), 1.0, rtol=1e-5)
+        assert global_out["pose_place"].shape == (2, grid.n, grid.n)
+    assert not np.allclose(out["pose"][:, :2], start[:, :2])  # it moved
 
 
 @pytest.mark.parametrize("arg, bad, expected", [

@@ -262,7 +262,10 @@ def test_pose_accumulator_mean_median_and_step_bins():
     acc.add(metrics.PoseErrors(location[None, 4:], zeros[None, 4:], zeros[None, 4:] + 3),
             np.arange(4, 6)[None])
     res = acc.results()
-    assert res["location_m"] == {"mean": pytest.approx(11 / 6), "median": pytest.approx(1.5)}
+    # p90 by NumPy's linear interpolation: sorted [0, 1, 1, 2, 3, 4], position 4.5 -> 3.5.
+    assert res["location_m"] == {"mean": pytest.approx(11 / 6), "median": pytest.approx(1.5), "p90": pytest.approx(3.5),
+                                 "within": {"5": 1.0, "10": 1.0, "50": 1.0}}
+    assert res["heading_rad"]["within"] == {"0.1": 1.0} and res["speed_mps"]["within"] == {}
     assert res["speed_mps"]["mean"] == pytest.approx(10 / 6)
     assert res["speed_mps"]["median"] == pytest.approx(1.0)
     np.testing.assert_allclose(res["location_m_by_step"]["mean"], [3.5, 1.5, 0.5])
@@ -279,5 +282,8 @@ def test_pose_accumulator_grows_past_its_initial_buffer():
     every = np.concatenate(chunks)
     res = acc.results()
     assert res["location_m"]["median"] == pytest.approx(np.median(every), rel=1e-6)
+    assert res["location_m"]["p90"] == pytest.approx(np.percentile(every, 90), rel=1e-6)
+    assert res["location_m"]["within"]["5"] == pytest.approx(np.mean(every <= 5.0))
+    assert res["heading_rad"]["within"]["0.1"] == pytest.approx(np.mean(every / 10 <= 0.1))
     assert res["heading_rad"]["mean"] == pytest.approx(np.mean(every) / 10, rel=1e-6)
     np.testing.assert_array_equal(res["location_m_by_step"]["count"][:2], [len(every), 0])

@@ -152,3 +152,16 @@ def test_negative_log_likelihood_of_a_uniform_belief_is_the_log_volume():
     state = pose_belief.init_state(3, GRID)
     nll = pose_belief.negative_log_likelihood(state, jnp.asarray(random_poses(3)), GRID)
     np.testing.assert_allclose(nll, math.log(480.0 ** 2 * 2 * math.pi), rtol=1e-5)
+
+
+def test_position_estimate_is_the_local_mean_around_the_mode():
+    """A belief holding a point bilinearly (four neighbouring cells) reads back that point; a second,
+    smaller mode far away does not pull the estimate."""
+    pose = jnp.asarray(random_poses(5, seed=5))
+    belief, _ = pose_belief.start_at(pose, GRID)
+    far = jnp.roll(belief, (GRID.n // 2, GRID.n // 2), axis=(2, 3))  # the same shape 240 m away
+    head = head_naming(pose, GRID)
+    for b in (belief, 0.7 * belief + 0.3 * far):
+        got = pose_belief.estimate(b, head, pose[:, 4], GRID)
+        np.testing.assert_allclose(got[:, :2], pose[:, :2], atol=1e-3)
+        np.testing.assert_allclose(got[:, 2:], pose[:, 2:], atol=1e-4)  # heading from the head's offset

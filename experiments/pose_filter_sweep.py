@@ -1,0 +1,98 @@
+"""Chooses the pose belief filter's settings on drives the evaluation never uses, for a trained run.
+
+    python experiments/pose_filter_sweep.py --workdir=runs/cpu --eval_seed=2000 --frames=500 \
+        --floors=0.01,0.05,0.2 --powers=0.25,0.5,1 --speed_gains=0.2
+
+E = ``--worlds`` drives of the run's town start from ``PRNGKey(--eval_seed)`` (the evaluation's own seed,
+1000, is held out from this choice), warm their traffic up and drive ``--frames`` frames each. The model
+filters its latent along each drive once; then the histogram filter (``pose_belief.filter_step``) runs over
+the same head outputs for every combination of measurement floor, measurement power and speed gain, each
+with both ways of reading a position off the belief (``pose_belief.POSITIONS``), and the location /
+heading errors (mean, median, over every frame, and over frames 100 on) are printed as a table.
+"""
+import functools
+import itertools
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from absl import app, flags
+
+from e2e_percep_jax import allocator
+
+flags.DEFINE_string("workdir", None, "a training run with the belief pose head")
+flags.DEFINE_integer("step", None, "checkpoint (default: the latest)")
+flags.DEFINE_integer("eval_seed", 2000, "drives' start keys; not the evaluation's 1000")
+flags.DEFINE_integer("worlds", 8, "drives")
+flags.DEFINE_integer("frames", 500, "frames per drive")
+flags.DEFINE_list("floors", ["0.01", "0.05", "0.2"], "measurement floors to try")
+flags.DEFINE_list("powers", ["0.25", "0.5", "1.0"], "measurement powers to try")
+flags.DEFINE_list("speed_gains", ["0.2"], "speed gains to try")
+FLAGS = flags.FLAGS
+
+
+def main(argv):
+    allocator.keep_freed_buffers()
+    from e2e_percep_jax import batch as batch_lib
+    from e2e_percep_jax import checkpoint, metrics, pose_belief
+    from e2e_percep_jax import config as config_lib
+    from e2e_percep_jax import model as model_lib
+    from e2e_percep_jax import town as town_lib
+    try:
+        config_lib.check_launch(argv)
+        settings = [tuple(map(float, s)) for s in itertools.product(FLAGS.floors, FLAGS.powers, FLAGS.speed_gains)]
+        settings = [s + (position,) for s in settings for position in pose_belief.POSITIONS]
+        if FLAGS.worlds < 1 or FLAGS.frames < 1:
+            raise ValueError("--worlds and --frames must be positive")
+        cfg, params, step = checkpoint.restore_params(FLAGS.workdir, step=FLAGS.step)
+        if cfg.model.pose_head != "belief":
+            raise ValueError(f"--workdir={FLAGS.workdir}: its pose head is {cfg.model.pose_head!r}, not the belief")
+    except (ValueError, FileNotFoundError) as e:
+        sys.exit(f"error: {e}")
+    grid = pose_belief.grid_of(cfg.model)
+    town = town_lib.build_town(cfg.world.town_seed)
+    drive_cfg = config_lib.replace(cfg, data=dict(batch_size=FLAGS.worlds))
+    states = batch_lib.warm_up(jax.random.PRNGKey(FLAGS.eval_seed), town, drive_cfg)
+    _, frames = jax.jit(jax.vmap(lambda s: batch_lib.rollout(s, town, FLAGS.frames, cfg.data.image_size)))(states)
+    time_major = lambda x: jnp.swapaxes(x, 0, 1)
+    prev_action = jnp.concatenate([jnp.zeros_like(frames["action"][:, :1]), frames["action"][:, :-1]], 1)
+
+    @jax.jit
+    def heads(params):
+        def body(state, xs):
+            camera, lidar, action = xs
+            state, latent = model_lib.filter_step(params, state, camera, lidar, action, None, cfg)
+            return state, model_lib.pose_belief_head(params, latent, cfg)
+        xs = tuple(map(time_major, (frames["camera"], frames["lidar"], prev_action)))
+        return jax.lax.scan(body, model_lib.init_filter_state(FLAGS.worlds, cfg), xs)[1]
+
+    head = heads(params)  # [T, E, ...]
+    first = jnp.arange(FLAGS.frames) == 0
+
+    @functools.partial(jax.jit, static_argnames="position")
+    def track(floor, power, gain, position):
+        def body(state, xs):
+            h, action, is_first = xs
+            return pose_belief.filter_step(state, h, action, jnp.full(FLAGS.worlds, is_first), grid,
+                                           floor=floor, power=power, speed_gain=gain, position=position)
+        return jax.lax.scan(body, pose_belief.init_state(FLAGS.worlds, grid), (head, time_major(prev_action), first))[1]
+
+    truth = np.asarray(time_major(frames["pose"]))
+    rows = [("head alone (no filter)", np.asarray(pose_belief.decode(head, grid)))]
+    rows += [(f"floor {f:g}, power {p:g}, speed gain {g:g}, {position}", np.asarray(track(f, p, g, position=position)))
+             for f, p, g, position in settings]
+    print(f"{FLAGS.workdir} step {step}: {FLAGS.worlds} drives x {FLAGS.frames} frames from PRNGKey({FLAGS.eval_seed})")
+    print("| filter | location mean / median (m) | from frame 100: mean / median (m) | heading mean (rad) | within 10 m |")
+    print("|---|---|---|---|---|")
+    for name, pred in rows:
+        err = metrics.pose_errors(pred, truth)
+        late = err.location_m[100:]
+        print(f"| {name} | {err.location_m.mean():.1f} / {np.median(err.location_m):.1f} | "
+              f"{late.mean():.1f} / {np.median(late):.1f} | {err.heading_rad.mean():.3f} | "
+              f"{100 * np.mean(err.location_m <= 10):.1f} % |", flush=True)
+
+
+if __name__ == "__main__":
+    flags.mark_flag_as_required("workdir")
+    app.run(main)
