@@ -46,7 +46,7 @@ TARGET_STD_CELLS = 0.5  # std of the Gaussian soft targets, in cells (place) and
 # the wrong place cannot erase the right one), raised to MEASUREMENT_POWER (< 1: consecutive frames'
 # measurements are not independent), and the speed track moves this share toward the head's speed a frame.
 MEASUREMENT_FLOOR = 0.05
-MEASUREMENT_POWER = 0.5
+MEASUREMENT_POWER = 0.25
 SPEED_GAIN = 0.2
 
 
