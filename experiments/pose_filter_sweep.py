@@ -6,7 +6,8 @@
 E = ``--worlds`` drives of the run's town start from ``PRNGKey(--eval_seed)`` (the evaluation's own seed,
 1000, is held out from this choice), warm their traffic up and drive ``--frames`` frames each. The model
 filters its latent along each drive once; then the histogram filter (``pose_belief.filter_step``) runs over
-the same head outputs for every combination of measurement floor, measurement power and speed gain, each
+the same head outputs for every combination of measurement floor, measurement power, speed gain and
+relocation share, each
 with both ways of reading a position off the belief (``pose_belief.POSITIONS``), and the location /
 heading errors (mean, median, over every frame, and over frames 100 on) are printed as a table.
 """
@@ -29,6 +30,8 @@ flags.DEFINE_integer("frames", 500, "frames per drive")
 flags.DEFINE_list("floors", ["0.01", "0.05", "0.2"], "measurement floors to try")
 flags.DEFINE_list("powers", ["0.25", "0.5", "1.0"], "measurement powers to try")
 flags.DEFINE_list("speed_gains", ["0.2"], "speed gains to try")
+flags.DEFINE_list("relocations", ["0.001"], "shares of each cell's mass spread over all headings after each "
+                  "motion step, to try")
 FLAGS = flags.FLAGS
 
 
@@ -41,7 +44,8 @@ def main(argv):
     from e2e_percep_jax import town as town_lib
     try:
         config_lib.check_launch(argv)
-        settings = [tuple(map(float, s)) for s in itertools.product(FLAGS.floors, FLAGS.powers, FLAGS.speed_gains)]
+        settings = [tuple(map(float, s)) for s in itertools.product(FLAGS.floors, FLAGS.powers, FLAGS.speed_gains,
+                                                                    FLAGS.relocations)]
         settings = [s + (position,) for s in settings for position in pose_belief.POSITIONS]
         if FLAGS.worlds < 1 or FLAGS.frames < 1:
             raise ValueError("--worlds and --frames must be positive")
@@ -71,26 +75,28 @@ def main(argv):
     first = jnp.arange(FLAGS.frames) == 0
 
     @functools.partial(jax.jit, static_argnames="position")
-    def track(floor, power, gain, position):
+    def track(floor, power, gain, relocation, position):
         def body(state, xs):
             h, action, is_first = xs
-            return pose_belief.filter_step(state, h, action, jnp.full(FLAGS.worlds, is_first), grid,
-                                           floor=floor, power=power, speed_gain=gain, position=position)
+            return pose_belief.filter_step(state, h, action, jnp.full(FLAGS.worlds, is_first), grid, floor=floor,
+                                           power=power, speed_gain=gain, relocation=relocation, position=position)
         return jax.lax.scan(body, pose_belief.init_state(FLAGS.worlds, grid), (head, time_major(prev_action), first))[1]
 
     truth = np.asarray(time_major(frames["pose"]))
     rows = [("head alone (no filter)", np.asarray(pose_belief.decode(head, grid)))]
-    rows += [(f"floor {f:g}, power {p:g}, speed gain {g:g}, {position}", np.asarray(track(f, p, g, position=position)))
-             for f, p, g, position in settings]
+    rows += [(f"floor {f:g}, power {p:g}, speed gain {g:g}, relocation {r:g}, {position}",
+              np.asarray(track(f, p, g, r, position=position))) for f, p, g, r, position in settings]
     print(f"{FLAGS.workdir} step {step}: {FLAGS.worlds} drives x {FLAGS.frames} frames from PRNGKey({FLAGS.eval_seed})")
-    print("| filter | location mean / median (m) | from frame 100: mean / median (m) | heading mean (rad) | within 10 m |")
-    print("|---|---|---|---|---|")
+    print("| filter | location mean / median (m) | from frame 100: mean / median (m) | heading mean (rad) | "
+          "within 10 m | drives ending within 10 m |")
+    print("|---|---|---|---|---|---|")
     for name, pred in rows:
         err = metrics.pose_errors(pred, truth)
         late = err.location_m[100:]
         print(f"| {name} | {err.location_m.mean():.1f} / {np.median(err.location_m):.1f} | "
               f"{late.mean():.1f} / {np.median(late):.1f} | {err.heading_rad.mean():.3f} | "
-              f"{100 * np.mean(err.location_m <= 10):.1f} % |", flush=True)
+              f"{100 * np.mean(err.location_m <= 10):.1f} % | {np.sum(err.location_m[-1] <= 10)} / {FLAGS.worlds} |",
+              flush=True)
 
 
 if __name__ == "__main__":

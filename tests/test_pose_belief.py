@@ -54,7 +54,8 @@ def test_mode_and_offset_decoding_round_trips_a_pose():
 
 def test_measurement_update_is_bayes_rule_against_brute_force():
     """A tiny grid (40 m cells: 12 x 12, 4 headings), a random prior and random head outputs, no motion:
-    the filter's posterior equals prior x floored, tempered likelihood, normalised, cell by cell."""
+    the filter's posterior equals (prior with the relocation share of each cell spread over its headings) x
+    floored, tempered likelihood, normalised, cell by cell."""
     grid = pose_belief.Grid(cell_m=40.0, heading_bins=4)
     rng = np.random.default_rng(2)
     b, h, n = 2, grid.heading_bins, grid.n
@@ -64,8 +65,9 @@ def test_measurement_update_is_bayes_rule_against_brute_force():
             "place_offset": np.zeros((b, n * n, 2)), "heading_offset": np.zeros((b, h)), "speed": np.zeros(b)}
     state = {"belief": jnp.asarray(prior, jnp.float32), "speed_mps": jnp.zeros(b), "yaw_offset_rad": jnp.zeros(b)}
     f32 = {k: jnp.asarray(v, jnp.float32) for k, v in head.items()}
-    floor, power = 0.1, 0.7
-    new, _ = pose_belief.filter_step(state, f32, jnp.zeros((b, 2)), jnp.zeros(b, bool), grid, floor=floor, power=power)
+    floor, power, relocation = 0.1, 0.7, 0.01
+    new, _ = pose_belief.filter_step(state, f32, jnp.zeros((b, 2)), jnp.zeros(b, bool), grid, floor=floor, power=power,
+                                     relocation=relocation)
     softmax = lambda x: np.exp(x - x.max()) / np.exp(x - x.max()).sum()
     for row in range(b):
         place = (1 - floor) * softmax(head["place_logit"][row]) + floor / (n * n)
@@ -74,7 +76,8 @@ def test_measurement_update_is_bayes_rule_against_brute_force():
         for k in range(h):
             for i in range(n):
                 for j in range(n):
-                    want[k, i, j] = prior[row, k, i, j] * (place[i * n + j] * heading[k]) ** power
+                    mixed = (1 - relocation) * prior[row, k, i, j] + relocation * prior[row, :, i, j].mean()
+                    want[k, i, j] = mixed * (place[i * n + j] * heading[k]) ** power
         np.testing.assert_allclose(new["belief"][row], want / want.sum(), rtol=1e-4, atol=1e-9)
 
 
