@@ -176,23 +176,28 @@ def init_state(batch_size: int, grid: Grid) -> dict:
             "yaw_offset_rad": jnp.zeros((batch_size,), jnp.float32)}
 
 
-def motion(action, speed_mps, yaw_offset_rad, grid: Grid):
-    """The world's bicycle model (``world._drive_ego``) for one step of every heading bin.
+def bicycle(action, speed_mps, yaw):
+    """The world's bicycle model (``world._drive_ego``) for one step.
 
-    action [..., 2] (acceleration m/s², steering rad), speed_mps and yaw_offset_rad [...] before the step.
-    Returns (speed after [...], centre displacement [..., H, 2] metres of a vehicle heading along each bin
-    (its centre plus the offset), yaw change [...]).
+    action [..., 2] (acceleration m/s², steering rad), speed_mps [...] before the step, yaw [..., K]
+    radians: K headings the vehicle may have. Returns (speed after [...], centre displacement [..., K, 2] metres for
+    each heading, yaw change [...]).
     """
     v_new = jnp.maximum(speed_mps + action[..., 0] * DT_S, 0.0)
     ds = 0.5 * (speed_mps + v_new) * DT_S
     dyaw = ds * jnp.tan(action[..., 1]) / WHEELBASE_M
-    yaw = jnp.asarray(grid.bin_centres()) + yaw_offset_rad[..., None]
     unit = lambda a: jnp.stack([jnp.cos(a), jnp.sin(a)], -1)
     # The rear axle moves ds along the mid-step heading; the centre sits half a wheelbase ahead of it.
     mid = yaw + 0.5 * dyaw[..., None]
     move = (ds[..., None, None] * unit(mid)
             + 0.5 * WHEELBASE_M * (unit(yaw + dyaw[..., None]) - unit(yaw)))
     return v_new, move, dyaw
+
+
+def motion(action, speed_mps, yaw_offset_rad, grid: Grid):
+    """:func:`bicycle` for every heading bin (its centre plus the offset ``yaw_offset_rad`` [...]):
+    (speed after [...], displacement [..., H, 2], yaw change [...])."""
+    return bicycle(action, speed_mps, jnp.asarray(grid.bin_centres()) + yaw_offset_rad[..., None])
 
 
 def _shift(x, axis: int, direction: int):
@@ -244,20 +249,24 @@ def filter_step(state: dict, head: dict, prev_action, first, grid: Grid, *, star
     with ``first`` [B] set start from the measurement alone (uniform prior, the head's speed). Returns (state, pose [B, 5] at the belief's mode,
     :func:`estimate`).
 
-    ``start_pose`` [B, 5] (the known-start protocol, an odometry): rows with ``first`` set start as a point
-    mass at that pose and speed, no measurement is taken, and the pose is the belief's mean: the filter's
-    motion model alone integrates the recorded actions.
+    ``start_pose`` [B, 5] (the known-start protocol, an odometry): rows with ``first`` set start at that pose
+    and speed, no measurement is taken, and the belief stays a point (:func:`start_at`) that the filter's
+    motion model moves by the recorded actions; the pose is that point. (A point, not a spreading histogram:
+    over thousands of steps the bilinear splits would spread it across the town and its edges.)
     """
+    rows = lambda x: first.reshape(first.shape + (1,) * (x.ndim - 1))
+    if start_pose is not None:
+        point = mean_pose(state, grid)
+        yaw = _yaw(point)
+        v_new, move, dyaw = bicycle(prev_action, point[:, 4], yaw[:, None])
+        yaw = yaw + dyaw
+        moved = jnp.concatenate([point[:, :2] + move[:, 0], jnp.stack([jnp.cos(yaw), jnp.sin(yaw), v_new], -1)], -1)
+        pose = jnp.where(rows(moved), start_pose, moved)
+        belief, offset = start_at(pose, grid)
+        return {"belief": belief, "speed_mps": pose[:, 4], "yaw_offset_rad": offset}, pose
     v_new, move, dyaw = motion(prev_action, state["speed_mps"], state["yaw_offset_rad"], grid)
     moved, offset = jax.vmap(lambda b, m, o: predict(b, m, o, grid))(state["belief"], move,
                                                                      state["yaw_offset_rad"] + dyaw)
-    rows = lambda x: first.reshape(first.shape + (1,) * (x.ndim - 1))
-    if start_pose is not None:
-        start_belief, start_offset = start_at(start_pose, grid)
-        new = {"belief": _normalised(jnp.where(rows(moved), start_belief, moved)),
-               "speed_mps": jnp.where(first, start_pose[:, 4], v_new),
-               "yaw_offset_rad": jnp.where(first, start_offset, offset)}
-        return new, mean_pose(new, grid)
     head_speed = head["speed"] * SPEED_SCALE_MPS
     prior = (1.0 - relocation) * moved + relocation * jnp.mean(moved, axis=-3, keepdims=True)
     new = {"belief": _normalised(jnp.where(rows(moved), 1.0, prior) * likelihood(head, grid, floor, power)),
