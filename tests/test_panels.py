@@ -46,3 +46,28 @@ def test_frame_panel_colours_visible_and_occluded_boxes():
     for colour in (panels.VISIBLE_RGB, panels.OCCLUDED_RGB):  # each drawn (anti-aliased: near, not equal)
         assert np.min(np.linalg.norm(pixels - colour, axis=-1)) < 40, colour
     assert panel.shape == (VIEW_PX, 4 * VIEW_PX, 3)
+
+
+def test_town_map_puts_the_belief_and_the_paths_where_the_town_frame_says():
+    """The map of the belief's area (north up): a belief of one cell colours that cell's square only, and
+    the estimate's ring is drawn around its town position."""
+    from e2e_percep_jax import pose_belief, render
+    from e2e_percep_jax import town as town_lib
+    grid = pose_belief.Grid(cell_m=10.0, heading_bins=36)
+    lo, size = pose_belief.AREA_ORIGIN_M, pose_belief.AREA_SIZE_M
+    view = render.TopDown(town_lib.build_town(0), (lo, lo, lo + size, lo + size), px_per_m=0.8)
+    place = np.zeros((grid.n, grid.n))
+    i, j = 30, 12  # row along y (north), column along x
+    place[i, j] = 1.0
+    blank = panels.map_panel(view, np.zeros((0, 2)), np.zeros((0, 2)))
+    img = panels.map_panel(view, np.zeros((0, 2)), np.zeros((0, 2)), place)
+    changed = np.argwhere(np.any(img != blank, -1))  # (row, col) pixels
+    px = 0.8 * grid.cell_m  # 8 px a cell
+    want_rows = (grid.n - 1 - i) * px, (grid.n - i) * px  # image rows run south
+    assert changed[:, 0].min() >= want_rows[0] - 1 and changed[:, 0].max() <= want_rows[1] + 1
+    assert changed[:, 1].min() >= j * px - 1 and changed[:, 1].max() <= (j + 1) * px + 1
+    assert len(changed) > 0.8 * px * px
+    xy = np.array([[lo + 100.0, lo + 300.0]])  # town metres
+    ring = np.argwhere(np.any(panels.map_panel(view, xy, xy) != blank, -1))
+    centre = np.array([size - 300.0, 100.0]) * 0.8  # (row, col)
+    assert np.all(np.linalg.norm(ring - centre, axis=-1) < 10)
