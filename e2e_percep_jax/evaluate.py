@@ -320,14 +320,14 @@ CONVERGED_M = 10.0  # a drive has converged from the first frame after which its
 
 
 def drive_pose_summary(drives_true, drives_pred) -> dict:
-    """Per-drive pose figures from each drive's true and estimated poses (lists of [5], frame by frame):
+    """Per-drive pose figures from each drive's true and estimated poses ([frames, 5] each, in order):
     ``converged_frame`` (per drive: the first frame from which the location error stays below CONVERGED_M,
     None if it never does) with its median over the drives that converge and their share, and
     ``drift_per_100m``: the location error at the drives' last frames over the distance they drove
     (summed over drives), per 100 m: how fast an odometry from a known start drifts."""
     converged, end_error, distance = [], 0.0, 0.0
     for true, pred in zip(drives_true, drives_pred):
-        if not true:
+        if not len(true):
             continue
         true, pred = np.asarray(true, np.float64), np.asarray(pred, np.float64)
         error = np.linalg.norm(pred[:, :2] - true[:, :2], axis=-1)
@@ -557,7 +557,8 @@ def evaluate(cfg: Config, params, out_dir: str, *, sample: bool = False, video_f
     det_acc = metrics_lib.DetectionAccumulator(IOU_THRESHOLDS)
     pose_acc = metrics_lib.PoseErrorAccumulator()
     true_poses, saturated, done = [], 0, 0
-    drives_true, drives_pred = [[] for _ in range(e)], [[] for _ in range(e)]  # per world: poses [5] per frame
+    # Per world and frame: true and estimated poses, copied out of the chunks' buffers (flat memory).
+    drives_true, drives_pred = np.zeros((e, per_world.max(), 5)), np.zeros((e, per_world.max(), 5))
     nll = []
     images, video = [], None
     video_path = os.path.join(out_dir, "drive.mp4")
@@ -566,8 +567,8 @@ def evaluate(cfg: Config, params, out_dir: str, *, sample: bool = False, video_f
     town_view = render.TopDown(town, area, px_per_m=2 * panel_px / pose_belief.AREA_SIZE_M)
 
     def with_map(picture, frame, w, frame_index):  # the example rows with the town map on their right
-        path = lambda poses: np.asarray(poses[:frame_index + 1])[:, :2]
-        town_map = panels.map_panel(town_view, path(drives_true[w]), path(drives_pred[w]), frame.get("pose_place"))
+        path = lambda poses: poses[w, :frame_index + 1, :2]
+        town_map = panels.map_panel(town_view, path(drives_true), path(drives_pred), frame.get("pose_place"))
         return np.concatenate([picture, town_map], 1)
     tick = time.perf_counter()
 
@@ -594,8 +595,7 @@ def evaluate(cfg: Config, params, out_dir: str, *, sample: bool = False, video_f
                 if hosts is not None:
                     boxes, scores, pose_pred[t, w] = hosts[w](boxes, scores, pose_pred[t, w], out["pose"][t, w])
                 det_acc.add_frame(boxes, scores, out["boxes"][t, w], out["boxes_valid"][t, w], out["boxes_occluded"][t, w])
-                drives_true[w].append(out["pose"][t, w])
-                drives_pred[w].append(pose_pred[t, w])
+                drives_true[w, frame_index], drives_pred[w, frame_index] = out["pose"][t, w], pose_pred[t, w]
                 saturated += bool(out["saturated"][t, w])
                 done += 1
                 shown = scores >= ev.score_threshold
@@ -652,7 +652,8 @@ def evaluate(cfg: Config, params, out_dir: str, *, sample: bool = False, video_f
                              for t in IOU_THRESHOLDS},
             "pr_curves": {key(t): {s: _curve_summary(results[t][s]) for s in metrics_lib.SUBSETS} for t in IOU_THRESHOLDS},
         },
-        "pose": dict(_pose_summary(pose_acc), **drive_pose_summary(drives_true, drives_pred),
+        "pose": dict(_pose_summary(pose_acc), **drive_pose_summary(
+                         [d[:n] for d, n in zip(drives_true, per_world)], [d[:n] for d, n in zip(drives_pred, per_world)]),
                      nll_mean=summary.defined(float(np.mean(np.concatenate(nll), dtype=np.float64))),
                      known_start=ev.known_start),
         "examples": [{"world": int(w), "frame": int(i), "vehicles_in_view": int(np.sum(frame["boxes_valid"]))}
