@@ -62,7 +62,8 @@ class Perceiver:
         posterior means. Returns (state, outputs) with outputs:
         ``det_cls`` [B, R, R, 1] vehicle probability, ``det_reg`` [B, R, R, 6] PIXOR regression
         (units in :mod:`e2e_percep_jax.pixor`), ``pose`` [B, 5] (x m, y m, cos ψ, sin ψ, speed m/s,
-        town frame; with the belief head: at the filtered belief's mode), ``z`` [B, z1_dim + z2_dim], the
+        town frame; with the belief head: at the filtered belief's mode, or under ``--model.pose_filter=none``
+        the head's own mode this frame), ``z`` [B, z1_dim + z2_dim], the
         reconstructed images the variant has (``roadmap``, ``camera``, ``lidar``: float32 [B, R, R, 3] in
         [0, 1]), and with the belief head ``pose_place`` [B, n, n], the belief's probability of each cell
         (row i along y, column j along x, ``pose_belief.Grid.cell_centres``).
@@ -82,10 +83,12 @@ class Perceiver:
         outputs.update({k: jnp.clip(decoded[k], 0.0, 1.0) for k in model_lib.reconstructed_images(self.cfg.model.variant)})
         if not self.belief:
             return latent_state, dict(outputs, pose=model_lib.pose_to_metres(decoded["pose"]))
-        head = model_lib.pose_belief_head(params, latent, self.cfg)
-        pose_state, outputs["pose"] = pose_belief.filter_step(state["pose"], head, action, state["first"],
-                                                              pose_belief.grid_of(self.cfg.model),
-                                                              start_pose=start_pose)
+        head, grid = model_lib.pose_belief_head(params, latent, self.cfg), pose_belief.grid_of(self.cfg.model)
+        if self.cfg.model.pose_filter == "histogram":
+            pose_state, outputs["pose"] = pose_belief.filter_step(state["pose"], head, action, state["first"], grid,
+                                                                  start_pose=start_pose)
+        else:  # the frame's head alone: its own distribution is the belief
+            pose_state, outputs["pose"] = pose_belief.head_state(head, grid), pose_belief.decode(head, grid)
         outputs["pose_place"] = pose_belief.place_marginal(pose_state["belief"])
         return dict(latent_state, pose=pose_state), outputs
 

@@ -11,7 +11,8 @@ Opt-in, ``--data.batches_per_drive=K`` > 1: each drive of B worlds feeds K batch
 frames, so the 200 warm-up steps are paid once per K batches (most of a batch's cost at the `cpu` config,
 BUILD_NOTES). Before each segment the ego role passes to a random NPC of its world
 (``world.hand_over_ego``): the traffic goes on, but every batch is seen from B fresh places, so the
-sequences are not continuations of the last visit's. The stream keeps K drives and takes its batches from
+sequences are not continuations of the last visit's. With ``--data.carry_state`` there is no hand-over:
+segment j + 1 of a drive continues segment j frame for frame (training then carries the latent across). The stream keeps K drives and takes its batches from
 them in turn (step s from drive slot s % K), so successive batches come from independent worlds; a drive is
 revisited every K steps, K times, then replaced by a fresh one. Batch s is still a function of (seed, s)
 alone: a stream resumed at s re-drives each slot's worlds from their reset, hand-overs included, without
@@ -69,7 +70,10 @@ def make_batch(key, town, cfg: config_lib.Config):
 
 
 def _hand_over(states, drive_key, segment, cfg: config_lib.Config):
-    """Each of the B worlds hands its ego role to a random NPC, keyed by (drive, segment)."""
+    """Each of the B worlds hands its ego role to a random NPC, keyed by (drive, segment); with
+    ``data.carry_state`` the egos keep driving (a drive's segments are then one continuous sequence)."""
+    if cfg.data.carry_state:
+        return states
     keys = jax.random.split(jax.random.fold_in(drive_key, segment), cfg.data.batch_size)
     vehicles = jax.vmap(lambda k: jax.random.randint(k, (), 1, cfg.world.num_vehicles + 1))(keys)
     return jax.vmap(world.hand_over_ego)(states, vehicles)

@@ -21,6 +21,9 @@ VARIANTS = ("full", "no_input_recon", "no_roadmap_recon")
 # on the latent sample, smooth-L1 in normalised units (what runs saved before the field was added used);
 # reference: the same head on the reference code's objective, 10 x smooth-L1 on raw metres.
 POSE_HEADS = ("belief", "regression", "reference")
+# How the belief head's frames become a pose (api.Perceiver.step): histogram, the Bayes filter through the
+# recorded actions (pose_belief.filter_step); none, each frame's head read alone (the latent's own memory).
+POSE_FILTERS = ("histogram", "none")
 DEFAULT_TOWN_SEED = 0
 
 
@@ -41,6 +44,9 @@ class DataConfig:
     # from different worlds; 1 = every batch from fresh worlds (batch.py). The training presets use
     # _BATCHES_PER_DRIVE; 1 here is what configs saved before the field existed ran with.
     batches_per_drive: int = 1
+    # Carried state (needs K > 1): no hand-over inside a drive, and the latent filter state at the end of
+    # one segment starts the drive's next, gradients cut between them (truncated BPTT over K segments).
+    carry_state: bool = False
 
 
 @dataclasses.dataclass(frozen=True)
@@ -56,6 +62,7 @@ class ModelConfig:
     pose_head: str = "regression"  # one of POSE_HEADS; the presets use "belief"
     pose_cell_m: float = 10.0  # the belief's cell size (metres)
     pose_heading_bins: int = 36  # the belief's heading bins
+    pose_filter: str = "histogram"  # one of POSE_FILTERS; inference only, so evaluation may change it
 
 
 @dataclasses.dataclass(frozen=True)
@@ -214,8 +221,14 @@ def validate(cfg: Config) -> Config:
         raise ValueError(f"--train.pose_weight={cfg.train.pose_weight}: must be >= 0 (0: no pose loss)")
     if not cfg.train.max_grad_norm >= 0:
         raise ValueError(f"--train.max_grad_norm={cfg.train.max_grad_norm}: must be >= 0 (0: no clipping)")
-    if cfg.eval.known_start and cfg.model.pose_head != "belief":
-        raise ValueError("--eval.known_start: needs the belief pose head (--model.pose_head=belief)")
+    if cfg.model.pose_filter not in POSE_FILTERS:
+        raise ValueError(f"--model.pose_filter={cfg.model.pose_filter!r}: choose one of {POSE_FILTERS}")
+    if cfg.data.carry_state and cfg.data.batches_per_drive < 2:
+        raise ValueError(f"--data.carry_state: needs segments to carry across, --data.batches_per_drive >= 2 "
+                         f"(got {cfg.data.batches_per_drive})")
+    if cfg.eval.known_start and (cfg.model.pose_head, cfg.model.pose_filter) != ("belief", "histogram"):
+        raise ValueError("--eval.known_start: needs the belief pose head and its filter (--model.pose_head=belief "
+                         "--model.pose_filter=histogram)")
     if not 0.0 < cfg.eval.score_threshold < 1.0:
         raise ValueError(f"--eval.score_threshold={cfg.eval.score_threshold}: must lie in (0, 1)")
     return cfg

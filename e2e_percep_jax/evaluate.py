@@ -114,10 +114,13 @@ PAPER_VARIANT_ROW = {"full": "Inputs and roadmap (full)",
 def eval_dir(run: str, cfg: Config) -> str:
     """Where a run's evaluation goes: ``<run>/eval`` on the training town, ``<run>/eval_town<seed>`` on a
     held-out one (so a held-out evaluation never overwrites, nor is mistaken for, the training town's), with
-    ``_known_start`` appended under the known-start pose protocol."""
+    ``_known_start`` appended under the known-start pose protocol and ``_no_pose_filter`` for the belief head
+    read without its filter."""
     seed = cfg.eval.town_seed
     name = "eval" if seed == cfg.world.town_seed else f"eval_town{seed}"
-    return os.path.join(run, name + ("_known_start" if cfg.eval.known_start else ""))
+    name += "_known_start" if cfg.eval.known_start else ""
+    name += "_no_pose_filter" if cfg.model.pose_head == "belief" and cfg.model.pose_filter == "none" else ""
+    return os.path.join(run, name)
 
 
 def finished_evaluation(out_dir: str, label: str, checkpoint_step: int | None, cfg: Config) -> dict | None:
@@ -482,7 +485,8 @@ def report_markdown(m: dict) -> str:
     loc, head = pose["location_m"], pose["heading_rad"]
     share = lambda d, bound: _fmt(d.get("within", {}).get(bound), True)
     conv = pose.get("converged_frame", {})
-    lines += ["", f"Pose protocol: {'known start (odometry: the belief starts at the true first pose and follows the actions)' if pose.get('known_start') else 'global (no start pose given)'}.",
+    lines += ["", f"Pose protocol: {'known start (odometry: the belief starts at the true first pose and follows the actions)' if pose.get('known_start') else 'global (no start pose given)'}"
+              f"{'; the belief head read frame by frame (no filter)' if pose.get('pose_filter') == 'none' else ''}.",
               "", "| location p90 (m) | within 5 / 10 / 50 m | heading p90 (rad) | within 0.1 rad | "
               f"drives converged (< {conv.get('within_m', CONVERGED_M):g} m to the end), median frame | "
               "belief NLL of the true pose (nats per m² rad) | drift (m per 100 m driven) |",
@@ -655,7 +659,7 @@ def evaluate(cfg: Config, params, out_dir: str, *, sample: bool = False, video_f
         "pose": dict(_pose_summary(pose_acc), **drive_pose_summary(
                          [d[:n] for d, n in zip(drives_true, per_world)], [d[:n] for d, n in zip(drives_pred, per_world)]),
                      nll_mean=summary.defined(float(np.mean(np.concatenate(nll), dtype=np.float64))),
-                     known_start=ev.known_start),
+                     known_start=ev.known_start, pose_filter=cfg.model.pose_filter),
         "examples": [{"world": int(w), "frame": int(i), "vehicles_in_view": int(np.sum(frame["boxes_valid"]))}
                      for i, w, frame, _, _ in chosen],
         "baseline": {"description": "constant pose = mean of the drive's true poses (circular mean heading); no boxes",

@@ -118,8 +118,16 @@ def loss_fn(params, batch, key, cfg: Config):
     key: PRNG key for the posterior samples. Returns (total [], metrics dict of [] float32: one entry
     per active term (``recon_<image>``, ``kl``, ``det_cls``, ``det_reg``, the pose terms) and ``total``).
     """
+    total, (metrics, _) = sequence_loss(params, batch, key, cfg)
+    return total, metrics
+
+
+@functools.partial(jax.jit, static_argnames="cfg")
+def sequence_loss(params, batch, key, cfg: Config, start=None):
+    """:func:`loss_fn` of sequences that continue from ``start`` (``model.filter_sequence``'s; None: fresh
+    sequences). Returns (total, (metrics, the ``start`` that continues them, ``model.end_state``))."""
     b, t1 = batch["camera"].shape[:2]
-    out = model_lib.filter_sequence(params, batch["camera"], batch["lidar"], batch["action"], key, cfg)
+    out = model_lib.filter_sequence(params, batch["camera"], batch["lidar"], batch["action"], key, cfg, start)
     z = jnp.concatenate([out["z1"], out["z2"]], -1).reshape(b * t1, -1)
     pred = jax.tree.map(lambda x: x.reshape((b, t1) + x.shape[1:]), model_lib.decode(params, z, cfg))
 
@@ -131,4 +139,5 @@ def loss_fn(params, batch, key, cfg: Config):
     metrics["kl"] = cfg.train.kl_weight * per_sequence(kl, b)
     metrics.update(detection_terms(pred, batch, cfg.train.perception_weight))
     metrics.update(pose_terms(params, out, pred, batch["pose"], cfg))
-    return with_total(metrics)
+    total, metrics = with_total(metrics)
+    return total, (metrics, model_lib.end_state(out, batch["action"]))

@@ -322,20 +322,23 @@ def filter_step(params, state, camera, lidar, prev_action, key, cfg: Config):
     return state, dict(outputs, features=features)
 
 
-def filter_sequence(params, camera, lidar, action, key, cfg: Config):
+def filter_sequence(params, camera, lidar, action, key, cfg: Config, start=None):
     """Posterior filtering over B sequences: encoders on all frames at once, then ONE ``lax.scan``
     of the same posterior step as :func:`filter_step` over time.
 
     camera, lidar: uint8 [B, T+1, R, R, 3]; action: float32 [B, T+1, 2], action t applied from frame t
     to t+1 (the last one is unused); key: PRNG key or None (means). Frame t uses
     ``jax.random.split(key, T+1)[t]``, so streaming :func:`filter_step` with those keys gives the same
-    result. Returns :func:`filter_step`'s outputs stacked to [B, T+1, ...].
+    result. ``start`` (default: a fresh :func:`init_filter_state`): (filter state before frame 0, action
+    [B, 2] from that state's frame to frame 0), to continue a sequence; :func:`end_state` of the outputs
+    continues this one. Returns :func:`filter_step`'s outputs stacked to [B, T+1, ...].
     """
     model = build_model(cfg)
     b, t1 = camera.shape[:2]
     flat = lambda x: x.reshape((b * t1,) + x.shape[2:])
     features = model.apply(params, flat(camera), flat(lidar), method=PerceptionModel.encode)
-    prev_action = jnp.concatenate([jnp.zeros_like(action[:, :1]), action[:, :-1]], 1)
+    state, first_action = (init_filter_state(b, cfg), jnp.zeros_like(action[:, 0])) if start is None else start
+    prev_action = jnp.concatenate([first_action[:, None], action[:, :-1]], 1)
     time_major = lambda x: jnp.swapaxes(x, 0, 1)
     keys = None if key is None else jax.random.split(key, t1)
 
@@ -344,8 +347,15 @@ def filter_sequence(params, camera, lidar, action, key, cfg: Config):
         return model.apply(params, state, f, a, k, method=PerceptionModel.posterior_step)
 
     xs = (time_major(features.reshape(b, t1, -1)), time_major(prev_action), keys)
-    _, outputs = jax.lax.scan(step, init_filter_state(b, cfg), xs)
+    _, outputs = jax.lax.scan(step, state, xs)
     return dict(jax.tree.map(time_major, outputs), features=features.reshape(b, t1, -1))
+
+
+def end_state(outputs: dict, action):
+    """The ``start`` that continues :func:`filter_sequence`'s sequence into the next frame: (its last
+    frame's filter state, the sequence's last action [B, 2])."""
+    return ({"z1": outputs["z1"][:, -1], "z2": outputs["z2"][:, -1],
+             "first": jnp.zeros(outputs["z1"].shape[:1], bool)}, action[:, -1])
 
 
 def decode(params, z, cfg: Config) -> dict:

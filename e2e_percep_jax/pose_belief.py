@@ -275,6 +275,13 @@ def filter_step(state: dict, head: dict, prev_action, first, grid: Grid, *, star
     return new, estimate(new["belief"], head, new["speed_mps"], grid, position)
 
 
+def head_state(head: dict, grid: Grid) -> dict:
+    """The filter state [B] that is the head's own distribution (place x heading, no filtering), its speed
+    and no heading offset: the belief of ``--model.pose_filter=none``."""
+    return {"belief": _normalised(likelihood(head, grid, floor=0.0, power=1.0)),
+            "speed_mps": head["speed"] * SPEED_SCALE_MPS, "yaw_offset_rad": jnp.zeros_like(head["speed"])}
+
+
 POSITIONS = ("local_mean", "head_offset")
 
 

@@ -75,6 +75,19 @@ class TrainState(flax.struct.PyTreeNode):
     nonfinite_total: jax.Array
 
 
+class CarriedTrainState(TrainState):
+    """The train state of a ``--data.carry_state`` run: also, per drive slot of the stream (K =
+    ``batches_per_drive``), where its drive's last segment left the latent filter: carry = {z1 [K, B,
+    z1_dim], z2 [K, B, z2_dim] (the last frame's samples), action [K, B, 2] (from that frame to the
+    next segment's first)}. Saved with the rest, so a resumed run continues its chains exactly."""
+    carry: Any
+
+
+def _empty_carry(cfg: Config) -> dict:
+    k, b, m = cfg.data.batches_per_drive, cfg.data.batch_size, cfg.model
+    return {"z1": jnp.zeros((k, b, m.z1_dim)), "z2": jnp.zeros((k, b, m.z2_dim)), "action": jnp.zeros((k, b, 2))}
+
+
 class NonFiniteLossError(RuntimeError):
     """Training stopped after ``max_nonfinite_in_a_row`` consecutive non-finite losses."""
 
@@ -118,8 +131,27 @@ def model_keys(seed: int) -> tuple[jax.Array, jax.Array]:
 def init_state(cfg: Config, objective: Objective = PERCEPTION) -> TrainState:
     params = objective.init_params(model_keys(cfg.train.seed)[0], cfg)
     zero = lambda: jnp.zeros((), jnp.int32)  # distinct buffers: the state is donated to the step
-    return TrainState(step=zero(), params=params, opt_state=optimizer(cfg).init(params),
-                      nonfinite_in_a_row=zero(), nonfinite_total=zero())
+    fields = dict(step=zero(), params=params, opt_state=optimizer(cfg).init(params), nonfinite_in_a_row=zero(),
+                  nonfinite_total=zero())
+    return CarriedTrainState(**fields, carry=_empty_carry(cfg)) if cfg.data.carry_state else TrainState(**fields)
+
+
+def _carried_loss(state: CarriedTrainState, batch: dict, key: jax.Array, cfg: Config):
+    """(value_and_grad of the perception loss on ``batch`` continuing its drive's chain, the carry after
+    it). Batch ``state.step`` is segment (step // K) % K of the drive in slot step % K (batch.drive_slot):
+    segment 0 starts fresh; later ones start where the slot's last batch ended. The carry is an input,
+    so no gradient crosses a segment boundary."""
+    per_drive = cfg.data.batches_per_drive
+    slot, segment = state.step % per_drive, (state.step // per_drive) % per_drive
+    carried = jax.tree.map(lambda x: x[slot], state.carry)
+    first = jnp.full(carried["action"].shape[:1], segment == 0)
+    start = ({"z1": carried["z1"], "z2": carried["z2"], "first": first}, carried["action"])
+    (total, (metrics, (end, action))), grads = jax.value_and_grad(loss_lib.sequence_loss, has_aux=True)(
+        state.params, batch, key, cfg, start)
+    ended = {"z1": end["z1"], "z2": end["z2"], "action": action}
+    # A non-finite end (a skipped step's) would poison the chain: its rows restart from zeros.
+    carry = jax.tree.map(lambda c, e: c.at[slot].set(jnp.where(jnp.isfinite(e), e, 0.0)), state.carry, ended)
+    return ((total, metrics), grads), carry
 
 
 def train_step(state: TrainState, batch: dict, key: jax.Array, cfg: Config,
@@ -129,7 +161,11 @@ def train_step(state: TrainState, batch: dict, key: jax.Array, cfg: Config,
     A non-finite loss or gradient norm skips the update (params and optimizer state unchanged) and
     counts it. Returns (state, metrics): the loss terms, ``grad_norm`` and the non-finite counters.
     """
-    (_, metrics), grads = jax.value_and_grad(objective.loss_fn, has_aux=True)(state.params, batch, key, cfg)
+    if cfg.data.carry_state:
+        ((_, metrics), grads), carry = _carried_loss(state, batch, key, cfg)
+        state = state.replace(carry=carry)
+    else:
+        (_, metrics), grads = jax.value_and_grad(objective.loss_fn, has_aux=True)(state.params, batch, key, cfg)
     grad_norm = jnp.sqrt(sum(jnp.sum(g ** 2) for g in jax.tree.leaves(grads)))
     finite = jnp.isfinite(metrics["total"]) & jnp.isfinite(grad_norm)  # a NaN / inf grad makes the norm so
     halted = state.nonfinite_in_a_row >= cfg.train.max_nonfinite_in_a_row
@@ -137,11 +173,11 @@ def train_step(state: TrainState, batch: dict, key: jax.Array, cfg: Config,
     updates, opt_state = optimizer(cfg).update(grads, state.opt_state, state.params)
     keep = lambda new, old: jax.tree.map(lambda n, o: jnp.where(apply, n, o), new, old)
     in_a_row = jnp.where(halted, state.nonfinite_in_a_row, jnp.where(finite, 0, state.nonfinite_in_a_row + 1))
-    state = TrainState(step=state.step + 1,
-                       params=keep(optax.apply_updates(state.params, updates), state.params),
-                       opt_state=keep(opt_state, state.opt_state),
-                       nonfinite_in_a_row=in_a_row,
-                       nonfinite_total=state.nonfinite_total + (~finite).astype(jnp.int32))
+    state = state.replace(step=state.step + 1,
+                          params=keep(optax.apply_updates(state.params, updates), state.params),
+                          opt_state=keep(opt_state, state.opt_state),
+                          nonfinite_in_a_row=in_a_row,
+                          nonfinite_total=state.nonfinite_total + (~finite).astype(jnp.int32))
     return state, dict(metrics, grad_norm=grad_norm, nonfinite_in_a_row=in_a_row,
                        nonfinite_total=state.nonfinite_total)
 
@@ -173,9 +209,11 @@ def step_config(cfg: Config) -> Config:
     """``cfg`` with every field :func:`train_step` does not read set to its default (the batch's
     shapes come from the batch), so runs that differ only in those share one compilation."""
     unread = {name: getattr(TrainConfig(), name) for name in _NOT_READ_BY_STEP}
-    return dataclasses.replace(
-        Config(), model=cfg.model, data=dataclasses.replace(Config().data, image_size=cfg.data.image_size),
-        train=dataclasses.replace(cfg.train, **unread))
+    data = {"image_size": cfg.data.image_size}
+    if cfg.data.carry_state:  # the step picks the batch's drive slot and segment
+        data.update(carry_state=True, batches_per_drive=cfg.data.batches_per_drive)
+    return dataclasses.replace(Config(), model=cfg.model, data=dataclasses.replace(Config().data, **data),
+                               train=dataclasses.replace(cfg.train, **unread))
 
 
 def make_train_step(cfg: Config, mesh: Mesh, objective: Objective = PERCEPTION):
@@ -225,11 +263,13 @@ def check_resumable(cfg: Config, workdir: str) -> None:
                          f"new --workdir")
 
 
-def check_run(cfg: Config, workdir: str) -> int | None:
+def check_run(cfg: Config, workdir: str, objective: Objective = PERCEPTION) -> int | None:
     """Every check that needs no compilation: the config, its fit to the devices, and, if ``workdir``
     holds a checkpoint, that ``cfg`` continues that run. Raises ValueError naming the flag; returns the
     step to resume from (None for a fresh run)."""
     validate(cfg)
+    if cfg.data.carry_state and objective is not PERCEPTION:
+        raise ValueError("--data.carry_state: only the perception model carries a filter state across segments")
     n_devices = jax.device_count()
     if cfg.data.batch_size % n_devices:
         raise ValueError(f"--data.batch_size={cfg.data.batch_size} must be a multiple of the number of "
@@ -304,7 +344,7 @@ def train(cfg: Config, workdir: str, batches: Batches | None = None,
     :class:`NonFiniteLossError` (no checkpoint written for the bad steps) or
     :class:`TrainingInterrupted` (checkpoint written). Returns the final state.
     """
-    start, t = check_run(cfg, workdir), cfg.train
+    start, t = check_run(cfg, workdir, objective), cfg.train
     workdir = os.path.abspath(workdir)
     main_process = jax.process_index() == 0
     config_path, metrics_path = os.path.join(workdir, "config.json"), os.path.join(workdir, "metrics.jsonl")

@@ -6,8 +6,9 @@ pr_curves.png, examples.png, drive.mp4.
 
 The run's config.json is the config; ``--eval.<field>`` flags override its evaluation section
 (number of frames, worlds, start-key seed, town, chunk size, score threshold, the pose protocol:
-``--eval.known_start`` starts the pose belief at each drive's true first pose). Other sections are the
-trained model's and cannot change. A bad flag prints one line and exits with status 1.
+``--eval.known_start`` starts the pose belief at each drive's true first pose), and
+``--model.pose_filter`` (``none``: the belief head read frame by frame, without the histogram filter).
+Other fields are the trained model's and cannot change. A bad flag prints one line and exits with status 1.
 """
 import os
 import sys
@@ -20,7 +21,8 @@ from e2e_percep_jax import config as config_lib
 config_lib.define_flags()
 flags.DEFINE_string("workdir", None, "run directory holding config.json and checkpoints/")
 flags.DEFINE_string("out_dir", None, "where the report goes (default: WORKDIR/eval, or WORKDIR/eval_town<seed> "
-                    "with a held-out --eval.town_seed; _known_start appended under --eval.known_start)")
+                    "with a held-out --eval.town_seed; _known_start appended under --eval.known_start, "
+                    "_no_pose_filter under --model.pose_filter=none)")
 flags.DEFINE_integer("step", None, "checkpoint step to evaluate (default: the latest)")
 flags.DEFINE_boolean("sample", False, "filter with posterior samples instead of the posterior mean")
 flags.DEFINE_integer("video_frames", 300, "frames of world 0 in drive.mp4 (0: no video)")
@@ -29,6 +31,7 @@ flags.DEFINE_integer("top_k", None, "detection candidates per frame kept on the 
 flags.DEFINE_float("score_floor", None, "lowest detection score accumulated into the PR curves")
 flags.DEFINE_float("nms_iou", None, "rotated-IoU threshold of the greedy NMS")
 FLAGS = flags.FLAGS
+INFERENCE_FIELDS = ("model.pose_filter",)  # model fields that change no parameter
 
 
 def main(argv):
@@ -42,13 +45,17 @@ def main(argv):
         if FLAGS["config"].present:
             raise ValueError("--config: the run's config.json is the config; only --eval.* may change")
         for section, name, _ in config_lib.fields():
-            if section != "eval" and FLAGS[f"{section}.{name}"].present:
-                raise ValueError(f"--{section}.{name}: only --eval.* may change at evaluation (the model is trained)")
+            if (section != "eval" and f"{section}.{name}" not in INFERENCE_FIELDS
+                    and FLAGS[f"{section}.{name}"].present):
+                raise ValueError(f"--{section}.{name}: only --eval.* and --{' --'.join(INFERENCE_FIELDS)} may "
+                                 f"change at evaluation (the model is trained)")
         with open(config_path) as f:
             cfg = config_lib.Config.from_json(f.read())
-        overrides = {name: FLAGS[f"eval.{name}"].value for section, name, _ in config_lib.fields()
-                     if section == "eval" and FLAGS[f"eval.{name}"].present}
-        cfg = config_lib.validate(config_lib.replace(cfg, eval=overrides))
+        overrides = {}
+        for section, name, _ in config_lib.fields():
+            if (section == "eval" or f"{section}.{name}" in INFERENCE_FIELDS) and FLAGS[f"{section}.{name}"].present:
+                overrides.setdefault(section, {})[name] = FLAGS[f"{section}.{name}"].value
+        cfg = config_lib.validate(config_lib.replace(cfg, **overrides))
         if FLAGS.video_frames < 0 or FLAGS.num_examples < 0:
             raise ValueError("--video_frames and --num_examples must be >= 0")
         cfg, params, step = checkpoint.restore_params(FLAGS.workdir, cfg, FLAGS.step)

@@ -149,3 +149,21 @@ def test_batches_per_drive_interleave_drives_hand_over_the_ego_and_resume_mid_dr
         assert step == start
         for key in ("pose", "camera", "lidar", "det_cls", "action"):
             np.testing.assert_array_equal(np.asarray(resumed[key]), np.asarray(stream[start][key]), err_msg=key)
+
+
+def test_carried_state_drives_continue_without_hand_over(town):
+    # Truth: the drive's warmed-up worlds driven on by hand for K (T+1) frames without any hand-over; with
+    # --data.carry_state the stream's segments of that drive are its consecutive pieces.
+    per_drive, t1 = 2, CFG.data.seq_len + 1
+    cfg = config.replace(CFG, data=dict(batches_per_drive=per_drive, carry_state=True))
+    stream = [b for _, b in itertools.islice(batch.batch_stream(town, cfg, seed=2), per_drive ** 2)]
+    states = batch.start_drive(batch.batch_key(2, 0), town, cfg, 0)
+    _, whole = jax.vmap(lambda s: batch.rollout(s, town, per_drive * t1, CFG.data.image_size))(states)
+    for segment in range(per_drive):
+        step = segment * per_drive  # slot 0's drive
+        for key in ("pose", "action"):  # another program than the stream's: equal up to rounding
+            np.testing.assert_allclose(stream[step][key], np.asarray(whole[key])[:, segment * t1:(segment + 1) * t1],
+                                       atol=1e-3, err_msg=f"{step} {key}")
+    # the next segment's first pose is one step on from the last one's last pose
+    step_m = np.linalg.norm(np.asarray(stream[per_drive]["pose"])[:, 0, :2] - np.asarray(stream[0]["pose"])[:, -1, :2], axis=-1)
+    assert (step_m < 2.0).all(), step_m

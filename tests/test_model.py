@@ -308,3 +308,22 @@ def test_pose_normalisation_is_a_fixed_affine_map():
     pose = np.array([[0.0, 400.0, 1.0, 0.0, 0.0], [200.0, 200.0, 0.0, -1.0, 10.0]], np.float32)
     np.testing.assert_allclose(model.normalise_pose(pose), [[-2, 2, 1, 0, 0], [0, 0, 0, -1, 1]])
     np.testing.assert_allclose(model.pose_to_metres(model.normalise_pose(pose)), pose, atol=1e-5)
+
+
+def test_carried_segments_equal_one_long_scan(filtered):
+    """A sequence filtered in two pieces, the second started from the first's ``end_state`` (the carried
+    state of training), gives the same outputs as one scan over the whole sequence."""
+    cfg, params, batch, _, _ = filtered
+    run = jax.jit(model.filter_sequence, static_argnums=5)
+    whole = run(params, batch["camera"], batch["lidar"], batch["action"], None, cfg)
+    cut = 2
+    piece = lambda x, s: x[:, s]
+    first = run(params, *(piece(batch[k], slice(None, cut)) for k in ("camera", "lidar", "action")), None, cfg)
+    start = model.end_state(first, piece(batch["action"], slice(None, cut)))
+    second = run(params, *(piece(batch[k], slice(cut, None)) for k in ("camera", "lidar", "action")), None, cfg, start)
+    for k, v in whole.items():
+        joined = np.concatenate([first[k], second[k]], 1)
+        np.testing.assert_allclose(joined, v, rtol=1e-5, atol=1e-5, err_msg=k)
+    # ...and not what a fresh start of the second piece gives
+    fresh = run(params, *(piece(batch[k], slice(cut, None)) for k in ("camera", "lidar", "action")), None, cfg)
+    assert not np.allclose(fresh["z2"], second["z2"], atol=1e-3)

@@ -6,6 +6,7 @@ checkpoint_every compile the same step, see ``train.step_config``), and the subp
 persistent compilation cache.
 """
 import concurrent.futures
+import itertools
 import json
 import os
 import pickle
@@ -380,3 +381,30 @@ def test_sigterm_saves_the_step_it_was_on_and_resume_equals_an_uninterrupted_run
     assert f"interrupted by SIGTERM at step {stopped_at}; checkpoint saved" in err, err
     assert f"resumed from step {stopped_at}" in out, out
     assert_trees_equal(params, world_run[0])
+
+
+def test_carried_state_chains_segments_and_resumes_bit_identically(tmp_path):
+    """With --data.carry_state the step starts each drive's first segment afresh (its loss is the plain
+    loss's) and continues later ones from the carry its slot left; a run stopped and resumed equals the
+    uninterrupted one, carry included."""
+    cfg = config.replace(CFG, data=dict(batches_per_drive=2, carry_state=True), train=dict(num_steps=6))
+    whole = train.train(cfg, str(tmp_path / "whole"), batches=synthetic_batches())
+    train.train(config.replace(cfg, train=dict(num_steps=3)), str(tmp_path / "stopped"), batches=synthetic_batches())
+    resumed = train.train(cfg, str(tmp_path / "stopped"), batches=synthetic_batches())
+    assert_trees_equal(jax.device_get(resumed), jax.device_get(whole))
+
+    state = train.init_state(cfg)
+    step_fn = jax.jit(lambda s, b, k: train.train_step(s, b, k, cfg))
+    batches = [{k: b[k] for k in loss.BATCH_KEYS} for _, b in itertools.islice(synthetic_batches()(0), 3)]
+    key = jax.random.PRNGKey(5)
+    fresh = jax.jit(lambda p, b: loss.loss_fn(p, b, key, cfg)[1]["total"])
+    # steps 0 and 1: segment 0 of the drives in slots 0 and 1 (fresh); step 2: slot 0's segment 1
+    for b in batches[:2]:
+        expected = fresh(state.params, b)
+        state, metrics = step_fn(state, b, key)
+        np.testing.assert_allclose(metrics["total"], expected, rtol=1e-6)
+    start = ({"z1": state.carry["z1"][0], "z2": state.carry["z2"][0], "first": np.zeros(2, bool)}, state.carry["action"][0])
+    np.testing.assert_array_equal(state.carry["action"][0], batches[0]["action"][:, -1])
+    expected = loss.sequence_loss(state.params, batches[2], key, cfg, start)[0]
+    assert not np.allclose(expected, fresh(state.params, batches[2]), rtol=1e-4)
+    np.testing.assert_allclose(step_fn(state, batches[2], key)[1]["total"], expected, rtol=1e-6)
