@@ -103,6 +103,24 @@ def test_pose_belief_through_the_api_known_start_and_global(params):
     assert not np.allclose(out["pose"][:, :2], start[:, :2])  # it moved
 
 
+def test_pose_filter_none_reads_the_head_frame_by_frame(params):
+    """Without the filter the pose is the frame's head decoded alone (mode + offset) and the belief is the
+    head's own place x heading distribution, whatever came before."""
+    cfg = config_lib.replace(CFG, model=dict(pose_filter="none"))
+    perceiver, grid = e2e.Perceiver(cfg), pose_belief.grid_of(cfg.model)
+    camera, lidar, action = _inputs(2, 3, seed=5)
+    state = perceiver.init(2)
+    latent_state = model_lib.init_filter_state(2, cfg)
+    for t in range(3):
+        state, out = jax.jit(perceiver.step)(params, state, camera[:, t], lidar[:, t], action[:, t])
+        latent_state, latent = model_lib.filter_step(params, latent_state, camera[:, t], lidar[:, t], action[:, t],
+                                                     None, cfg)
+        head = model_lib.pose_belief_head(params, latent, cfg)
+        np.testing.assert_allclose(out["pose"], pose_belief.decode(head, grid), rtol=1e-5, atol=1e-4)
+        place = np.asarray(jax.nn.softmax(head["place_logit"], -1)).reshape(2, grid.n, grid.n)
+        np.testing.assert_allclose(out["pose_place"], place, rtol=1e-4, atol=1e-7)
+
+
 @pytest.mark.parametrize("arg, bad, expected", [
     ("camera", np.zeros((2, R, R, 3), np.float32), f"camera: expected uint8[2, {R}, {R}, 3], got float32[2, {R}, {R}, 3]"),
     ("lidar", np.zeros((2, R // 2, R // 2, 3), np.uint8), f"lidar: expected uint8[2, {R}, {R}, 3], got uint8[2, {R // 2}, {R // 2}, 3]"),

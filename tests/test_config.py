@@ -51,6 +51,9 @@ def test_flags_override_only_the_named_fields():
     (["--train.max_grad_norm=-1"], "--train.max_grad_norm"),
     (["--train.pose_weight=-1"], "--train.pose_weight"),
     (["--train.kl_weight=0"], "--train.kl_weight"),
+    (["--model.pose_filter=kalman"], "--model.pose_filter"),
+    (["--data.carry_state"], "--data.carry_state"),  # tiny has one batch per drive: nothing to carry across
+    (["--eval.known_start", "--model.pose_filter=none"], "--eval.known_start"),
 ])
 def test_bad_values_name_their_flag(argv, flag):
     with pytest.raises(ValueError) as err:

@@ -172,6 +172,14 @@ def test_cli_rejects_flags_that_would_change_the_trained_model(tmp_path):
     assert res.returncode == 1 and "--model.z1_dim" in res.stderr and "--eval" in res.stderr, res.stderr
 
 
+def test_eval_dir_keeps_protocols_and_the_filterless_reading_apart():
+    cfg = config_lib.get_config("tiny")
+    other = lambda **sections: eval_lib.eval_dir("run", config_lib.replace(cfg, **sections))
+    assert eval_lib.eval_dir("run", cfg) == os.path.join("run", "eval")
+    assert other(eval=dict(town_seed=7, known_start=True)) == os.path.join("run", "eval_town7_known_start")
+    assert other(model=dict(pose_filter="none")) == os.path.join("run", "eval_no_pose_filter")
+
+
 def test_memory_is_flat_in_the_number_of_steps(memory_run):
     r = memory_run()
     short, long = r["samples"]["200"], r["samples"]["2000"]
