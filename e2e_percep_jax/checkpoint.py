@@ -19,9 +19,12 @@ def restore_params(workdir: str, cfg: Config | None = None, step: int | None = N
             cfg = Config.from_json(f.read())
     options = ocp.CheckpointManagerOptions(read_only=True, create=False)
     with ocp.CheckpointManager(os.path.join(workdir, "checkpoints"), options=options) as manager:
-        step = manager.latest_step() if step is None else step
-        if step is None:
+        saved = manager.all_steps()
+        if not saved:
             raise FileNotFoundError(f"no checkpoint in {workdir}/checkpoints")
+        if step is not None and step not in saved:
+            raise ValueError(f"--step={step}: {workdir} has checkpoints at steps {sorted(saved)}")
+        step = max(saved) if step is None else step
         sharding = jax.sharding.SingleDeviceSharding(jax.devices()[0])
         abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding),
                                 jax.eval_shape(lambda: train_lib.init_state(cfg, objective or train_lib.PERCEPTION)))

@@ -215,6 +215,11 @@ def validate(cfg: Config) -> Config:
     for name, value in positive.items():
         if not value > 0:
             raise ValueError(f"--{name}={value}: must be positive")
+    seeds = {"world.town_seed": cfg.world.town_seed, "train.seed": cfg.train.seed, "eval.seed": cfg.eval.seed,
+             "eval.town_seed": cfg.eval.town_seed}
+    for name, value in seeds.items():
+        if value < 0:
+            raise ValueError(f"--{name}={value}: must be >= 0")
     if cfg.data.warmup_steps < 0:
         raise ValueError(f"--data.warmup_steps={cfg.data.warmup_steps}: must be >= 0")
     if not cfg.train.pose_weight >= 0:

@@ -198,6 +198,11 @@ def build_town(seed: int) -> Town:
     return Town(*(jnp.asarray(a) for a in _build_town_np(seed)))
 
 
+def spawn_slots(seed: int) -> int:
+    """How many vehicles the town of ``seed`` can place at a reset (NumPy only: nothing is compiled)."""
+    return Town(*_build_town_np(seed)).spawn_lane.shape[0]
+
+
 # ----------------------------------------------------------------------------- geometry helpers
 
 
@@ -765,6 +770,7 @@ def _sampled(pts, num_samples):
     return xy, _wrap(np.interp(inside, s_dense, yaw)), np.where(s > s_dense[-1], 0.0, np.interp(inside, s_dense, curv))
 
 
+@functools.lru_cache(maxsize=8)
 def _build_town_np(seed):
     rng = np.random.default_rng(seed)
     node_xy, roads, lanes_per_dir, ring_node, interior = _road_network(rng)

@@ -267,7 +267,9 @@ def check_run(cfg: Config, workdir: str, objective: Objective = PERCEPTION) -> i
     """Every check that needs no compilation: the config, its fit to the devices, and, if ``workdir``
     holds a checkpoint, that ``cfg`` continues that run. Raises ValueError naming the flag; returns the
     step to resume from (None for a fresh run)."""
+    from e2e_percep_jax import world  # NumPy work only: the town's spawn slots
     validate(cfg)
+    world.check_vehicle_count(cfg.world, cfg.world.town_seed)
     if cfg.data.carry_state and objective is not PERCEPTION:
         raise ValueError("--data.carry_state: only the perception model carries a filter state across segments")
     n_devices = jax.device_count()

@@ -126,13 +126,23 @@ def _pick_successor(town, lane, key):
     return town.lane_succ[lane, (h % town.lane_num_succ[lane].astype(jnp.uint32)).astype(jnp.int32)]
 
 
+def _check_fits(num_vehicles: int, num_slots: int) -> None:
+    if num_vehicles + 1 > min(num_slots, MAX_VEHICLES):
+        raise ValueError(f"--world.num_vehicles={num_vehicles}: at most {min(num_slots, MAX_VEHICLES) - 1} "
+                         "fit (spawn slots of this town, and the world's vehicle limit)")
+
+
+def check_vehicle_count(cfg: WorldConfig, town_seed: int) -> None:
+    """:func:`reset`'s check, before anything is compiled or written: raises ValueError naming
+    ``--world.num_vehicles`` unless that many NPCs and the ego fit the town of ``town_seed``."""
+    _check_fits(cfg.num_vehicles, town_lib.spawn_slots(town_seed))
+
+
 def reset(key, town, cfg: WorldConfig) -> WorldState:
     """A world with cfg.num_vehicles NPCs and the ego on distinct random spawn slots, at random safe speeds."""
     n = cfg.num_vehicles + 1
     num_slots = town.spawn_lane.shape[0]
-    if n > min(num_slots, MAX_VEHICLES):
-        raise ValueError(f"--world.num_vehicles={cfg.num_vehicles}: at most {min(num_slots, MAX_VEHICLES) - 1} "
-                         "fit (spawn slots of this town, and the world's vehicle limit)")
+    _check_fits(cfg.num_vehicles, num_slots)
     keys = jax.random.split(key, 12)
     slot = jax.random.permutation(keys[0], num_slots)[:n]
     lane, s = town.spawn_lane[slot], town.spawn_s_m[slot]

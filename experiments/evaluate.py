@@ -35,7 +35,7 @@ INFERENCE_FIELDS = ("model.pose_filter",)  # model fields that change no paramet
 
 
 def main(argv):
-    from e2e_percep_jax import checkpoint, evaluate as eval_lib
+    from e2e_percep_jax import checkpoint, evaluate as eval_lib, world
     allocator.keep_freed_buffers()
     try:
         config_lib.check_launch(argv)
@@ -58,6 +58,12 @@ def main(argv):
         cfg = config_lib.validate(config_lib.replace(cfg, **overrides))
         if FLAGS.video_frames < 0 or FLAGS.num_examples < 0:
             raise ValueError("--video_frames and --num_examples must be >= 0")
+        for name, ok, bounds in (("top_k", lambda v: v > 0, "must be positive"),
+                                 ("score_floor", lambda v: 0.0 <= v < 1.0, "must lie in [0, 1)"),
+                                 ("nms_iou", lambda v: 0.0 < v <= 1.0, "must lie in (0, 1]")):
+            if FLAGS[name].value is not None and not ok(FLAGS[name].value):
+                raise ValueError(f"--{name}={FLAGS[name].value}: {bounds}")
+        world.check_vehicle_count(cfg.world, cfg.eval.town_seed)
         cfg, params, step = checkpoint.restore_params(FLAGS.workdir, cfg, FLAGS.step)
     except (ValueError, FileNotFoundError) as e:
         sys.exit(f"error: {e}")

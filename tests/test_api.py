@@ -146,6 +146,8 @@ def test_load_returns_the_trained_params_and_boxes_decode(tmp_path):
     camera, lidar, action = _inputs(2, 1, seed=3)
     _, out = perceiver.step(params, perceiver.init(2), camera[:, 0], lidar[:, 0], action[:, 0])
     assert out["det_cls"].shape == (2, R, R, 1) and out["pose"].shape == (2, 5)
+    with pytest.raises(ValueError, match=r"--step=3: .* has checkpoints at steps \[2\]"):
+        e2e.load(str(tmp_path), step=3)
 
 
 def test_boxes_recover_the_cars_behind_pixor_maps():

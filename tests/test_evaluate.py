@@ -172,6 +172,20 @@ def test_cli_rejects_flags_that_would_change_the_trained_model(tmp_path):
     assert res.returncode == 1 and "--model.z1_dim" in res.stderr and "--eval" in res.stderr, res.stderr
 
 
+@pytest.mark.parametrize("flag, expected", [
+    ("--top_k=-1", "--top_k=-1: must be positive"),
+    ("--nms_iou=7", "--nms_iou=7.0: must lie in (0, 1]"),
+    ("--score_floor=-3", "--score_floor=-3.0: must lie in [0, 1)"),
+    ("--eval.town_seed=-1", "--eval.town_seed=-1: must be >= 0"),
+])
+def test_cli_bad_values_are_one_line_naming_the_flag(tmp_path, flag, expected):
+    (tmp_path / "config.json").write_text(config_lib.get_config("tiny").to_json())
+    cmd = [sys.executable, os.path.join(REPO, "experiments", "evaluate.py"), f"--workdir={tmp_path}", flag]
+    res = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO)
+    assert res.returncode == 1 and res.stderr == f"error: {expected}\n", res.stderr
+    assert sorted(os.listdir(tmp_path)) == ["config.json"]
+
+
 def test_eval_dir_keeps_protocols_and_the_filterless_reading_apart():
     cfg = config_lib.get_config("tiny")
     other = lambda **sections: eval_lib.eval_dir("run", config_lib.replace(cfg, **sections))

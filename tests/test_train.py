@@ -238,6 +238,8 @@ def test_launcher_errors_are_one_line_naming_the_flag_before_any_compile(tmp_pat
         (["--model.conv_channels=8,0,32"], {}, "--model.conv_channels[1]=0: must be positive"),
         (["--model.conv_channels=8,x"], {}, "--model.conv_channels"),
         (["--data.nonsense=1"], {}, "data.nonsense"),
+        (["--world.num_vehicles=100000"], {}, "--world.num_vehicles=100000: at most"),
+        (["--world.town_seed=-1"], {}, "--world.town_seed=-1: must be >= 0"),
         (["--data.batch_size=3"], four_devices, "--data.batch_size=3 must be a multiple of the number of devices (4)"),
         ([f"--workdir={resumed}", "--model.z1_dim=4"], {}, "--model.z1_dim=4 differs"),
         ([f"--workdir={resumed}", "--model.conv_channels=8,16,64"], {}, "pass --model.conv_channels=8,16,32 to resume"),
@@ -255,7 +257,7 @@ def test_launcher_errors_are_one_line_naming_the_flag_before_any_compile(tmp_pat
         out, err = proc.communicate(timeout=300)
         assert proc.returncode == 1 and err.count("\n") == 1 and err.startswith("error: ") and text in err, (
             flags, out + err)
-        assert not (tmp_path / str(i) / "config.json").exists()
+        assert not (tmp_path / str(i)).exists() or not os.listdir(tmp_path / str(i)), flags  # nothing written
 
 
 # ----------------------------------------------------------------------------- data parallel
