@@ -16,6 +16,7 @@ returns sharpens as a drive goes on. The online evaluation perceives through thi
 import dataclasses
 import os
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -48,6 +49,8 @@ class Perceiver:
         [B]} (see :mod:`e2e_percep_jax.pose_belief`). Setting ``first[i]`` to True restarts stream i's
         filter, pose belief included (e.g. at a new drive).
         """
+        if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) or batch_size < 1:
+            raise ValueError(f"batch_size={batch_size!r}: must be a positive integer")
         state = model_lib.init_filter_state(batch_size, self.cfg)
         if self.belief:
             state["pose"] = pose_belief.init_state(batch_size, pose_belief.grid_of(self.cfg.model))
@@ -72,10 +75,13 @@ class Perceiver:
         has not seen. Streams starting a drive start their belief at this pose, and the belief then
         follows the recorded actions through the world's bicycle model alone (no place measurement).
         """
-        b, r = state["first"].shape[0], self.cfg.data.image_size
+        camera, lidar, action = jnp.asarray(camera), jnp.asarray(lidar), jnp.asarray(action)
+        first = state.get("first") if isinstance(state, dict) else None
+        b, r = (first.shape[0] if getattr(first, "ndim", 0) == 1 else camera.shape[0]), self.cfg.data.image_size
         _check("camera", camera, (b, r, r, 3), jnp.uint8)
         _check("lidar", lidar, (b, r, r, 3), jnp.uint8)
         _check("action", action, (b, 2), jnp.float32)
+        self._check_state(state, b)
         latent_state, latent = model_lib.filter_step(params, state, camera, lidar, action, key, self.cfg)
         z = jnp.concatenate([latent["z1"], latent["z2"]], -1)
         decoded = model_lib.decode(params, z, self.cfg)
@@ -91,6 +97,15 @@ class Perceiver:
             pose_state, outputs["pose"] = pose_belief.head_state(head, grid), pose_belief.decode(head, grid)
         outputs["pose_place"] = pose_belief.place_marginal(pose_state["belief"])
         return dict(latent_state, pose=pose_state), outputs
+
+    def _check_state(self, state, batch_size: int):
+        """Trace-time check of a filter state against :meth:`init`'s for ``batch_size`` streams."""
+        expected = jax.eval_shape(lambda: self.init(batch_size))
+        if not isinstance(state, dict) or jax.tree.structure(state) != jax.tree.structure(expected):
+            keys = sorted(state) if isinstance(state, dict) else type(state).__name__
+            raise ValueError(f"state: expected the dict of Perceiver.init (keys {sorted(expected)}), got {keys}")
+        for (path, want), got in zip(jax.tree_util.tree_flatten_with_path(expected)[0], jax.tree.leaves(state)):
+            _check(f"state{jax.tree_util.keystr(path)}", jnp.asarray(got), want.shape, want.dtype)
 
     def boxes(self, outputs, score_threshold: float | None = None, iou_threshold: float = metrics.NMS_IOU):
         """Host-side box decoding of :meth:`step`'s outputs: for each of the B streams, (boxes [M, 5]

@@ -136,6 +136,43 @@ def test_wrong_inputs_name_argument_expected_and_given(params, arg, bad, expecte
     assert str(err.value) == expected
 
 
+def _bad_state(change):
+    state = e2e.Perceiver(CFG).init(2)
+    change(state)
+    return state
+
+
+@pytest.mark.parametrize("state, expected", [
+    (_bad_state(lambda s: s.update(z1=jnp.zeros((2, CFG.model.z1_dim + 1)))),
+     f"state['z1']: expected float32[2, {CFG.model.z1_dim}], got float32[2, {CFG.model.z1_dim + 1}]"),
+    (_bad_state(lambda s: s.update(z2=jnp.zeros((3, CFG.model.z2_dim)))),
+     f"state['z2']: expected float32[2, {CFG.model.z2_dim}], got float32[3, {CFG.model.z2_dim}]"),
+    (_bad_state(lambda s: s.update(first=jnp.zeros(2, jnp.int32))), "state['first']: expected bool[2], got int32[2]"),
+    (_bad_state(lambda s: s["pose"].pop("speed_mps")), "state: expected the dict of Perceiver.init"),
+])
+def test_a_bad_filter_state_names_its_part_under_jit(params, state, expected):
+    perceiver = e2e.Perceiver(CFG)
+    camera, lidar, action = (np.zeros((2, R, R, 3), np.uint8),) * 2 + (np.zeros((2, 2), np.float32),)
+    with pytest.raises(ValueError) as err:
+        jax.jit(perceiver.step)(params, state, camera, lidar, action)
+    assert str(err.value).startswith(expected), str(err.value)
+
+
+@pytest.mark.parametrize("batch_size", [-1, 0, 2.5, True])
+def test_init_refuses_a_bad_batch_size(batch_size):
+    with pytest.raises(ValueError, match="batch_size="):
+        e2e.Perceiver(CFG).init(batch_size)
+
+
+def test_array_likes_are_accepted_as_numpy_would(params):
+    perceiver = e2e.Perceiver(CFG)
+    camera, lidar, _ = _inputs(1, 1, seed=6)
+    as_list = perceiver.step(params, perceiver.init(1), camera[:, 0], lidar[:, 0], [[0.5, -0.1]])[1]
+    as_array = perceiver.step(params, perceiver.init(1), camera[:, 0], lidar[:, 0],
+                              np.array([[0.5, -0.1]], np.float32))[1]
+    np.testing.assert_array_equal(as_list["pose"], as_array["pose"])
+
+
 def test_load_returns_the_trained_params_and_boxes_decode(tmp_path):
     cfg = config_lib.replace(CFG, train=dict(num_steps=2, checkpoint_every=2, log_every=1))
     trained = train_lib.train(cfg, str(tmp_path))
