@@ -14,7 +14,6 @@ it also runs the pose belief's histogram filter (:mod:`e2e_percep_jax.pose_belie
 returns sharpens as a drive goes on. The online evaluation perceives through this same ``step``.
 """
 import dataclasses
-import os
 
 import jax
 import jax.numpy as jnp
@@ -123,7 +122,5 @@ class Perceiver:
 
 def load(workdir: str, step: int | None = None):
     """(Perceiver, params) of the training run in ``workdir`` at checkpoint ``step`` (default: latest)."""
-    if not os.path.exists(os.path.join(workdir, "config.json")):
-        raise FileNotFoundError(f"workdir={workdir!r}: no config.json; is it a training run directory?")
     cfg, params, _ = checkpoint.restore_params(workdir, step=step)
     return Perceiver(cfg), params

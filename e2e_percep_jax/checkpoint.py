@@ -5,7 +5,7 @@ import jax
 import orbax.checkpoint as ocp
 
 from e2e_percep_jax import train as train_lib
-from e2e_percep_jax.config import Config
+from e2e_percep_jax.config import Config, run_config
 
 
 def restore_params(workdir: str, cfg: Config | None = None, step: int | None = None, objective=None):
@@ -14,9 +14,7 @@ def restore_params(workdir: str, cfg: Config | None = None, step: int | None = N
     that ``train.train`` saves for ``objective`` (a ``train.Objective``; default: the perception
     model). Raises FileNotFoundError if there is no checkpoint."""
     workdir = os.path.abspath(workdir)
-    if cfg is None:
-        with open(os.path.join(workdir, "config.json")) as f:
-            cfg = Config.from_json(f.read())
+    cfg = run_config(workdir) if cfg is None else cfg
     options = ocp.CheckpointManagerOptions(read_only=True, create=False)
     with ocp.CheckpointManager(os.path.join(workdir, "checkpoints"), options=options) as manager:
         saved = manager.all_steps()
@@ -28,5 +26,10 @@ def restore_params(workdir: str, cfg: Config | None = None, step: int | None = N
         sharding = jax.sharding.SingleDeviceSharding(jax.devices()[0])
         abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding),
                                 jax.eval_shape(lambda: train_lib.init_state(cfg, objective or train_lib.PERCEPTION)))
-        state = manager.restore(step, args=ocp.args.StandardRestore(abstract))
+        try:
+            state = manager.restore(step, args=ocp.args.StandardRestore(abstract))
+        except Exception as e:  # orbax raises many types (decode, data loss, tree or shape mismatch): one line
+            reason = str(e).strip().splitlines()[0][:300] if str(e).strip() else ""
+            raise ValueError(f"{workdir}/checkpoints/{step}: cannot be restored for its config.json (damaged, or "
+                             f"written by another config): {type(e).__name__}: {reason}") from None
     return cfg, state.params, step

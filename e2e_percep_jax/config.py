@@ -14,6 +14,7 @@ Any field is overridden from the command line as ``--<section>.<field>=value`` (
 import dataclasses
 import json
 import math
+import os
 from typing import Any
 
 VARIANTS = ("full", "no_input_recon", "no_roadmap_recon")
@@ -130,6 +131,19 @@ class Config:
             sections[section.name] = dataclasses.replace(
                 section.default, **{k: tuple(v) if isinstance(v, list) else v for k, v in fields.items()})
         return cls(**sections)
+
+
+def run_config(workdir: str) -> Config:
+    """The config saved in training run ``workdir``; FileNotFoundError or ValueError (one line, naming the
+    file) if it is missing or cannot be read."""
+    path = os.path.join(workdir, "config.json")
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"{workdir}: no config.json; is it a training run directory?")
+    try:
+        with open(path) as f:
+            return Config.from_json(f.read())
+    except (ValueError, TypeError, AttributeError) as e:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
+        raise ValueError(f"{path}: not a config ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})") from None
 
 
 def replace(cfg: Config, **sections: dict) -> Config:

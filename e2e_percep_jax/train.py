@@ -39,7 +39,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from e2e_percep_jax import loss as loss_lib
 from e2e_percep_jax import model as model_lib
-from e2e_percep_jax.config import Config, TrainConfig, validate
+from e2e_percep_jax.config import Config, TrainConfig, run_config, validate
 
 MODEL_STREAM = 2**32 - 1  # fold_in data for the model's keys; data uses fold_in(root, step), step < this
 MAX_CHECKPOINTS_KEPT = 3
@@ -253,8 +253,7 @@ def _flag_value(value) -> str:
 
 def check_resumable(cfg: Config, workdir: str) -> None:
     """Raises ValueError naming the first flag that differs from the run already in ``workdir``."""
-    with open(os.path.join(workdir, "config.json")) as f:
-        old = _flat_config(Config.from_json(f.read()))  # a field added since takes its default
+    old = _flat_config(run_config(workdir))  # a field added since takes its default
     for name, value in _flat_config(cfg).items():
         if name.startswith("eval.") or name in RESUMABLE_CHANGES or old.get(name) == value:
             continue

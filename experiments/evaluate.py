@@ -39,9 +39,6 @@ def main(argv):
     allocator.keep_freed_buffers()
     try:
         config_lib.check_launch(argv)
-        config_path = os.path.join(FLAGS.workdir, "config.json")
-        if not os.path.exists(config_path):
-            raise ValueError(f"--workdir={FLAGS.workdir}: no config.json (not a training run)")
         if FLAGS["config"].present:
             raise ValueError("--config: the run's config.json is the config; only --eval.* may change")
         for section, name, _ in config_lib.fields():
@@ -49,8 +46,7 @@ def main(argv):
                     and FLAGS[f"{section}.{name}"].present):
                 raise ValueError(f"--{section}.{name}: only --eval.* and --{' --'.join(INFERENCE_FIELDS)} may "
                                  f"change at evaluation (the model is trained)")
-        with open(config_path) as f:
-            cfg = config_lib.Config.from_json(f.read())
+        cfg = config_lib.run_config(FLAGS.workdir)
         overrides = {}
         for section, name, _ in config_lib.fields():
             if (section == "eval" or f"{section}.{name}" in INFERENCE_FIELDS) and FLAGS[f"{section}.{name}"].present:

@@ -1,5 +1,8 @@
 """The public inference API: batching, streaming vs the training-time scan, jit/scan inside user code,
 argument errors, and loading a trained run."""
+import os
+import shutil
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -173,9 +176,16 @@ def test_array_likes_are_accepted_as_numpy_would(params):
     np.testing.assert_array_equal(as_list["pose"], as_array["pose"])
 
 
-def test_load_returns_the_trained_params_and_boxes_decode(tmp_path):
+@pytest.fixture(scope="module")
+def trained_run(tmp_path_factory):
+    """(workdir, config, final train state) of a 2-step tiny run."""
     cfg = config_lib.replace(CFG, train=dict(num_steps=2, checkpoint_every=2, log_every=1))
-    trained = train_lib.train(cfg, str(tmp_path))
+    workdir = tmp_path_factory.mktemp("run")
+    return workdir, cfg, train_lib.train(cfg, str(workdir))
+
+
+def test_load_returns_the_trained_params_and_boxes_decode(trained_run):
+    tmp_path, cfg, trained = trained_run
     perceiver, params = e2e.load(str(tmp_path))
     assert perceiver.cfg == cfg
     jax.tree.map(lambda a, b: np.testing.assert_array_equal(np.asarray(a), np.asarray(b)),
@@ -185,6 +195,46 @@ def test_load_returns_the_trained_params_and_boxes_decode(tmp_path):
     assert out["det_cls"].shape == (2, R, R, 1) and out["pose"].shape == (2, 5)
     with pytest.raises(ValueError, match=r"--step=3: .* has checkpoints at steps \[2\]"):
         e2e.load(str(tmp_path), step=3)
+
+
+def _largest_file(folder):
+    files = [os.path.join(d, f) for d, _, names in os.walk(folder) for f in names]
+    return max(files, key=os.path.getsize)
+
+
+def _damage(run, how):
+    step = run / "checkpoints" / "2"
+    if how == "random bytes":
+        for d, _, names in os.walk(step):
+            for f in names:
+                with open(os.path.join(d, f), "wb") as out:
+                    out.write(np.random.default_rng(0).bytes(200))
+    elif how == "truncated arrays":
+        path = _largest_file(step)
+        with open(path, "r+b") as f:
+            f.truncate(os.path.getsize(path) // 2)
+    elif how == "empty step":
+        shutil.rmtree(step)
+        step.mkdir()
+    elif how == "config.json not JSON":
+        (run / "config.json").write_text("{ not json")
+    elif how == "another config":
+        other = config_lib.replace(config_lib.run_config(str(run)), model=dict(z1_dim=CFG.model.z1_dim + 1))
+        (run / "config.json").write_text(other.to_json())
+
+
+@pytest.mark.parametrize("how, names", [
+    ("random bytes", "checkpoints/2"), ("truncated arrays", "checkpoints/2"), ("empty step", "checkpoints/2"),
+    ("config.json not JSON", "config.json"), ("another config", "checkpoints/2"),
+])
+def test_a_damaged_run_gives_one_line_naming_the_file(trained_run, tmp_path, how, names):
+    run = tmp_path / "run"
+    shutil.copytree(trained_run[0], run)
+    _damage(run, how)
+    with pytest.raises((ValueError, FileNotFoundError)) as err:
+        e2e.load(str(run))
+    message = str(err.value)
+    assert "\n" not in message and names in message and len(message) < 600, message
 
 
 def test_boxes_recover_the_cars_behind_pixor_maps():
