@@ -14,6 +14,10 @@ killed and resumed from a checkpoint reproduces the uninterrupted run exactly.
 Data parallel: one 1-D mesh ``("data",)`` over all devices (of all processes); batches are sharded
 along B, the train state is replicated; ``jit`` inserts the gradient all-reduce.
 
+Carried state (``--data.carry_state``, the learned pose route): the train state also holds, per drive
+slot of the stream, where the latent filter left that drive's last segment, and step s's batch continues
+from it (:class:`CarriedTrainState`): truncated backpropagation through time over a drive's K segments.
+
 Outputs in ``workdir``: ``config.json`` (the resolved config), ``metrics.jsonl`` (one record per
 ``log_every`` steps: mean of each loss term over those steps, gradient norm, steps/s, non-finite
 counters), ``checkpoints/<step>`` (orbax; every ``checkpoint_every`` steps and at exit).
