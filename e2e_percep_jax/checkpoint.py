@@ -29,7 +29,6 @@ def restore_params(workdir: str, cfg: Config | None = None, step: int | None = N
         try:
             state = manager.restore(step, args=ocp.args.StandardRestore(abstract))
         except Exception as e:  # orbax raises many types (decode, data loss, tree or shape mismatch): one line
-            reason = str(e).strip().splitlines()[0][:300] if str(e).strip() else ""
             raise ValueError(f"{workdir}/checkpoints/{step}: cannot be restored for its config.json (damaged, or "
-                             f"written by another config): {type(e).__name__}: {reason}") from None
+                             f"written by another config): {train_lib.restore_failure(e)}") from None
     return cfg, state.params, step

@@ -96,6 +96,10 @@ class NonFiniteLossError(RuntimeError):
     """Training stopped after ``max_nonfinite_in_a_row`` consecutive non-finite losses."""
 
 
+class NoIntactCheckpointError(RuntimeError):
+    """Every checkpoint of the run being resumed failed to restore (each kept as ``<step>.damaged``)."""
+
+
 class TrainingInterrupted(Exception):
     """SIGTERM / SIGINT arrived; a checkpoint of the last completed step was written."""
 
@@ -111,7 +115,7 @@ def exit_on_stop():
     SIGINT / SIGTERM (after its checkpoint) exits with status 128 + the signal."""
     try:
         yield
-    except NonFiniteLossError as e:
+    except (NonFiniteLossError, NoIntactCheckpointError) as e:
         sys.exit(f"error: {e}")
     except TrainingInterrupted as e:
         print(e, file=sys.stderr)
@@ -297,6 +301,31 @@ def _checkpoint_manager(workdir: str, remove_temporary: bool = True) -> ocp.Chec
                                              cleanup_tmp_directories=remove_temporary))
 
 
+def restore_failure(error: Exception) -> str:
+    """One line for why orbax could not restore a checkpoint (it raises many types, some with pages of text)."""
+    text = str(error).strip()
+    return f"{type(error).__name__}: {text.splitlines()[0][:300] if text else ''}"
+
+
+def _restore_newest_intact(manager: ocp.CheckpointManager, state: TrainState, workdir: str) -> tuple:
+    """(state, step) of the newest checkpoint that restores into ``state``'s structure. A damaged one is
+    renamed ``<step>.damaged`` (kept, and out of the manager's way), with one line on stderr saying so,
+    and the next older one is tried."""
+    abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=x.sharding), state)
+    for step in sorted(manager.all_steps(), reverse=True):
+        try:
+            return manager.restore(step, args=ocp.args.StandardRestore(abstract)), step
+        except Exception as e:  # noqa: BLE001 -- any failure to restore means this step is unusable
+            path = os.path.join(workdir, "checkpoints", str(step))
+            if jax.process_index() == 0:
+                os.rename(path, path + ".damaged")
+            print(f"checkpoint {path} cannot be restored ({restore_failure(e)}); kept as {path}.damaged, trying "
+                  f"the next older one", file=sys.stderr, flush=True)
+            manager.reload()
+    raise NoIntactCheckpointError(f"no checkpoint in {workdir}/checkpoints restores (each kept as <step>.damaged); "
+                                  f"start a new --workdir, or remove them to train this one afresh")
+
+
 def _host(tree):
     """Replicated device arrays -> NumPy (reads this process's copy, so it works on any process)."""
     return jax.tree.map(lambda x: np.asarray(x.addressable_data(0)), tree)
@@ -357,15 +386,15 @@ def train(cfg: Config, workdir: str, batches: Batches | None = None,
     if main_process:
         with open(config_path, "w") as f:
             f.write(cfg.to_json())
-        _truncate_metrics(metrics_path, start or 0)
 
     mesh = make_mesh()
     state = jax.device_put(init_state(cfg, objective), NamedSharding(mesh, PartitionSpec()))
     if start is not None:
-        abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=x.sharding), state)
-        state = manager.restore(start, args=ocp.args.StandardRestore(abstract))
+        state, start = _restore_newest_intact(manager, state, workdir)
         print(f"resumed from step {start} in {workdir}", flush=True)
     start = start or 0
+    if main_process:
+        _truncate_metrics(metrics_path, start)
     step_fn = make_train_step(cfg, mesh, objective)
     noise_root = model_keys(t.seed)[1]
     stream = (batches or world_batches(cfg))(start)

@@ -410,3 +410,25 @@ def test_carried_state_chains_segments_and_resumes_bit_identically(tmp_path):
     expected = loss.sequence_loss(state.params, batches[2], key, cfg, start)[0]
     assert not np.allclose(expected, fresh(state.params, batches[2]), rtol=1e-4)
     np.testing.assert_allclose(step_fn(state, batches[2], key)[1]["total"], expected, rtol=1e-6)
+
+
+def test_resume_from_a_damaged_latest_checkpoint_falls_back_to_the_newest_intact_one(tmp_path, capsys):
+    """The latest checkpoint truncated: the run says so in one line, keeps it as <step>.damaged, resumes from
+    the one before, and ends where an uninterrupted run ends; the older checkpoints are untouched."""
+    train.train(CFG, str(tmp_path / "whole"), batches=synthetic_batches())
+    run = tmp_path / "damaged"
+    train.train(CFG, str(run), batches=synthetic_batches(stop=6))
+    assert checkpoint_steps(run) == [2, 4, 6]
+    step6 = run / "checkpoints" / "6"
+    largest = max((os.path.join(d, f) for d, _, names in os.walk(step6) for f in names), key=os.path.getsize)
+    with open(largest, "r+b") as f:
+        f.truncate(os.path.getsize(largest) // 2)
+    capsys.readouterr()
+    state = train.train(CFG, str(run), batches=synthetic_batches())
+    out, err = capsys.readouterr()
+    assert err.count("\n") == 1 and f"checkpoint {step6} cannot be restored" in err and ".damaged" in err, err
+    assert "resumed from step 4" in out
+    assert (run / "checkpoints" / "6.damaged").is_dir()
+    assert [r["step"] for r in read_jsonl(run / "metrics.jsonl")] == [2, 4, 6, 8]
+    assert_trees_equal(saved_params(run, 8), saved_params(tmp_path / "whole", 8))
+    assert int(state.step) == 8
