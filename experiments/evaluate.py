@@ -41,17 +41,16 @@ def main(argv):
         config_lib.check_launch(argv)
         if FLAGS["config"].present:
             raise ValueError("--config: the run's config.json is the config; only --eval.* may change")
-        for section, name, _ in config_lib.fields():
-            if (section != "eval" and f"{section}.{name}" not in INFERENCE_FIELDS
-                    and FLAGS[f"{section}.{name}"].present):
-                raise ValueError(f"--{section}.{name}: only --eval.* and --{' --'.join(INFERENCE_FIELDS)} may "
-                                 f"change at evaluation (the model is trained)")
-        cfg = config_lib.run_config(FLAGS.workdir)
         overrides = {}
         for section, name, _ in config_lib.fields():
-            if (section == "eval" or f"{section}.{name}" in INFERENCE_FIELDS) and FLAGS[f"{section}.{name}"].present:
-                overrides.setdefault(section, {})[name] = FLAGS[f"{section}.{name}"].value
-        cfg = config_lib.validate(config_lib.replace(cfg, **overrides))
+            flag = f"{section}.{name}"
+            if not FLAGS[flag].present:
+                continue
+            if section != "eval" and flag not in INFERENCE_FIELDS:
+                raise ValueError(f"--{flag}: only --eval.* and --{' --'.join(INFERENCE_FIELDS)} may "
+                                 f"change at evaluation (the model is trained)")
+            overrides.setdefault(section, {})[name] = FLAGS[flag].value
+        cfg = config_lib.validate(config_lib.replace(config_lib.run_config(FLAGS.workdir), **overrides))
         if FLAGS.video_frames < 0 or FLAGS.num_examples < 0:
             raise ValueError("--video_frames and --num_examples must be >= 0")
         for name, ok, bounds in (("top_k", lambda v: v > 0, "must be positive"),
