@@ -7,7 +7,9 @@ Longitudinal control is IDM against the nearest of:
 - the leader: the first vehicle body ahead along the route (same lane, or the lanes after it, including a
   body whose rear still hangs back onto a lane the follower is on);
 - a stop line whose light is red (or yellow, when the vehicle can stop comfortably);
-- the mouth of a junction whose exit is queued ("don't block the junction");
+- the mouth of a junction whose exit is queued ("don't block the junction"): a vehicle that has stood at such a
+  mouth for REROUTE_AFTER_S takes another exit with room, if there is one (see ``_reroute``), so a ring of
+  queues, each waiting for room on the next, does not stand still for good;
 - a conflict zone it must yield at (see ``Town.conf_*``): a vehicle may not enter its lane's zone of a
   conflict while a vehicle body lies in the other lane's zone, nor while a vehicle of higher priority is
   approaching that zone. Priority is, in order: cannot stop before the zone any more; the lane's right of
@@ -54,6 +56,10 @@ STOP_SHORT_M = town_lib.STOP_BAR_M  # vehicles rest this far before a stop line 
 LEADER_CLEARANCE_M = 0.5  # an NPC never steps closer than this to its leader's rear (curves need > 0.4)
 BODY_MARGIN_M = 0.3  # added to both ends of a body against conflict zones: box corners on curves reach further
 START_TIME_RANGE_S = 3600.0  # reset draws the clock uniformly from [0, this): lights start in any phase
+STANDING_MPS = 0.1  # slower than this counts as standing
+# Two full light cycles (<= 56 s each) of standing at a queued mouth: traffic that is only slow discharges its
+# exit within that time; a ring of full roads never does. No drive shorter than this can re-route.
+REROUTE_AFTER_S = 120.0
 
 _CAR_PAINTS = np.array([[235, 235, 235], [25, 25, 28], [170, 172, 178], [95, 98, 105], [30, 45, 110],
                          [180, 25, 30], [40, 90, 190], [30, 100, 60], [230, 200, 40], [220, 110, 30],
@@ -78,6 +84,7 @@ class WorldState(NamedTuple):
     veh_route: int32 [N+1, ROUTE_LEN], the next lanes the vehicle will take, in order.
     veh_max_accel_mps2: float32 [N+1], IDM's maximum acceleration (a driver trait).
     veh_speed_frac: float32 [N+1], desired speed as a fraction of the speed limit (a driver trait).
+    veh_standing_steps: int32 [N+1], steps since the vehicle last moved (or last re-routed).
     step: int32 [], time index; the clock (lights) reads ``step * DT_S`` seconds.
     """
     veh_box: jax.Array
@@ -92,6 +99,7 @@ class WorldState(NamedTuple):
     veh_route: jax.Array
     veh_max_accel_mps2: jax.Array
     veh_speed_frac: jax.Array
+    veh_standing_steps: jax.Array
     step: jax.Array
 
 
@@ -119,11 +127,16 @@ def _pick_successor(town, lane, key):
     One random word from ``key``, spread over the M vehicles by an integer hash (the murmur3 finaliser of
     word + row): far cheaper than M threefry draws, and as random for choosing among <= 3 exits.
     """
-    h = jax.random.bits(key, (), jnp.uint32) + jnp.arange(lane.shape[0], dtype=jnp.uint32) * jnp.uint32(0x9E3779B9)
+    h = _row_hash(key, lane.shape[0])
+    return town.lane_succ[lane, (h % town.lane_num_succ[lane].astype(jnp.uint32)).astype(jnp.int32)]
+
+
+def _row_hash(key, num_rows: int):
+    """uint32 [num_rows]: one random word from ``key``, spread over the rows by the murmur3 finaliser."""
+    h = jax.random.bits(key, (), jnp.uint32) + jnp.arange(num_rows, dtype=jnp.uint32) * jnp.uint32(0x9E3779B9)
     for shift, mult in ((16, 0x85EBCA6B), (13, 0xC2B2AE35)):
         h = (h ^ (h >> shift)) * jnp.uint32(mult)
-    h = h ^ (h >> 16)
-    return town.lane_succ[lane, (h % town.lane_num_succ[lane].astype(jnp.uint32)).astype(jnp.int32)]
+    return h ^ (h >> 16)
 
 
 def _check_fits(num_vehicles: int, num_slots: int) -> None:
@@ -178,6 +191,7 @@ def reset(key, town, cfg: WorldConfig) -> WorldState:
         veh_route=jnp.stack(route[1:], 1),
         veh_max_accel_mps2=jax.random.uniform(keys[10], (n,), minval=1.5, maxval=2.5),
         veh_speed_frac=speed_frac,
+        veh_standing_steps=jnp.zeros(n, jnp.int32),
         step=jax.random.randint(keys[11], (), 0, int(START_TIME_RANGE_S / DT_S)),
     )
 
@@ -218,6 +232,8 @@ class _Plan(NamedTuple):
     d_yield_m: jax.Array  # to the nearest conflict zone it yields at, inf if none
     path: jax.Array  # int32 [N+1, K], current lane then route
     limit_mps: jax.Array  # [N+1, K], speed limits along the path
+    exit_queued: jax.Array  # bool [N+1]: first on its lane, at a junction mouth whose exit is queued
+    lane_rear_m: jax.Array  # [NL], arc position of the rearmost body point on each lane (inf: empty)
 
 
 def _plan(state: WorldState, town) -> _Plan:
@@ -270,7 +286,9 @@ def _plan(state: WorldState, town) -> _Plan:
     # Do not enter a junction unless there is room behind where the leader will come to rest.
     exit_needs_m = to_end[:, 1:-1] + half[:, None] + IDM_MIN_GAP_M  # leader's rear beyond the junction lane
     queued = (gap_lead + v_lead ** 2 / (2 * COMFORT_DECEL_MPS2))[:, None] < exit_needs_m
-    blocked = jnp.pad(town.lane_at_mouth[path[:, :-2]] & queued & can_stop[:, :-2], ((0, 0), (0, 2)))
+    blocked = town.lane_at_mouth[path[:, :-2]] & queued & can_stop[:, :-2]
+    exit_queued = blocked[:, 0] & (gap_lead > front_to_end[:, 0])
+    blocked = jnp.pad(blocked, ((0, 0), (0, 2)))
     stop_at_end = (front_to_end >= 0) & (red | blocked)
     d_stop = jnp.min(jnp.where(stop_at_end, front_to_end, jnp.inf), 1)
     first_stop = jnp.where(stop_at_end.any(1), jnp.argmax(stop_at_end, 1), path.shape[1])
@@ -326,7 +344,33 @@ def _plan(state: WorldState, town) -> _Plan:
     braking = jnp.maximum(_idm_braking(v, a_max, gap_lead, v - v_lead),
                           _idm_braking(v, a_max, d_static - STOP_SHORT_M + IDM_MIN_GAP_M, v))
     accel = jnp.clip(free - a_max * braking, -max_decel, a_max)
-    return _Plan(accel, gap_lead, d_stop, d_yield, path, limit)
+    return _Plan(accel, gap_lead, d_stop, d_yield, path, limit, exit_queued, _unpack(jnp.minimum(tail, spill))[0])
+
+
+def _reroute(state: WorldState, town, plan: _Plan, key):
+    """Routes [N+1, ROUTE_LEN] with another exit for every vehicle that has stood REROUTE_AFTER_S at a
+    queued junction mouth: a random one among its lane's successors that is empty and whose exit lane has
+    room for the whole body (its rearmost body point at least the vehicle's length and IDM_MIN_GAP_M
+    in). Returns (routes, re-routed [N+1]); a vehicle with no such exit keeps its route and waits on.
+    """
+    lane = state.veh_lane
+    junction = town.lane_succ[lane]  # [N+1, MS], -1 padded
+    exit_lane = town.lane_succ[jnp.maximum(junction, 0), 0]
+    need_m = state.veh_box[:, 3] + IDM_MIN_GAP_M
+    room = ((jnp.arange(junction.shape[1])[None] < town.lane_num_succ[lane][:, None])
+            & jnp.isinf(plan.lane_rear_m[jnp.maximum(junction, 0)])
+            & (plan.lane_rear_m[exit_lane] >= need_m[:, None]))
+    waited = plan.exit_queued & (state.veh_standing_steps >= int(REROUTE_AFTER_S / DT_S))
+    rerouted = waited & room.any(1)
+    # The k-th exit with room, k uniform over how many there are.
+    pick_key, *later_keys = jax.random.split(key, ROUTE_LEN - 1)
+    pick = (_row_hash(pick_key, lane.shape[0]) % jnp.maximum(room.sum(1), 1).astype(jnp.uint32)).astype(jnp.int32)
+    choice = jnp.argmax(room & (jnp.cumsum(room, 1) == pick[:, None] + 1), 1)
+    take = lambda table: jnp.take_along_axis(table, choice[:, None], 1)[:, 0]
+    new_route = [take(junction), take(exit_lane)]
+    for later_key in later_keys:
+        new_route.append(_pick_successor(town, new_route[-1], later_key))
+    return jnp.where(rerouted[:, None], jnp.stack(new_route, 1), state.veh_route), rerouted
 
 
 def step(state: WorldState, town) -> WorldState:
@@ -360,6 +404,10 @@ def step(state: WorldState, town) -> WorldState:
     new_lane = jnp.where(over, path[:, 1], lane)
     extension = _pick_successor(town, state.veh_route[:, -1], route_key)
     route = jnp.where(over[:, None], jnp.concatenate([state.veh_route[:, 1:], extension[:, None]], 1), state.veh_route)
+    # (A key folded from the route key: the world's other random draws stay what they were without re-routing.)
+    new_route, rerouted = _reroute(state, town, plan, jax.random.fold_in(route_key, 1))
+    rerouted = rerouted & ~over
+    route = jnp.where(rerouted[:, None], new_route, route)
     v_new = jnp.where(idx == EGO, v_new, jnp.minimum(v_new, town.lane_speed_limit_mps[new_lane]))
     xy, yaw, _ = lane_point(town, new_lane, s_new)
     xy, yaw = xy.at[EGO].set(ego_xy), yaw.at[EGO].set(ego_yaw)
@@ -372,13 +420,14 @@ def step(state: WorldState, town) -> WorldState:
         veh_s_m=s_new,
         veh_prev_lane=jnp.where(over, lane, state.veh_prev_lane),
         veh_route=route,
+        veh_standing_steps=jnp.where((v_new < STANDING_MPS) & ~rerouted, state.veh_standing_steps + 1, 0),
         step=state.step + 1,
     )
 
 
 def hand_over_ego(state: WorldState, vehicle) -> WorldState:
     """The ego role passes to NPC row ``vehicle`` (int in [1, N]): rows EGO and ``vehicle`` swap their place
-    on the road (centre, yaw, speed, lane, arc, previous lane, route) and their driver traits, while each row
+    on the road (centre, yaw, speed, lane, arc, previous lane, route, standing time) and their driver traits, while each row
     keeps its body (length, width, height, paint), so the ego is still the EGO_SIZE_M car. The traffic goes
     on as it was; only whose sensors see it changes (a fresh viewpoint without a fresh warm-up). Bodies swap
     lengths by at most 0.9 m, i.e. 0.45 m per end, within LEADER_CLEARANCE_M: no overlap (tested).
@@ -389,6 +438,7 @@ def hand_over_ego(state: WorldState, vehicle) -> WorldState:
         veh_box=jnp.concatenate([state.veh_box[order, :3], state.veh_box[:, 3:]], 1),
         veh_speed_mps=swap(state.veh_speed_mps), veh_lane=swap(state.veh_lane), veh_s_m=swap(state.veh_s_m),
         veh_prev_lane=swap(state.veh_prev_lane), veh_route=swap(state.veh_route),
+        veh_standing_steps=swap(state.veh_standing_steps),
         veh_max_accel_mps2=swap(state.veh_max_accel_mps2), veh_speed_frac=swap(state.veh_speed_frac))
 
 
