@@ -13,8 +13,11 @@ Any field is overridden from the command line as ``--<section>.<field>=value`` (
 """
 import dataclasses
 import json
+import logging
 import math
 import os
+import sys
+import traceback
 from typing import Any
 
 VARIANTS = ("full", "no_input_recon", "no_roadmap_recon")
@@ -133,12 +136,17 @@ class Config:
         return cls(**sections)
 
 
+class MissingRunFileError(FileNotFoundError, ValueError):
+    """A training run's file (config.json, a checkpoint) is missing. A ValueError like every other bad input
+    of a run directory, and a FileNotFoundError."""
+
+
 def run_config(workdir: str) -> Config:
-    """The config saved in training run ``workdir``; FileNotFoundError or ValueError (one line, naming the
+    """The config saved in training run ``workdir``; MissingRunFileError or ValueError (one line, naming the
     file) if it is missing or cannot be read."""
     path = os.path.join(workdir, "config.json")
     if not os.path.exists(path):
-        raise FileNotFoundError(f"{workdir}: no config.json; is it a training run directory?")
+        raise MissingRunFileError(f"{workdir}: no config.json; is it a training run directory?")
     try:
         with open(path) as f:
             return Config.from_json(f.read())
@@ -305,12 +313,43 @@ def parse_flags(argv):
         raise SystemExit(f"error: {e}")
 
 
+# orbax reads a checkpoint's arrays as concurrent tasks on an event loop that it closes as soon as one read
+# fails. The reads still in flight then report on their own, pages of text after the launcher's one error
+# line: into the closed loop ('Event loop is closed', from tensorstore's threads), as coroutines collected
+# mid-read, and as tasks and futures whose failure nobody retrieved (asyncio's log). Launchers drop those.
+def _from_orbax(*texts: str) -> bool:
+    return any(f"{os.sep}orbax{os.sep}" in text for text in texts)
+
+
+def _without_abandoned_read_reports(hook):
+    """``hook`` (a ``sys.unraisablehook``) less the reports of the reads orbax abandons."""
+    def filtered(unraisable):
+        closed_loop = isinstance(unraisable.exc_value, RuntimeError) and str(unraisable.exc_value) == "Event loop is closed"
+        code = getattr(unraisable.object, "cr_code", None)
+        trace = traceback.format_exception(unraisable.exc_type, unraisable.exc_value, unraisable.exc_traceback)
+        if not (closed_loop or _from_orbax(code.co_filename if code else "", *trace)):
+            hook(unraisable)
+    return filtered
+
+
+class _WithoutAbandonedReadLogs(logging.Filter):
+    """asyncio's log of the tasks and futures of the reads orbax abandons."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        trace = logging.Formatter().formatException(record.exc_info) if record.exc_info else ""
+        return not _from_orbax(record.getMessage(), trace)
+
+
 def check_launch(argv, required: tuple = ("workdir",)) -> None:
     """A launcher's first checks: no positional arguments, each flag named in ``required`` given.
-    Raises ValueError naming the flag. Also quietens the routine INFO lines jax and orbax log."""
-    from absl import flags, logging
+    Raises ValueError naming the flag. Also quietens the routine INFO lines jax and orbax log, and the
+    reports of the reads orbax abandons when a checkpoint fails to restore (the failure is raised)."""
+    from absl import flags
+    from absl import logging as absl_logging
     if not flags.FLAGS["verbosity"].present:
-        logging.set_verbosity(logging.WARNING)
+        absl_logging.set_verbosity(absl_logging.WARNING)
+    sys.unraisablehook = _without_abandoned_read_reports(sys.unraisablehook)
+    logging.getLogger("asyncio").addFilter(_WithoutAbandonedReadLogs())
     if len(argv) > 1:
         raise ValueError(f"unexpected arguments {argv[1:]}; every setting is a --flag")
     for name in required:

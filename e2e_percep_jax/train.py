@@ -12,7 +12,8 @@ latents with ``fold_in(noise_root, s)``. So a run is a function of (config, step
 killed and resumed from a checkpoint reproduces the uninterrupted run exactly.
 
 Data parallel: one 1-D mesh ``("data",)`` over all devices (of all processes); batches are sharded
-along B, the train state is replicated; ``jit`` inserts the gradient all-reduce.
+along B, the train state is replicated; ``jit`` inserts the gradient all-reduce. With several processes,
+SIGTERM / SIGINT caught by any of them stops all after the same step.
 
 Carried state (``--data.carry_state``, the learned pose route): the train state also holds, per drive
 slot of the stream, where the latent filter left that drive's last segment, and step s's batch continues
@@ -39,6 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import orbax.checkpoint as ocp
+from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from e2e_percep_jax import loss as loss_lib
@@ -302,7 +304,10 @@ def _checkpoint_manager(workdir: str, remove_temporary: bool = True) -> ocp.Chec
 
 
 def restore_failure(error: Exception) -> str:
-    """One line for why orbax could not restore a checkpoint (it raises many types, some with pages of text)."""
+    """One line for why orbax could not restore a checkpoint (it raises many types, some with pages of text):
+    the first line of the innermost cause (a read error wrapped in orbax's own has the file and the reason)."""
+    while error.__cause__ is not None:
+        error = error.__cause__
     text = str(error).strip()
     return f"{type(error).__name__}: {text.splitlines()[0][:300] if text else ''}"
 
@@ -314,7 +319,10 @@ def _restore_newest_intact(manager: ocp.CheckpointManager, state: TrainState, wo
     abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=x.sharding), state)
     for step in sorted(manager.all_steps(), reverse=True):
         try:
-            return manager.restore(step, args=ocp.args.StandardRestore(abstract)), step
+            # A manager per attempt: orbax fixes a manager's item layout at its first restore, from that step's
+            # folder, so a damaged step without the item (an empty folder) would fail every older step too.
+            with _checkpoint_manager(workdir, remove_temporary=False) as reader:
+                return reader.restore(step, args=ocp.args.StandardRestore(abstract)), step
         except Exception as e:  # noqa: BLE001 -- any failure to restore means this step is unusable
             path = os.path.join(workdir, "checkpoints", str(step))
             if jax.process_index() == 0:
@@ -362,6 +370,14 @@ class _StopSignals:
 
     def _handle(self, signum, frame):
         self.signum = signum
+
+    def agreed(self) -> int | None:
+        """The signal that stops the run, the same in every process: with several, the largest any of them
+        caught (a collective, so every process calls it at the same point). A process stopping alone would
+        leave the others waiting for it in the next step's all-reduce."""
+        if jax.process_count() == 1:
+            return self.signum
+        return int(np.max(multihost_utils.process_allgather(np.int32(self.signum or 0)))) or None
 
     def __exit__(self, *exc):
         for s, handler in self._previous.items():
@@ -415,7 +431,7 @@ def train(cfg: Config, workdir: str, batches: Batches | None = None,
 
     with _StopSignals() as stop, manager:  # closing the manager waits for pending saves
         for step, batch in stream:
-            if step >= t.num_steps or stop.signum is not None:
+            if step >= t.num_steps or stop.agreed() is not None:
                 break
             batch = shard_batch(batch, mesh)
             key = jax.random.fold_in(noise_root, step)
@@ -447,6 +463,7 @@ def train(cfg: Config, workdir: str, batches: Batches | None = None,
         final_step = int(_host(state.step))
         check_finite(final_step)
         save(final_step)
-        if stop.signum is not None:
-            raise TrainingInterrupted(stop.signum, final_step)
+        signum = stop.agreed()
+        if signum is not None:
+            raise TrainingInterrupted(signum, final_step)
     return state
