@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from e2e_percep_jax import checkpoint, metrics, pixor, pose_belief
+from e2e_percep_jax import checkpoint, detection, pose_belief
 from e2e_percep_jax import model as model_lib
 from e2e_percep_jax.config import Config
 
@@ -80,6 +80,9 @@ class Perceiver:
         _check("camera", camera, (b, r, r, 3), jnp.uint8)
         _check("lidar", lidar, (b, r, r, 3), jnp.uint8)
         _check("action", action, (b, 2), jnp.float32)
+        if start_pose is not None:
+            start_pose = jnp.asarray(start_pose)
+            _check("start_pose", start_pose, (b, 5), jnp.float32)
         self._check_state(state, b)
         latent_state, latent = model_lib.filter_step(params, state, camera, lidar, action, key, self.cfg)
         z = jnp.concatenate([latent["z1"], latent["z2"]], -1)
@@ -106,18 +109,14 @@ class Perceiver:
         for (path, want), got in zip(jax.tree_util.tree_flatten_with_path(expected)[0], jax.tree.leaves(state)):
             _check(f"state{jax.tree_util.keystr(path)}", jnp.asarray(got), want.shape, want.dtype)
 
-    def boxes(self, outputs, score_threshold: float | None = None, iou_threshold: float = metrics.NMS_IOU):
+    def boxes(self, outputs, score_threshold: float | None = None, iou_threshold: float = detection.NMS_IOU):
         """Host-side box decoding of :meth:`step`'s outputs: for each of the B streams, (boxes [M, 5]
         in the ego frame (x m, y m, yaw rad, length m, width m), scores [M]), highest score first,
         after greedy NMS on exact rotated IoU. ``score_threshold`` defaults to the config's."""
         threshold = self.cfg.eval.score_threshold if score_threshold is None else score_threshold
         cls_maps, reg_maps = np.asarray(outputs["det_cls"]), np.asarray(outputs["det_reg"])
-        per_stream = []
-        for cls_map, reg_map in zip(cls_maps, reg_maps):
-            boxes, scores = pixor.decode_boxes(cls_map, reg_map, threshold)
-            keep = metrics.nms(boxes, scores, iou_threshold)
-            per_stream.append((boxes[keep], scores[keep]))
-        return per_stream
+        return [detection.thresholded_boxes(cls_map, reg_map, threshold, iou_threshold)
+                for cls_map, reg_map in zip(cls_maps, reg_maps)]
 
 
 def load(workdir: str, step: int | None = None):

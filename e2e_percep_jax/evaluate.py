@@ -12,19 +12,8 @@ Device / host split. One jitted chunk function (:func:`make_chunk_fn`) runs ``cf
 frames as a ``lax.scan`` of observe -> filter_step -> decode -> world.step, vmapped over the E worlds,
 carrying (world state, filter state); memory is flat in N. Per frame it returns only what the metrics
 need: the ground-truth boxes and poses, the predicted pose, and ``top_k`` detection candidates:
-
-1. every pixel's box is decoded from the PIXOR maps (:func:`pixor.decode_dense`);
-2. centre-cell de-duplication: pixels whose predicted box centres fall into the same
-   ``DEDUP_CELL_M`` cell keep only the highest-scoring one (ties: the lowest pixel index). Every pixel
-   of one vehicle predicts the same centre, so this collapses a vehicle's ~40-150 pixels to a few
-   candidates before the top-k (a plain top-k over pixels would cover 1-2 vehicles only). Two boxes
-   whose centres are within one cell would almost always be suppressed by NMS anyway;
-3. the ``top_k`` highest scores (and their boxes). ``topk_saturated_frac`` in the metrics says how
-   often the k-th candidate still scored above ``score_floor`` (then candidates were cut).
-
-The host then keeps candidates with score >= ``score_floor`` whose centre lies in the BEV view (the
-same rule that makes a ground truth valid, ``sensors.in_bev_view``), runs greedy NMS on exact rotated
-IoU (``nms_iou``), and matches against the world's ground-truth boxes (:class:`metrics.DetectionAccumulator`).
+chosen on the device and filtered on the host by :mod:`e2e_percep_jax.detection`; the host matches them
+against the world's ground-truth boxes (:class:`metrics.DetectionAccumulator`).
 
 Baselines (``baselines.py``) go through the same protocol with two hooks: ``frame_fn`` replaces the
 model's per-frame perception inside the chunk, and ``host_fn`` post-processes each drive's detections
@@ -70,13 +59,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from e2e_percep_jax import config as config_lib
-from e2e_percep_jax import geometry as geo
+from e2e_percep_jax import detection
 from e2e_percep_jax import metrics as metrics_lib
 from e2e_percep_jax import model as model_lib
 from e2e_percep_jax import panels
-from e2e_percep_jax import pixor
 from e2e_percep_jax import pose_belief
 from e2e_percep_jax import render
+from e2e_percep_jax import report
 from e2e_percep_jax import sensors
 from e2e_percep_jax import summary
 from e2e_percep_jax import town as town_lib
@@ -85,27 +74,9 @@ from e2e_percep_jax.api import Perceiver
 from e2e_percep_jax.config import Config
 
 IOU_THRESHOLDS = (0.1, 0.3, 0.5, 0.7)
-DEDUP_CELL_M = 0.5
-TOP_K = 64
-SCORE_FLOOR = 0.05
-NMS_IOU = metrics_lib.NMS_IOU
 RESET_STREAM, SAMPLE_STREAM = 0, 1  # fold_in data of PRNGKey(cfg.eval.seed)
 _COMPILED = {}  # compiled chunk programs by everything they depend on
 
-# The paper's Tables I and II (CARLA Town03), one row per variant.
-PAPER_AP = {  # AP (%) at IoU 0.1 / 0.3 / 0.5 / 0.7
-    "Inputs and roadmap (full)": (79.4, 72.0, 56.5, 16.8),
-    "No inputs reconstruction (no_input_recon)": (78.4, 74.4, 61.0, 22.1),
-    "No roadmap reconstruction (no_roadmap_recon)": (57.4, 45.3, 7.8, 0.3),
-}
-PAPER_POSE = {  # location (m), heading (rad)
-    "Inputs and roadmap (full)": (11.4, 0.33),
-    "No inputs reconstruction (no_input_recon)": (8.6, 0.17),
-    "No roadmap reconstruction (no_roadmap_recon)": (7.1, 0.42),
-}
-PAPER_VARIANT_ROW = {"full": "Inputs and roadmap (full)",
-                     "no_input_recon": "No inputs reconstruction (no_input_recon)",
-                     "no_roadmap_recon": "No roadmap reconstruction (no_roadmap_recon)"}
 
 
 # ----------------------------------------------------------------------------- run directories
@@ -152,36 +123,6 @@ def start_worlds(keys, town, cfg: Config):
     return jax.vmap(lambda k: world.reset(k, town, cfg.world))(keys)
 
 
-def detection_candidates(det_cls, det_reg, top_k: int, floor: float):
-    """Device-side reduction of PIXOR maps ``[..., R, R, 1]`` / ``[..., R, R, 6]`` to ``top_k`` candidates.
-
-    Returns boxes ``[..., k, 5]`` (ego frame), scores ``[..., k]`` (-1 for no candidate) and whether the
-    k-th candidate scored >= ``floor`` (bool ``[...]``: candidates may have been cut). See the module
-    docstring for the centre-cell de-duplication.
-    """
-    boxes, scores = pixor.decode_dense(det_cls, det_reg)  # [..., R, R, 5], [..., R, R]
-    prefix, r = scores.shape[:-2], scores.shape[-1]
-    boxes, scores = boxes.reshape(prefix + (r * r, 5)), scores.reshape(prefix + (r * r,))
-    cells = int(round(geo.BEV_SPAN_M / DEDUP_CELL_M)) + 2  # +1 border cell each side for outside centres
-    row = jnp.clip(jnp.floor((geo.BEV_AHEAD_M - boxes[..., 0]) / DEDUP_CELL_M) + 1, 0, cells - 1)
-    col = jnp.clip(jnp.floor((geo.BEV_SIDE_M - boxes[..., 1]) / DEDUP_CELL_M) + 1, 0, cells - 1)
-    cell = (row * cells + col).astype(jnp.int32)
-    finite = jnp.all(jnp.isfinite(boxes), -1) & jnp.isfinite(scores)
-    scores = jnp.where(finite, scores, -1.0)
-    pixel = jnp.arange(r * r, dtype=jnp.int32)
-
-    def dedup(cell, score):  # one frame: [P] -> is the pixel its cell's best?
-        best = jax.ops.segment_max(score, cell, num_segments=cells * cells)
-        first = jax.ops.segment_min(jnp.where(score >= best[cell], pixel, r * r), cell, num_segments=cells * cells)
-        return first[cell] == pixel
-
-    flat = lambda x, tail: x.reshape((-1, r * r) + tail)
-    keep = jax.vmap(dedup)(flat(cell, ()), flat(scores, ())).reshape(scores.shape)
-    top, idx = jax.lax.top_k(jnp.where(keep, scores, -1.0), top_k)
-    top_boxes = jnp.take_along_axis(boxes, idx[..., None], axis=-2)
-    return top_boxes, top, top[..., -1] >= floor
-
-
 def _to_uint8(image):
     return (jnp.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(jnp.uint8)
 
@@ -209,7 +150,7 @@ def model_frame_fn(cfg: Config, sample: bool):
     return frame_fn
 
 
-def make_chunk_fn(cfg: Config, town, sample: bool, top_k: int = TOP_K, floor: float = SCORE_FLOOR, heads=None,
+def make_chunk_fn(cfg: Config, town, sample: bool, top_k: int = detection.TOP_K, floor: float = detection.SCORE_FLOOR, heads=None,
                   frame_fn=None):
     """Jitted ``chunk(params, world_state, filter_state, key, warm) -> (world_state,
     filter_state, out)``: ``cfg.eval.chunk_steps`` frames of all E worlds.
@@ -247,7 +188,7 @@ def make_chunk_fn(cfg: Config, town, sample: bool, top_k: int = TOP_K, floor: fl
         fstate, decoded, recon = frame_fn(params, fstate, frame, wstate.ego_action, key, pictured)
         if heads is not None:
             decoded = heads(decoded, frame)
-        cand_boxes, cand_scores, saturated = detection_candidates(decoded["det_cls"], decoded["det_reg"], top_k, floor)
+        cand_boxes, cand_scores, saturated = detection.candidates(decoded["det_cls"], decoded["det_reg"], top_k, floor)
         out = {"cand_boxes": cand_boxes, "cand_scores": cand_scores, "saturated": saturated,
                "boxes": frame["boxes"], "boxes_valid": frame["boxes_valid"],
                "boxes_occluded": frame["boxes_occluded"], "pose": frame["pose"], "pose_pred": decoded["pose"],
@@ -274,23 +215,6 @@ def make_chunk_fn(cfg: Config, town, sample: bool, top_k: int = TOP_K, floor: fl
 
 
 # ----------------------------------------------------------------------------- host side
-
-
-def frame_detections(cand_boxes, cand_scores, floor=SCORE_FLOOR, nms_iou=NMS_IOU):
-    """One frame's candidates ``[k, 5]``, ``[k]`` (NumPy) -> (boxes ``[M, 5]``, scores ``[M]``) after the
-    score floor, the BEV-view rule (``sensors.in_bev_view``, in NumPy) and greedy rotated NMS at
-    ``nms_iou``, highest score first."""
-    cand_boxes, cand_scores = np.asarray(cand_boxes), np.asarray(cand_scores)
-    keep = (cand_scores >= floor) & _in_view_np(cand_boxes[:, :2]) & (cand_boxes[:, 3] > 0) & (cand_boxes[:, 4] > 0)
-    boxes, scores = cand_boxes[keep].astype(np.float64), np.clip(cand_scores[keep].astype(np.float64), 0.0, 1.0)
-    if len(boxes) == 0:
-        return boxes.reshape(0, 5), scores
-    kept = metrics_lib.nms(boxes, scores, nms_iou)
-    return boxes[kept], scores[kept]
-
-
-def _in_view_np(xy):
-    return ((xy[..., 0] >= -geo.BEV_BEHIND_M) & (xy[..., 0] < geo.BEV_AHEAD_M) & (np.abs(xy[..., 1]) < geo.BEV_SIDE_M))
 
 
 def _curve_summary(curve, max_points=200):
@@ -360,166 +284,12 @@ def _eta(seconds):
     return f"{h}h{m:02d}m" if h else f"{m}m{s:02d}s"
 
 
-# ----------------------------------------------------------------------------- pictures
-
-
-def _title(view, text):
-    for colour, thick in (((0, 0, 0), 3), ((255, 255, 255), 1)):
-        cv2.putText(view, text, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, colour, thick, cv2.LINE_AA)
-    return view
-
-
-def example_rows(frame, pred_boxes, pred_scores, panel_px=192):
-    """The paper's Fig. 6 layout for one frame: uint8 [2 * panel_px, 4 * panel_px, 3].
-
-    Row 1: camera, lidar, ground-truth roadmap, ground-truth boxes (green visible / orange occluded).
-    Row 2: reconstructed camera, lidar, roadmap (black where the variant does not reconstruct it), and
-    the decoded boxes (cyan, brighter for higher scores) over the reconstructed (else true) roadmap.
-    """
-    r = frame["camera"].shape[0]
-    no_boxes = dict(boxes=np.zeros((0, 5), np.float32), boxes_valid=np.zeros(0, bool), boxes_occluded=np.zeros(0, bool))
-    top = panels.frame_panel(frame, panel_px, titles=False)
-    blank = np.zeros((r, r, 3), np.uint8)
-    recon = {k: frame.get(f"recon_{k}", blank) for k in ("camera", "lidar", "roadmap")}
-    recon_frame = dict(recon, **no_boxes)
-    if "recon_roadmap" not in frame:  # boxes drawn over the true roadmap, dimmed
-        recon_frame["roadmap"] = frame["roadmap"]
-    bottom = panels.frame_panel(recon_frame, panel_px, pred_boxes, pred_scores, titles=False)
-    if "recon_roadmap" not in frame:
-        bottom[:, 2 * panel_px:3 * panel_px] = 0
-    for i, name in enumerate(("camera", "lidar", "GT roadmap", "GT boxes")):
-        _title(top[:, i * panel_px:(i + 1) * panel_px], name)
-    for i, (key, name) in enumerate((("camera", "recon. camera"), ("lidar", "recon. lidar"),
-                                     ("roadmap", "recon. roadmap"), (None, "decoded boxes"))):
-        view = bottom[:, i * panel_px:(i + 1) * panel_px]
-        _title(view, name if key is None or f"recon_{key}" in frame else f"{name}: not decoded")
-    return np.concatenate([top, bottom], 0)
-
-
-def pr_curves_image(results, size=360):
-    """uint8 BGR picture of the PR curves: one panel per subset (all / visible / occluded), one curve per IoU."""
-    colours = {0.1: (200, 120, 30), 0.3: (40, 160, 40), 0.5: (30, 110, 230), 0.7: (160, 40, 160)}  # BGR
-    margin_l, margin_b, margin_t, margin_r = 48, 40, 28, 12
-    views = []
-    for subset in metrics_lib.SUBSETS:
-        img = np.full((size + margin_t + margin_b, size + margin_l + margin_r, 3), 255, np.uint8)
-        px = lambda rec, prec: (int(round(margin_l + rec * size)), int(round(margin_t + (1 - prec) * size)))
-        for v in np.linspace(0, 1, 6):
-            cv2.line(img, px(v, 0), px(v, 1), (225, 225, 225), 1)
-            cv2.line(img, px(0, v), px(1, v), (225, 225, 225), 1)
-            cv2.putText(img, f"{v:.1f}", (px(v, 0)[0] - 9, px(v, 0)[1] + 14), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
-            cv2.putText(img, f"{v:.1f}", (4, px(0, v)[1] + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
-        cv2.rectangle(img, px(0, 1), px(1, 0), (0, 0, 0), 1)
-        cv2.putText(img, "recall", (margin_l + size // 2 - 20, size + margin_t + 32), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
-        cv2.putText(img, f"precision vs recall: {subset} GT", (margin_l, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
-        for j, thr in enumerate(sorted(results)):
-            curve = results[thr][subset]
-            colour = colours.get(thr, (0, 0, 0))
-            if curve.num_gt and len(curve.recall):
-                rec = np.concatenate([[0.0], curve.recall])
-                prec = np.concatenate([[curve.precision[0]], curve.precision])
-                pts = np.array([px(a, b) for a, b in zip(rec, prec)], np.int32)
-                cv2.polylines(img, [pts], False, colour, 2, cv2.LINE_AA)
-            ap = "n/a" if not np.isfinite(curve.ap) else f"{100 * curve.ap:.1f}%"
-            y = margin_t + 16 + 16 * j
-            cv2.line(img, (margin_l + size - 150, y - 4), (margin_l + size - 130, y - 4), colour, 2)
-            cv2.putText(img, f"IoU {thr:.1f}: AP {ap}", (margin_l + size - 125, y), cv2.FONT_HERSHEY_SIMPLEX, 0.38, (0, 0, 0), 1, cv2.LINE_AA)
-        views.append(img)
-    return np.concatenate(views, 1)
-
-
-# ----------------------------------------------------------------------------- report
-
-
-def _fmt(v, pct=False, digits=1):
-    if v is None or (isinstance(v, float) and not np.isfinite(v)):
-        return "n/a"
-    return f"{100 * v:.{digits}f}%" if pct else f"{v:.{digits}f}"
-
-
-def report_markdown(m: dict) -> str:
-    """report.md: the paper's Table I and Table II with this run's row, the baseline and the paper's rows."""
-    det, pose, base = m["detection"], m["pose"], m["baseline"]
-    variant, label = m["config"]["model"]["variant"], m["label"]
-    is_variant = label == variant  # else a baseline: it has no model variant, and no paper row is its own
-    thr = [f"{t:g}" for t in IOU_THRESHOLDS]
-    lines = [f"# Evaluation report: {m['workdir'] or '(library call)'}", "",
-             f"Checkpoint step {m['checkpoint_step']}, {'variant' if is_variant else 'baseline'} `{label}`, image size "
-             f"{m['config']['data']['image_size']}. Online drive: {m['num_frames']} frames "
-             f"({m['num_worlds']} worlds x {m['frames_per_world']} frames, town seed {m['config']['eval']['town_seed']}, "
-             f"start keys from eval.seed {m['config']['eval']['seed']}, {m['config']['data']['warmup_steps']} warm-up steps), "
-             f"latent = {'posterior samples' if m['sample'] else 'posterior mean'}. "
-             f"{m['frames_per_s']:.1f} frames/s ({m['seconds']:.0f} s, compile {m['compile_s']:.0f} s).", "",
-             "## Table I: average precision of surrounding-vehicle boxes", "",
-             "| | " + " | ".join(f"AP<sub>{t}</sub>" for t in thr) + " |", "|---|" + "---|" * len(thr)]
-    ap = det["ap"]
-    lines.append(f"| **this run ({label})** | " + " | ".join(_fmt(ap[t]["all"], True) for t in thr) + " |")
-    lines.append("| this run, visible GT | " + " | ".join(_fmt(ap[t]["visible"], True) for t in thr) + " |")
-    lines.append("| this run, occluded GT | " + " | ".join(_fmt(ap[t]["occluded"], True) for t in thr) + " |")
-    lines.append("| baseline: no boxes | " + " | ".join("0.0%" for _ in thr) + " |")
-    for row, vals in PAPER_AP.items():
-        mark = " (same variant)" if is_variant and PAPER_VARIANT_ROW[variant] == row else ""
-        lines.append(f"| paper: {row}{mark} | " + " | ".join(f"{v:.1f}%" for v in vals) + " |")
-    lines += ["", f"Ground truths: {det['num_gt']['all']} ({det['num_gt']['visible']} visible, "
-              f"{det['num_gt']['occluded']} occluded: no lidar return). Detections: PIXOR class map -> "
-              f"boxes, top {det['top_k']} centre-cell candidates per frame (cut in "
-              f"{100 * det['topk_saturated_frac']:.1f}% of frames), score >= {det['score_floor']} "
-              f"(AP sweeps the score over this range), centre in the BEV view, greedy NMS at rotated IoU "
-              f"{det['nms_iou']}. Greedy matching by score, each ground truth at most once; all-point AP. "
-              "Occluded / visible rows: recall over that subset, a detection matched to the other subset "
-              "ignored, unmatched detections false positives in both.", "",
-              f"At the operating threshold {det['score_threshold']}: " + ", ".join(
-                  f"IoU {t}: precision {_fmt(det['at_threshold'][t]['precision'], True)}, recall "
-                  f"{_fmt(det['at_threshold'][t]['recall'], True)}" for t in thr) + ".", "",
-              "## Table II: ego global pose error", "",
-              "| | Location (m) | Heading (rad) | Speed (m/s) |", "|---|---|---|---|",
-              f"| **this run ({label}), mean** | {_fmt(pose['location_m']['mean'], digits=2)} | "
-              f"{_fmt(pose['heading_rad']['mean'], digits=3)} | {_fmt(pose['speed_mps']['mean'], digits=2)} |",
-              f"| this run, median | {_fmt(pose['location_m']['median'], digits=2)} | "
-              f"{_fmt(pose['heading_rad']['median'], digits=3)} | {_fmt(pose['speed_mps']['median'], digits=2)} |",
-              f"| baseline: constant mean pose, mean | {_fmt(base['pose']['location_m']['mean'], digits=2)} | "
-              f"{_fmt(base['pose']['heading_rad']['mean'], digits=3)} | {_fmt(base['pose']['speed_mps']['mean'], digits=2)} |"]
-    for row, (loc, head) in PAPER_POSE.items():
-        mark = " (same variant)" if is_variant and PAPER_VARIANT_ROW[variant] == row else ""
-        lines.append(f"| paper: {row}{mark} | {loc} | {head} | - |")
-    loc, head = pose["location_m"], pose["heading_rad"]
-    share = lambda d, bound: _fmt(d.get("within", {}).get(bound), True)
-    conv = pose.get("converged_frame", {})
-    lines += ["", f"Pose protocol: {'known start (odometry: the belief starts at the true first pose and follows the actions)' if pose.get('known_start') else 'global (no start pose given)'}"
-              f"{'; the belief head read frame by frame (no filter)' if pose.get('pose_filter') == 'none' else ''}.",
-              "", "| location p90 (m) | within 5 / 10 / 50 m | heading p90 (rad) | within 0.1 rad | "
-              f"drives converged (< {conv.get('within_m', CONVERGED_M):g} m to the end), median frame | "
-              "belief NLL of the true pose (nats per m² rad) | drift (m per 100 m driven) |",
-              "|---|---|---|---|---|---|---|",
-              f"| {_fmt(loc.get('p90'), digits=2)} | {share(loc, '5')} / {share(loc, '10')} / {share(loc, '50')} | "
-              f"{_fmt(head.get('p90'), digits=3)} | {share(head, '0.1')} | {_fmt(conv.get('share'), True)}, "
-              f"{_fmt(conv.get('median'), digits=0)} | {_fmt(pose.get('nll_mean'), digits=2)} | "
-              f"{_fmt(pose.get('drift_per_100m'), digits=2)} |"]
-    by = pose["location_m_by_step"]
-    edges = by["bin_edges"] + [None]
-    lines += ["", "Baseline: always the mean of this drive's true poses (x, y, speed averaged; heading the "
-              "circular mean) and no boxes, an oracle constant that knows where the evaluation drove.",
-              "Heading error wrapped to [0, pi]. The paper's best per column: AP 79.4 / 74.4 / 61.0 / 22.1 %, "
-              "location 7.1 m, heading 0.17 rad.", "",
-              "Location error by time since the start of a drive (does filtering converge?):", "",
-              "| steps since start | frames | mean location error (m) |", "|---|---|---|"]
-    for i, (count, mean) in enumerate(zip(by["count"], by["mean"])):
-        if count:
-            hi = edges[i + 1]
-            lines.append(f"| {edges[i]}-{hi - 1 if hi is not None else ''} | {count} | {_fmt(mean, digits=2)} |")
-    pictured = ", ".join(f"world {x['world']} frame {x['frame']} ({x['vehicles_in_view']} vehicles in view)"
-                      for x in m["examples"])
-    lines += ["", "Pictures: `pr_curves.png` (PR curves per IoU; all / visible / occluded), `examples.png` "
-              f"(the paper's Fig. 6 layout: {pictured or 'none'}), `drive.mp4` (the same panels over world 0's drive)."]
-    return "\n".join(lines) + "\n"
-
-
 # ----------------------------------------------------------------------------- the evaluation
 
 
 def evaluate(cfg: Config, params, out_dir: str, *, sample: bool = False, video_frames: int = 300,
-             num_examples: int = 2, top_k: int = TOP_K, score_floor: float = SCORE_FLOOR,
-             nms_iou: float = NMS_IOU, workdir: str | None = None, checkpoint_step: int | None = None,
+             num_examples: int = 2, top_k: int = detection.TOP_K, score_floor: float = detection.SCORE_FLOOR,
+             nms_iou: float = detection.NMS_IOU, workdir: str | None = None, checkpoint_step: int | None = None,
              heads=None, frame_fn=None, host_fn=None, label: str | None = None, log=print) -> dict:
     """Runs the online evaluation of ``params`` under ``cfg`` and writes the report into ``out_dir``.
 
@@ -595,7 +365,7 @@ def evaluate(cfg: Config, params, out_dir: str, *, sample: bool = False, video_f
             for w in range(e):
                 if frame_index >= per_world[w]:
                     continue
-                boxes, scores = frame_detections(out["cand_boxes"][t, w], out["cand_scores"][t, w], score_floor, nms_iou)
+                boxes, scores = detection.frame_detections(out["cand_boxes"][t, w], out["cand_scores"][t, w], score_floor, nms_iou)
                 if hosts is not None:
                     boxes, scores, pose_pred[t, w] = hosts[w](boxes, scores, pose_pred[t, w], out["pose"][t, w])
                 det_acc.add_frame(boxes, scores, out["boxes"][t, w], out["boxes_valid"][t, w], out["boxes_occluded"][t, w])
@@ -605,7 +375,7 @@ def evaluate(cfg: Config, params, out_dir: str, *, sample: bool = False, video_f
                 shown = scores >= ev.score_threshold
                 if w == 0 and frame_index < video_frames:
                     frame = pictured_frame(out, t, 0)
-                    picture = with_map(example_rows(frame, boxes[shown], scores[shown], panel_px), frame, 0, frame_index)
+                    picture = with_map(report.example_rows(frame, boxes[shown], scores[shown], panel_px), frame, 0, frame_index)
                     cv2.putText(picture, f"world 0, frame {frame_index}", (4 * panel_px - 150, 2 * panel_px - 8),
                                 cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
                     if video is None:
@@ -647,7 +417,7 @@ def evaluate(cfg: Config, params, out_dir: str, *, sample: bool = False, video_f
         "seconds": seconds, "frames_per_s": done / max(seconds, 1e-9), "compile_s": compile_s,
         "detection": {
             "iou_thresholds": list(IOU_THRESHOLDS), "score_threshold": ev.score_threshold,
-            "score_floor": score_floor, "nms_iou": nms_iou, "top_k": top_k, "dedup_cell_m": DEDUP_CELL_M,
+            "score_floor": score_floor, "nms_iou": nms_iou, "top_k": top_k, "dedup_cell_m": detection.DEDUP_CELL_M,
             "topk_saturated_frac": saturated / max(done, 1),
             "num_gt": {s: results[IOU_THRESHOLDS[0]][s].num_gt for s in metrics_lib.SUBSETS},
             "ap": {key(t): {s: (None if not np.isfinite(results[t][s].ap) else results[t][s].ap)
@@ -665,29 +435,29 @@ def evaluate(cfg: Config, params, out_dir: str, *, sample: bool = False, video_f
         "baseline": {"description": "constant pose = mean of the drive's true poses (circular mean heading); no boxes",
                      "mean_pose": [float(v) for v in constant], "pose": _pose_summary(base_acc),
                      "ap": {key(t): 0.0 for t in IOU_THRESHOLDS}},
-        "paper": {"ap_percent": {k: dict(zip(map(key, IOU_THRESHOLDS), v)) for k, v in PAPER_AP.items()},
-                  "pose": {k: {"location_m": v[0], "heading_rad": v[1]} for k, v in PAPER_POSE.items()}},
+        "paper": {"ap_percent": {k: dict(zip(map(key, IOU_THRESHOLDS), v)) for k, v in report.PAPER_AP.items()},
+                  "pose": {k: {"location_m": v[0], "heading_rad": v[1]} for k, v in report.PAPER_POSE.items()}},
     }
     with open(os.path.join(out_dir, "metrics.json"), "w") as f:
         json.dump(metrics, f, indent=1)
     with open(os.path.join(out_dir, "report.md"), "w") as f:
-        f.write(report_markdown(metrics))
-    cv2.imwrite(os.path.join(out_dir, "pr_curves.png"), pr_curves_image(results))
+        f.write(report.markdown(metrics))
+    cv2.imwrite(os.path.join(out_dir, "pr_curves.png"), report.pr_curves_image(results))
     if chosen:
         sep = np.full((6, 6 * panel_px, 3), 255, np.uint8)  # four panels and the 2 x 2 map
         rows = []
         for frame_index, w, frame, boxes, scores in chosen:
-            rows += [with_map(example_rows(frame, boxes, scores, panel_px), frame, w, frame_index), sep]
+            rows += [with_map(report.example_rows(frame, boxes, scores, panel_px), frame, w, frame_index), sep]
         cv2.imwrite(os.path.join(out_dir, "examples.png"), cv2.cvtColor(np.concatenate(rows[:-1], 0), cv2.COLOR_RGB2BGR))
-    log(f"eval: wrote {out_dir}: AP@0.5 {_fmt(metrics['detection']['ap']['0.5']['all'], True)}, "
-        f"location error {_fmt(metrics['pose']['location_m']['mean'], digits=2)} m, "
-        f"heading error {_fmt(metrics['pose']['heading_rad']['mean'], digits=3)} rad")
+    log(f"eval: wrote {out_dir}: AP@0.5 {report.fmt(metrics['detection']['ap']['0.5']['all'], True)}, "
+        f"location error {report.fmt(metrics['pose']['location_m']['mean'], digits=2)} m, "
+        f"heading error {report.fmt(metrics['pose']['heading_rad']['mean'], digits=3)} rad")
     return metrics
 
 
 def pictured_frame(out, t, slot):
     """Frame t of a chunk's ``out`` as seen in pictured slot ``slot`` (0: world 0, 1: the most crowded
-    world): its images, reconstructions and ground-truth boxes, as NumPy, for :func:`example_rows`."""
+    world): its images, reconstructions and ground-truth boxes, as NumPy, for :func:`report.example_rows`."""
     frame = {k: np.array(out[k][t, slot]) for k in out
              if k in ("camera", "lidar", "roadmap", "pose_place") or k.startswith("recon_")}
     w = out["pictured"][t, slot]
