@@ -199,8 +199,10 @@ def build_town(seed: int) -> Town:
 
 
 def spawn_slots(seed: int) -> int:
-    """How many vehicles the town of ``seed`` can place at a reset (NumPy only: nothing is compiled)."""
-    return Town(*_build_town_np(seed)).spawn_lane.shape[0]
+    """How many vehicles the town of ``seed`` can place at a reset (NumPy only: nothing is compiled). From
+    the lane graph alone, a sixth of the time of building the whole town."""
+    *_, lanes, _, _ = _lane_graph(np.random.default_rng(seed))
+    return len(_spawn_slots(lanes, _lane_lengths(lanes)))
 
 
 # ----------------------------------------------------------------------------- geometry helpers
@@ -771,19 +773,35 @@ def _sampled(pts, num_samples):
 
 
 @functools.lru_cache(maxsize=8)
-def _build_town_np(seed):
-    rng = np.random.default_rng(seed)
+def _lane_graph(rng):
+    """The road network, its junctions and the lanes through them: the first draws from the town's ``rng``."""
     node_xy, roads, lanes_per_dir, ring_node, interior = _road_network(rng)
-    node_degree = np.bincount(roads.ravel(), minlength=len(node_xy))
     node_kind, major_roads = _junction_kinds(rng, node_xy, roads, lanes_per_dir, ring_node, interior)
     L, in_lanes, mouth_m = _lanes_with_feasible_turns(node_xy, roads, lanes_per_dir, node_kind, major_roads)
+    return node_xy, roads, lanes_per_dir, ring_node, node_kind, L, in_lanes, mouth_m
+
+
+def _lane_lengths(L):
+    return np.array([np.linalg.norm(np.diff(p, axis=0), axis=1).sum() for p in L.pts])
+
+
+def _spawn_slots(L, length):
+    """(lane, arc position m) of every reset slot: along road lanes, SPAWN_SPACING_M apart."""
+    return [(lane, s) for lane in np.flatnonzero(np.array(L.kind) == LANE_ROAD)
+            for s in np.arange(4.0, length[lane] - 8.0, SPAWN_SPACING_M)]
+
+
+def _build_town_np(seed):
+    rng = np.random.default_rng(seed)
+    node_xy, roads, lanes_per_dir, ring_node, node_kind, L, in_lanes, mouth_m = _lane_graph(rng)
+    node_degree = np.bincount(roads.ravel(), minlength=len(node_xy))
     if not _strongly_connected(L.succ):
         raise RuntimeError(f"town {seed}: lane graph is not strongly connected")
     lane_light, *lights = _lights(rng, node_xy, node_kind, roads, lanes_per_dir, in_lanes, L)
     sem, origin, stop_line, stop_lane = _rasterise(node_xy, node_kind, roads, lanes_per_dir, mouth_m, L)
     buildings = _buildings(rng, sem, _Raster(origin, sem.shape), node_xy, roads, node_xy[ring_node])
 
-    length = np.array([np.linalg.norm(np.diff(p, axis=0), axis=1).sum() for p in L.pts])
+    length = _lane_lengths(L)
     if length.min() < 2.0 or length.max() > MAX_LANE_LENGTH_M:  # a step crosses at most one lane boundary
         raise RuntimeError(f"town {seed}: lane lengths {length.min():.2f}..{length.max():.2f} m out of range")
     num_samples = int(np.ceil(length.max() / LANE_DS_M)) + 2
@@ -793,8 +811,7 @@ def _build_town_np(seed):
     conf_lane = _pad([[c[0] for c in row] for row in table], width, np.int32(-1))
     mirror = [[[c[0] for c in table[b]].index(a) for b, *_ in row] for a, row in enumerate(table)]
     kind = np.array(L.kind)
-    spawn = [(lane, s) for lane in np.flatnonzero(kind == LANE_ROAD)
-             for s in np.arange(4.0, length[lane] - 8.0, SPAWN_SPACING_M)]
+    spawn = _spawn_slots(L, length)
     f32, i32 = np.float32, np.int32
     return (
         sem, origin.astype(f32), np.array(MAP_RES_M, f32),

@@ -183,3 +183,9 @@ def test_same_seed_same_town_and_other_seeds_differ():
     assert not np.allclose(np.asarray(default.node_xy_m), np.asarray(other.node_xy_m))
     assert (np.asarray(default.sem_map).shape != np.asarray(other.sem_map).shape
             or (np.asarray(default.sem_map) != np.asarray(other.sem_map)).mean() > 0.05)
+
+
+@pytest.mark.parametrize("seed", [DEFAULT_TOWN_SEED, HELD_OUT_SEED, 7])
+def test_spawn_slots_from_the_lane_graph_match_the_built_town(seed):
+    """The launchers' vehicle-count check reads the lane graph alone; the built town must agree."""
+    assert town_lib.spawn_slots(seed) == town_lib.build_town(seed).spawn_lane.shape[0] > 100
