@@ -99,7 +99,7 @@ class NonFiniteLossError(RuntimeError):
 
 
 class NoIntactCheckpointError(RuntimeError):
-    """Every checkpoint of the run being resumed failed to restore (each kept as ``<step>.damaged``)."""
+    """Every checkpoint of the run being resumed failed to restore (all are left as they were)."""
 
 
 class TrainingInterrupted(Exception):
@@ -313,25 +313,30 @@ def restore_failure(error: Exception) -> str:
 
 
 def _restore_newest_intact(manager: ocp.CheckpointManager, state: TrainState, workdir: str) -> tuple:
-    """(state, step) of the newest checkpoint that restores into ``state``'s structure. A damaged one is
-    renamed ``<step>.damaged`` (kept, and out of the manager's way), with one line on stderr saying so,
-    and the next older one is tried."""
+    """(state, step) of the newest checkpoint that restores into ``state``'s structure. The newer ones that
+    did not restore are then renamed ``<step>.damaged`` (kept, and out of the manager's way), one line on
+    stderr each. When none restores, nothing is renamed: the checkpoints may be intact and ``config.json``
+    the odd one out."""
     abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=x.sharding), state)
+    failed = []
     for step in sorted(manager.all_steps(), reverse=True):
         try:
             # A manager per attempt: orbax fixes a manager's item layout at its first restore, from that step's
             # folder, so a damaged step without the item (an empty folder) would fail every older step too.
             with _checkpoint_manager(workdir, remove_temporary=False) as reader:
-                return reader.restore(step, args=ocp.args.StandardRestore(abstract)), step
+                restored = reader.restore(step, args=ocp.args.StandardRestore(abstract))
         except Exception as e:  # noqa: BLE001 -- any failure to restore means this step is unusable
-            path = os.path.join(workdir, "checkpoints", str(step))
+            failed.append((os.path.join(workdir, "checkpoints", str(step)), restore_failure(e)))
+            continue
+        for path, why in failed:
             if jax.process_index() == 0:
                 os.rename(path, path + ".damaged")
-            print(f"checkpoint {path} cannot be restored ({restore_failure(e)}); kept as {path}.damaged, trying "
-                  f"the next older one", file=sys.stderr, flush=True)
-            manager.reload()
-    raise NoIntactCheckpointError(f"no checkpoint in {workdir}/checkpoints restores (each kept as <step>.damaged); "
-                                  f"start a new --workdir, or remove them to train this one afresh")
+            print(f"checkpoint {path} cannot be restored ({why}); kept as {path}.damaged", file=sys.stderr, flush=True)
+        manager.reload()
+        return restored, step
+    raise NoIntactCheckpointError(
+        f"no checkpoint in {workdir}/checkpoints restores for its config.json (damaged, or written by another "
+        f"config; newest: {failed[0][1] if failed else 'none'}); nothing was changed")
 
 
 def _host(tree):

@@ -454,18 +454,24 @@ def test_a_resume_sets_a_damaged_latest_checkpoint_aside(run, tmp_path, capfd, h
                  checkpoint.restore_params(run[0])[1])
 
 
-def test_a_resume_with_no_checkpoint_intact_stops_in_one_line_keeping_each(run, tmp_path):
-    """Every checkpoint damaged: each is kept as ``<step>.damaged`` (its files untouched), and the run stops
-    with NoIntactCheckpointError (the launcher's one ``error:`` line) without training or saving."""
+@pytest.mark.parametrize("trouble", ["every checkpoint damaged", "config.json of another model"])
+def test_a_resume_with_no_checkpoint_that_restores_stops_in_one_line_changing_nothing(run, tmp_path, trouble):
+    """No checkpoint restores for config.json, whether they are damaged or config.json is the odd one out
+    (the checkpoints intact): the run stops with NoIntactCheckpointError (the launcher's one ``error:``
+    line) and leaves every file and folder as it was, so a repaired config.json resumes the run."""
     workdir = str(tmp_path / "run")
     shutil.copytree(run[0], workdir)
-    for step in ("1", "2"):
-        shutil.rmtree(os.path.join(workdir, "checkpoints", step))
-        os.mkdir(os.path.join(workdir, "checkpoints", step))
+    cfg = CFG
+    if trouble == "every checkpoint damaged":
+        for step in ("1", "2"):
+            shutil.rmtree(os.path.join(workdir, "checkpoints", step))
+            os.mkdir(os.path.join(workdir, "checkpoints", step))
+    else:
+        cfg = config_lib.replace(CFG, model=dict(z1_dim=2 * CFG.model.z1_dim))
+        with open(os.path.join(workdir, "config.json"), "w") as f:
+            f.write(cfg.to_json())
     before = snapshot(workdir)
     with pytest.raises(train_lib.NoIntactCheckpointError) as error:
-        train_lib.train(CFG, workdir, batches=synthetic_batches)
+        train_lib.train(cfg, workdir, batches=synthetic_batches)
     assert "\n" not in str(error.value) and f"no checkpoint in {workdir}/checkpoints restores" in str(error.value)
-    renamed = {k.replace("checkpoints/1", "checkpoints/1.damaged", 1).replace("checkpoints/2", "checkpoints/2.damaged", 1):
-               v for k, v in before.items()}
-    assert snapshot(workdir) == renamed
+    assert snapshot(workdir) == before
