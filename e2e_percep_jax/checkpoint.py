@@ -31,16 +31,8 @@ def restore_params(workdir: str, cfg: Config | None = None, step: int | None = N
     if step is not None and step not in saved:
         raise ValueError(f"--step={step}: {workdir} has checkpoints at steps {saved}")
     step = saved[-1] if step is None else step
-    path = os.path.join(workdir, "checkpoints", str(step))
     sharding = jax.sharding.SingleDeviceSharding(jax.devices()[0])
     abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding),
                             jax.eval_shape(lambda: train_lib.init_state(cfg, objective or train_lib.PERCEPTION)))
-    try:
-        # The one item train's CheckpointManager saves, read without a manager: a manager reads every step's
-        # metadata when it starts and logs about each damaged one, on top of the one line raised here.
-        with ocp.StandardCheckpointer() as checkpointer:
-            state = checkpointer.restore(os.path.join(path, ocp.checkpoint_manager.DEFAULT_ITEM_NAME), abstract)
-    except Exception as e:  # orbax raises many types (decode, data loss, tree or shape mismatch): one line
-        raise ValueError(f"{path}: cannot be restored for its config.json (damaged, or written by another "
-                         f"config): {train_lib.restore_failure(e)}") from None
+    state = train_lib.read_checkpoint(workdir, step, abstract)
     return cfg, state.params, step

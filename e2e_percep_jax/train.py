@@ -303,13 +303,29 @@ def _checkpoint_manager(workdir: str, remove_temporary: bool = True) -> ocp.Chec
                                              cleanup_tmp_directories=remove_temporary))
 
 
-def restore_failure(error: Exception) -> str:
+def _restore_failure(error: Exception) -> str:
     """One line for why orbax could not restore a checkpoint (it raises many types, some with pages of text):
     the first line of the innermost cause (a read error wrapped in orbax's own has the file and the reason)."""
     while error.__cause__ is not None:
         error = error.__cause__
     text = str(error).strip()
     return f"{type(error).__name__}: {text.splitlines()[0][:300] if text else ''}"
+
+
+def read_checkpoint(workdir: str, step: int, abstract):
+    """Train state ``step`` of run ``workdir``, restored into ``abstract`` (shapes, dtypes, shardings): the
+    one reader of a checkpoint, for resuming and for ``checkpoint.restore_params``. Raises ValueError, one
+    line naming the checkpoint, if it cannot be read into that structure (damaged, or another config)."""
+    path = os.path.join(os.path.abspath(workdir), "checkpoints", str(step))
+    try:
+        # The one item the training manager saves, read without a manager: a manager reads every step's
+        # metadata when it starts (logging about each damaged one), and fixes its item layout at its first
+        # restore from that step's folder, so a damaged step without the item would fail the older ones too.
+        with ocp.StandardCheckpointer() as checkpointer:
+            return checkpointer.restore(os.path.join(path, ocp.checkpoint_manager.DEFAULT_ITEM_NAME), abstract)
+    except Exception as e:  # orbax raises many types (decode, data loss, tree or shape mismatch): one line
+        raise ValueError(f"{path}: cannot be restored for its config.json (damaged, or written by another "
+                         f"config): {_restore_failure(e)}") from None
 
 
 def _restore_newest_intact(manager: ocp.CheckpointManager, state: TrainState, workdir: str) -> tuple:
@@ -321,22 +337,18 @@ def _restore_newest_intact(manager: ocp.CheckpointManager, state: TrainState, wo
     failed = []
     for step in sorted(manager.all_steps(), reverse=True):
         try:
-            # A manager per attempt: orbax fixes a manager's item layout at its first restore, from that step's
-            # folder, so a damaged step without the item (an empty folder) would fail every older step too.
-            with _checkpoint_manager(workdir, remove_temporary=False) as reader:
-                restored = reader.restore(step, args=ocp.args.StandardRestore(abstract))
-        except Exception as e:  # noqa: BLE001 -- any failure to restore means this step is unusable
-            failed.append((os.path.join(workdir, "checkpoints", str(step)), restore_failure(e)))
+            restored = read_checkpoint(workdir, step, abstract)
+        except ValueError as e:
+            failed.append((os.path.join(workdir, "checkpoints", str(step)), str(e)))
             continue
         for path, why in failed:
             if jax.process_index() == 0:
                 os.rename(path, path + ".damaged")
-            print(f"checkpoint {path} cannot be restored ({why}); kept as {path}.damaged", file=sys.stderr, flush=True)
+            print(f"checkpoint {why}; kept as {path}.damaged", file=sys.stderr, flush=True)
         manager.reload()
         return restored, step
-    raise NoIntactCheckpointError(
-        f"no checkpoint in {workdir}/checkpoints restores for its config.json (damaged, or written by another "
-        f"config; newest: {failed[0][1] if failed else 'none'}); nothing was changed")
+    raise NoIntactCheckpointError(f"no checkpoint in {workdir}/checkpoints restores, nothing was changed; the newest: "
+                                  f"{failed[0][1] if failed else 'none'}")
 
 
 def _host(tree):

@@ -435,7 +435,7 @@ def test_a_resume_sets_a_damaged_latest_checkpoint_aside(run, tmp_path, capfd, h
     out, err = capfd.readouterr()
     step2 = os.path.join(workdir, "checkpoints", "2")
     ours = [l for l in err.splitlines() if l.startswith("checkpoint ")]
-    assert len(ours) == 1 and f"checkpoint {step2} cannot be restored" in ours[0], err
+    assert len(ours) == 1 and f"checkpoint {step2}: cannot be restored" in ours[0], err
     assert f"kept as {step2}.damaged" in ours[0], err
     assert f"resumed from step 1 in {workdir}" in out
     after = snapshot(workdir)

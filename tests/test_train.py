@@ -405,7 +405,7 @@ def test_resume_from_a_damaged_latest_checkpoint_falls_back_to_the_newest_intact
     capsys.readouterr()
     state = train.train(CFG, str(run), batches=synthetic_batches())
     out, err = capsys.readouterr()
-    assert err.count("\n") == 1 and f"checkpoint {step6} cannot be restored" in err and ".damaged" in err, err
+    assert err.count("\n") == 1 and f"checkpoint {step6}: cannot be restored" in err and ".damaged" in err, err
     assert "resumed from step 4" in out
     assert (run / "checkpoints" / "6.damaged").is_dir()
     assert [r["step"] for r in read_jsonl(run / "metrics.jsonl")] == [2, 4, 6, 8]
