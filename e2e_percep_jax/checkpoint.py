@@ -2,19 +2,9 @@
 import os
 
 import jax
-import orbax.checkpoint as ocp
 
 from e2e_percep_jax import train as train_lib
 from e2e_percep_jax.config import Config, MissingRunFileError, run_config
-
-
-def saved_steps(workdir: str) -> list[int]:
-    """The steps of the finished checkpoints ``checkpoints/<step>`` of run ``workdir``, oldest first (orbax
-    writes a checkpoint under a temporary name and renames it when done; a resume sets a damaged one aside as
-    ``<step>.damaged``)."""
-    path = os.path.join(workdir, "checkpoints")
-    names = os.listdir(path) if os.path.isdir(path) else []
-    return sorted(int(d) for d in names if d.isascii() and d.isdigit())
 
 
 def restore_params(workdir: str, cfg: Config | None = None, step: int | None = None, objective=None):
@@ -25,7 +15,7 @@ def restore_params(workdir: str, cfg: Config | None = None, step: int | None = N
     naming the checkpoint) if ``step`` is not saved or cannot be restored; writes nothing."""
     workdir = os.path.abspath(workdir)
     cfg = run_config(workdir) if cfg is None else cfg
-    saved = saved_steps(workdir)
+    saved = train_lib.saved_steps(workdir)
     if not saved:
         raise MissingRunFileError(f"no checkpoint in {workdir}/checkpoints")
     if step is not None and step not in saved:

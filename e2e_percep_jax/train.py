@@ -312,10 +312,20 @@ def _restore_failure(error: Exception) -> str:
     return f"{type(error).__name__}: {text.splitlines()[0][:300] if text else ''}"
 
 
+def saved_steps(workdir: str) -> list[int]:
+    """The steps of the finished checkpoints ``checkpoints/<step>`` of run ``workdir``, oldest first (orbax
+    writes a checkpoint under a temporary name and renames it when done; a resume sets a damaged one aside as
+    ``<step>.damaged``)."""
+    path = os.path.join(workdir, "checkpoints")
+    names = os.listdir(path) if os.path.isdir(path) else []
+    return sorted(int(d) for d in names if d.isascii() and d.isdigit())
+
+
 def read_checkpoint(workdir: str, step: int, abstract):
-    """Train state ``step`` of run ``workdir``, restored into ``abstract`` (shapes, dtypes, shardings): the
-    one reader of a checkpoint, for resuming and for ``checkpoint.restore_params``. Raises ValueError, one
-    line naming the checkpoint, if it cannot be read into that structure (damaged, or another config)."""
+    """Train state ``step`` (one of :func:`saved_steps`) of run ``workdir``, restored into ``abstract`` (shapes,
+    dtypes, shardings): the one reader of a checkpoint, for resuming and for ``checkpoint.restore_params``.
+    Raises ValueError, one line naming the checkpoint, if it cannot be read into that structure (damaged,
+    or written by another config)."""
     path = os.path.join(os.path.abspath(workdir), "checkpoints", str(step))
     try:
         # The one item the training manager saves, read without a manager: a manager reads every step's
@@ -335,7 +345,7 @@ def _restore_newest_intact(manager: ocp.CheckpointManager, state: TrainState, wo
     the odd one out."""
     abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=x.sharding), state)
     failed = []
-    for step in sorted(manager.all_steps(), reverse=True):
+    for step in reversed(saved_steps(workdir)):
         try:
             restored = read_checkpoint(workdir, step, abstract)
         except ValueError as e:

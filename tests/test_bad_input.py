@@ -279,7 +279,7 @@ def run(tmp_path_factory):
     of FOREIGN)."""
     path = str(tmp_path_factory.mktemp("run"))
     train_lib.train(CFG, path, batches=synthetic_batches)
-    assert checkpoint.saved_steps(path) == [1, 2]
+    assert train_lib.saved_steps(path) == [1, 2]
     foreign = str(tmp_path_factory.mktemp("foreign"))
     with train_lib._checkpoint_manager(foreign) as manager:
         manager.save(2, args=ocp.args.StandardSave(train_lib.init_state(FOREIGN)))
@@ -449,7 +449,7 @@ def test_a_resume_sets_a_damaged_latest_checkpoint_aside(run, tmp_path, capfd, h
     assert records[0] == undamaged[0] and [r["step"] for r in records] == [1, 2]  # step 1's record kept
     timeless = lambda record: {k: v for k, v in record.items() if k != "steps_per_s"}
     assert timeless(records[1]) == timeless(undamaged[1])
-    assert int(state.step) == 2 and checkpoint.saved_steps(workdir) == [1, 2]
+    assert int(state.step) == 2 and train_lib.saved_steps(workdir) == [1, 2]
     jax.tree.map(np.testing.assert_array_equal, checkpoint.restore_params(workdir)[1],
                  checkpoint.restore_params(run[0])[1])
 
