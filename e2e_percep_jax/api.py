@@ -90,7 +90,7 @@ class Perceiver:
         outputs = {"det_cls": decoded["det_cls"], "det_reg": decoded["det_reg"], "z": z}
         outputs.update({k: jnp.clip(decoded[k], 0.0, 1.0) for k in model_lib.reconstructed_images(self.cfg.model.variant)})
         if not self.belief:
-            return latent_state, dict(outputs, pose=model_lib.pose_to_metres(decoded["pose"]))
+            return latent_state, dict(outputs, pose=model_lib.pose_to_metres(decoded["pose_normalised"]))
         head, grid = model_lib.pose_belief_head(params, latent, self.cfg), pose_belief.grid_of(self.cfg.model)
         if self.cfg.model.pose_filter == "histogram":
             pose_state, outputs["pose"] = pose_belief.filter_step(state["pose"], head, action, state["first"], grid,
@@ -99,6 +99,13 @@ class Perceiver:
             pose_state, outputs["pose"] = pose_belief.head_state(head, grid), pose_belief.decode(head, grid)
         outputs["pose_place"] = pose_belief.place_marginal(pose_state["belief"])
         return dict(latent_state, pose=pose_state), outputs
+
+    def pose_nll(self, state: dict, pose):
+        """-log density [B] of the true poses [B, 5] (metres) under the filtered pose belief (per m² and
+        radian), NaN without the belief head."""
+        if not self.belief:
+            return jnp.full(pose.shape[:1], jnp.nan)
+        return pose_belief.negative_log_likelihood(state["pose"], pose, pose_belief.grid_of(self.cfg.model))
 
     def _check_state(self, state, batch_size: int):
         """Trace-time check of a filter state against :meth:`init`'s for ``batch_size`` streams."""

@@ -1,4 +1,4 @@
-"""The modular pipeline the paper's model replaces (issue 8), on the same world, budget and protocol.
+"""The modular pipeline the paper's model replaces, on the same world, budget and protocol.
 
 Baselines (``BASELINES``), each run in ``<workdir>/<baseline>/``:
 
@@ -16,13 +16,14 @@ Baselines (``BASELINES``), each run in ``<workdir>/<baseline>/``:
   by the same pose errors (:func:`dead_reckoning_host`). Privileged: it is given the start pose.
 
 Training is ``train.train`` with :data:`OBJECTIVES` (same batches, optimiser, steps, checkpoints); the
-evaluation is ``evaluate.evaluate`` with a per-frame ``frame_fn`` (:func:`frame_fn`) and a per-drive
-``host_fn``. A head a baseline does not have reports nothing: no boxes (AP 0) or a NaN pose ("n/a").
+evaluation is ``evaluate.evaluate`` with a :class:`SingleFramePerceiver` (the inference API's protocol)
+and a per-drive ``host_fn``. A head a baseline does not have reports nothing: no boxes (AP 0) or a NaN pose ("n/a").
 The loss's ``key`` is unused (nothing is sampled) and kept for ``train.Objective``'s signature.
 
 ``evaluate`` and ``tracking`` are imported where used: they compile small constants at import, and
 the launcher's flag checks must compile nothing.
 """
+import dataclasses
 import functools
 import os
 
@@ -48,7 +49,7 @@ LABELS = {"detector": "single-frame detector", "tracker": "single-frame detector
 
 class SingleFrameModel(nn.Module):
     """uint8 camera, lidar [N, R, R, 3] -> the perception model's decoded dict for ``head``:
-    ``detection``: det_logit / det_cls [N, R, R, 1], det_reg [N, R, R, 6]; ``pose``: pose [N, 5]
+    ``detection``: det_logit / det_cls [N, R, R, 1], det_reg [N, R, R, 6]; ``pose``: pose_normalised [N, 5]
     (normalised units). Submodules are named as in ``model.PerceptionModel``."""
     cfg: ModelConfig
     image_size: int
@@ -66,7 +67,7 @@ class SingleFrameModel(nn.Module):
     def __call__(self, camera, lidar):
         features = jnp.concatenate([self.camera_encoder(camera), self.lidar_encoder(lidar)], -1)
         if self.head == "pose":
-            return {"pose": self.pose_head(features)}
+            return {"pose_normalised": self.pose_head(features)}
         logit, reg = self.pixor_decoder(features)
         return {"det_logit": logit, "det_cls": jax.nn.sigmoid(logit), "det_reg": reg}
 
@@ -107,7 +108,7 @@ def loss_fn(params, batch, key, cfg: Config, head: str):
     pred = predict(params, batch["camera"], batch["lidar"], cfg, head)
     if head == "detection":
         return loss_lib.with_total(loss_lib.detection_terms(pred, batch, cfg.train.perception_weight))
-    return loss_lib.with_total({"pose": loss_lib.pose_term(pred["pose"], batch["pose"], loss_lib.pose_weight(cfg))})
+    return loss_lib.with_total({"pose": loss_lib.pose_term(pred["pose_normalised"], batch["pose"], loss_lib.pose_weight(cfg))})
 
 
 OBJECTIVES = {h: train_lib.Objective(functools.partial(init_params, head=h), functools.partial(loss_fn, head=h))
@@ -117,19 +118,27 @@ OBJECTIVES = {h: train_lib.Objective(functools.partial(init_params, head=h), fun
 # ----------------------------------------------------------------------------- evaluation hooks
 
 
-@functools.cache  # one object per (cfg, head): evaluate's compiled programs are cached by it
-def frame_fn(cfg: Config, head: str | None):
-    """``evaluate``'s per-frame hook for ``head`` (None: no network, for dead reckoning): decoded maps and
-    pose of each frame on its own; a missing head gives empty maps (no boxes) or a NaN pose."""
-    def perceive(params, fstate, frame, prev_action, key, pictured):
-        out = {} if head is None else predict(params, frame["camera"], frame["lidar"], cfg, head)
-        if "pose" in out:
-            out["pose"] = model_lib.pose_to_metres(out["pose"])
-        decoded = {"det_cls": jnp.zeros_like(frame["det_cls"]), "det_reg": jnp.zeros_like(frame["det_reg"]),
-                   "pose": jnp.full_like(frame["pose"], jnp.nan), **out}
-        return fstate, decoded, {}  # no memory: the filter state passes through; no reconstructions
+@dataclasses.dataclass(frozen=True)
+class SingleFramePerceiver:
+    """The inference API's ``init`` / ``step`` for a baseline ``head`` (None: no network, for dead
+    reckoning): each frame on its own, nothing carried. A head it does not have gives empty maps (no
+    boxes) or a NaN pose."""
+    cfg: Config
+    head: str | None
 
-    return perceive
+    def init(self, batch_size: int) -> dict:
+        return {}
+
+    def step(self, params, state, camera, lidar, action, key=None, start_pose=None):
+        """(state, outputs): det_cls [B, R, R, 1], det_reg [B, R, R, 6], pose [B, 5] (metres); ``action``,
+        ``key`` and ``start_pose`` are unused."""
+        out = {} if self.head is None else predict(params, camera, lidar, self.cfg, self.head)
+        if "pose_normalised" in out:
+            out = {"pose": model_lib.pose_to_metres(out["pose_normalised"])}
+        b, r = camera.shape[0], self.cfg.data.image_size
+        empty = {"det_cls": jnp.zeros((b, r, r, 1)), "det_reg": jnp.zeros((b, r, r, 6)),
+                 "pose": jnp.full((b, 5), jnp.nan)}
+        return state, {**empty, **out}
 
 
 def tracker_host(tracker_cfg=None):
@@ -191,7 +200,6 @@ def check(baselines, cfg: Config, workdir: str) -> None:
 def trained_params(cfg: Config, workdir: str, run: str, log=print):
     """Trains ``<workdir>/<run>`` (resuming) unless it reached ``cfg.train.num_steps``; its final
     (params, step)."""
-    from e2e_percep_jax import evaluate as eval_lib
     path, objective = os.path.join(workdir, run), OBJECTIVES[RUN_HEAD[run]]
     if train_lib.check_run(cfg, path) != cfg.train.num_steps:
         log(f"{run}: training in {path}")
@@ -203,22 +211,23 @@ def trained_params(cfg: Config, workdir: str, run: str, log=print):
 def run(baseline: str, cfg: Config, workdir: str, *, video_frames: int = 300, speed_noise_std_mps: float = 0.1,
         yaw_rate_noise_std_rps: float = 0.01, log=print) -> dict:
     """Trains ``baseline`` if it needs it (the tracker reuses the detector's run) and evaluates it into
-    ``evaluate.eval_dir`` of ``<workdir>/<baseline>``, unless that already holds this evaluation (same
+    ``report.eval_dir`` of ``<workdir>/<baseline>``, unless that already holds this evaluation (same
     label, checkpoint and config). Returns the evaluation's metrics."""
     from e2e_percep_jax import evaluate as eval_lib
+    from e2e_percep_jax import report
     if baseline == "dead_reckoning":
         label = (f"dead reckoning (odometry noise {speed_noise_std_mps:g} m/s, "
                  f"{yaw_rate_noise_std_rps:g} rad/s)")
         params, step, model_dir = {}, None, None
-        hooks = dict(frame_fn=frame_fn(cfg, None),
+        hooks = dict(perceiver=SingleFramePerceiver(cfg, None),
                      host_fn=dead_reckoning_host(speed_noise_std_mps, yaw_rate_noise_std_rps, cfg.eval.seed))
     else:
         label, model_dir = LABELS[baseline], os.path.abspath(os.path.join(workdir, TRAINED_RUN[baseline]))
         params, step = trained_params(cfg, workdir, TRAINED_RUN[baseline], log)
-        hooks = dict(frame_fn=frame_fn(cfg, RUN_HEAD[TRAINED_RUN[baseline]]),
+        hooks = dict(perceiver=SingleFramePerceiver(cfg, RUN_HEAD[TRAINED_RUN[baseline]]),
                      host_fn=tracker_host() if baseline == "tracker" else None)
-    out_dir = eval_lib.eval_dir(os.path.join(workdir, baseline), cfg)
-    done = eval_lib.finished_evaluation(out_dir, label, step, cfg)
+    out_dir = report.eval_dir(os.path.join(workdir, baseline), cfg)
+    done = report.finished_evaluation(out_dir, label, step, cfg)
     if done is not None:
         log(f"{out_dir} already evaluates {label} at step {step}; nothing to do")
         return done

@@ -1,15 +1,12 @@
 """Training batches generated on the fly, in one jit: reset B worlds, warm their traffic up, drive and observe.
 
-A batch is the frame contract (DESIGN §2) with leading [B, T+1] axes: camera, lidar, roadmap uint8
-[B, T+1, R, R, 3]; det_cls float32 [B, T+1, R, R, 1]; det_reg float32 [B, T+1, R, R, 6]; pose float32
-[B, T+1, 5]; action float32 [B, T+1, 2]; boxes float32 [B, T+1, N, 5]; boxes_valid, boxes_occluded bool
-[B, T+1, N]. Every sequence starts from a fresh ``world.reset`` with its own key and records after
+A batch is :class:`e2e_percep_jax.rollout.Frames` (the frame contract, field by field with units and
+shapes) with leading [B, T+1] axes. Every sequence starts from a fresh ``world.reset`` with its own key and records after
 ``cfg.data.warmup_steps`` steps (steady traffic), so a batch depends only on its key and successive
 batches are independent. Nothing touches the disk.
 
 Opt-in, ``--data.batches_per_drive=K`` > 1: each drive of B worlds feeds K batches, each the next T+1
-frames, so the 200 warm-up steps are paid once per K batches (most of a batch's cost at the `cpu` config,
-BUILD_NOTES). Before each segment the ego role passes to a random NPC of its world
+frames, so the 200 warm-up steps are paid once per K batches (most of a batch's cost at the `cpu` config). Before each segment the ego role passes to a random NPC of its world
 (``world.hand_over_ego``): the traffic goes on, but every batch is seen from B fresh places, so the
 sequences are not continuations of the last visit's. With ``--data.carry_state`` there is no hand-over:
 segment j + 1 of a drive continues segment j frame for frame (training then carries the latent across). The stream keeps K drives and takes its batches from
@@ -23,45 +20,24 @@ import functools
 import jax
 
 from e2e_percep_jax import config as config_lib
-from e2e_percep_jax import sensors, world
-
-
-def rollout(state, town, num_frames: int, image_size: int):
-    """Drives ``num_frames`` world steps from ``state``, observing before each step.
-
-    Frame t is ``sensors.observe`` of state t plus ``action`` = the ego action applied from t to t+1
-    (``ego_action`` of state t+1). Returns (state after the last step, i.e. the state of the next
-    frame, so rollouts chain; frames: dict of [num_frames, ...] arrays).
-
-    The world is stepped first and the sensors observe all recorded states at once: one wide vmapped
-    pass instead of one narrow pass per scan step (the same frames; a few % faster for a `cpu` batch,
-    BUILD_NOTES.md).
-    """
-    def body(state, _):
-        next_state = world.step(state, town)
-        return next_state, (state, next_state.ego_action)
-
-    last, (states, actions) = jax.lax.scan(body, state, None, length=num_frames)
-    frames = jax.vmap(lambda s: sensors.observe(s, town, image_size))(states)
-    return last, {**frames, "action": actions}
+from e2e_percep_jax import rollout, world
 
 
 def warm_up(key, town, cfg: config_lib.Config):
     """B worlds reset from ``key`` and driven ``warmup_steps`` steps, unobserved."""
     def one(k):
-        state = world.reset(k, town, cfg.world)
-        return jax.lax.fori_loop(0, cfg.data.warmup_steps, lambda _, s: world.step(s, town), state)
+        return rollout.advance(world.reset(k, town, cfg.world), town, cfg.data.warmup_steps)
     return jax.vmap(one)(jax.random.split(key, cfg.data.batch_size))
 
 
 def _drive_on(states, town, cfg: config_lib.Config):
     """(states T+1 steps later, batch of the T+1 frames from ``states``)."""
-    return jax.vmap(lambda s: rollout(s, town, cfg.data.seq_len + 1, cfg.data.image_size))(states)
+    return jax.vmap(lambda s: rollout.drive(s, town, cfg.data.seq_len + 1, cfg.data.image_size))(states)
 
 
 @functools.partial(jax.jit, static_argnames="cfg")
 def make_batch(key, town, cfg: config_lib.Config):
-    """A batch (dict of [B, T+1, ...] arrays, see the module docstring) from ``key`` alone.
+    """A batch (:class:`~e2e_percep_jax.rollout.Frames` [B, T+1, ...]) from ``key`` alone.
 
     ``cfg`` is static (hashable frozen dataclasses); the same key, town and config give a bit-identical
     batch.
@@ -85,8 +61,7 @@ def start_drive(drive_key, town, cfg: config_lib.Config, segments):
     unobserved, each after its hand-over (``segments`` traced: one compilation for every resume)."""
     def segment(j, states):
         states = _hand_over(states, drive_key, j, cfg)
-        return jax.vmap(lambda s: jax.lax.fori_loop(
-            0, cfg.data.seq_len + 1, lambda _, x: world.step(x, town), s))(states)
+        return jax.vmap(lambda s: rollout.advance(s, town, cfg.data.seq_len + 1))(states)
     return jax.lax.fori_loop(0, segments, segment, warm_up(drive_key, town, cfg))
 
 

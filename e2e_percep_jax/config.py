@@ -93,15 +93,19 @@ class TrainConfig:
 
 @dataclasses.dataclass(frozen=True)
 class EvalConfig:
-    num_steps: int = 15000  # N frames in total, as in the paper's table
+    num_frames: int = 15000  # N frames scored in total, as in the paper's table
     num_worlds: int = 8  # E drives from held-out start keys, N / E frames each
     seed: int = 1000  # evaluation start keys; disjoint from training data keys
     town_seed: int = DEFAULT_TOWN_SEED
-    chunk_steps: int = 100  # frames per scanned chunk; memory is flat in num_steps
+    chunk_steps: int = 100  # world steps (warm-up or frames) per scanned chunk; memory is flat in num_frames
     score_threshold: float = 0.5
     # The pose protocol: False = global (the belief starts uniform over the town); True = known start (the
     # belief starts at each drive's true first pose, then follows the actions alone: odometry).
     known_start: bool = False
+
+
+# (section, old name) -> new name: runs saved before a rename still read back.
+RENAMED_FIELDS = {("eval", "num_steps"): "num_frames"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -123,11 +127,11 @@ class Config:
     @classmethod
     def from_dict(cls, saved: dict) -> "Config":
         """A config from its saved sections (as ``metrics.json`` holds them): JSON lists become tuples
-        again, a field missing (added since it was saved) takes its default, unknown fields raise
-        ValueError."""
+        again, a field missing (added since it was saved) takes its default, a renamed field
+        (``RENAMED_FIELDS``) is read under its new name, unknown fields raise ValueError."""
         sections = {}
         for section in dataclasses.fields(cls):
-            fields = saved.get(section.name, {})
+            fields = {RENAMED_FIELDS.get((section.name, k), k): v for k, v in saved.get(section.name, {}).items()}
             known = {f.name for f in dataclasses.fields(section.default)}
             if set(fields) - known:
                 raise ValueError(f"config.json: unknown fields {sorted(set(fields) - known)} in [{section.name}]")
@@ -177,21 +181,21 @@ PRESETS = {
         # pose_weight 4: the belief's terms (~4,000 per sequence at init, cross-entropies of ~2-3 nats a
         # frame once learned) then weigh about as much as one image's reconstruction (~5,000-10,000)
         train=dict(num_steps=3000, learning_rate=1e-3, max_grad_norm=1e6, pose_weight=4.0),
-        eval=dict(num_steps=15000)),
+        eval=dict(num_frames=15000)),
     "demo": replace(
         Config(),
         data=dict(image_size=64, batch_size=8, batches_per_drive=_BATCHES_PER_DRIVE),
         model=dict(conv_channels=(16, 32, 64, 128), feature_dim=128, hidden_dim=128, pose_head="belief"),
         # 1,000 steps: with the clip the network detects from ~800 (BUILD_NOTES "Learning curve with the clip")
         train=dict(num_steps=1000, checkpoint_every=200, learning_rate=1e-3, max_grad_norm=1e6, pose_weight=4.0),
-        eval=dict(num_steps=2000, num_worlds=4)),
+        eval=dict(num_frames=2000, num_worlds=4)),
     "tiny": replace(
         Config(),
         world=dict(num_vehicles=20),
         data=dict(image_size=32, batch_size=2, seq_len=3, warmup_steps=20),
         model=dict(conv_channels=(8, 16, 32), feature_dim=32, hidden_dim=32, z1_dim=8, z2_dim=16, pose_head="belief"),
         train=dict(num_steps=20, checkpoint_every=10, log_every=5),
-        eval=dict(num_steps=40, num_worlds=2, chunk_steps=10)),
+        eval=dict(num_frames=40, num_worlds=2, chunk_steps=10)),
 }
 
 
@@ -230,7 +234,7 @@ def validate(cfg: Config) -> Config:
         "train.kl_weight": cfg.train.kl_weight,
         "train.checkpoint_every": cfg.train.checkpoint_every,
         "train.log_every": cfg.train.log_every, "train.max_nonfinite_in_a_row": cfg.train.max_nonfinite_in_a_row,
-        "eval.num_steps": cfg.eval.num_steps, "eval.num_worlds": cfg.eval.num_worlds,
+        "eval.num_frames": cfg.eval.num_frames, "eval.num_worlds": cfg.eval.num_worlds,
         "eval.chunk_steps": cfg.eval.chunk_steps,
     }
     positive.update({f"model.conv_channels[{i}]": c for i, c in enumerate(cfg.model.conv_channels)})

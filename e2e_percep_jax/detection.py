@@ -17,6 +17,8 @@ same rule that makes a ground truth valid, ``sensors.in_bev_view``) and runs gre
 rotated IoU (``nms_iou``): :func:`frame_detections`. The inference API's ``Perceiver.boxes`` decodes
 whole maps at one score threshold instead: :func:`thresholded_boxes`.
 """
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -29,6 +31,16 @@ DEDUP_CELL_M = 0.5
 TOP_K = 64
 SCORE_FLOOR = 0.05
 NMS_IOU = metrics_lib.NMS_IOU
+
+
+@dataclasses.dataclass(frozen=True)
+class Settings:
+    """How the evaluation turns PIXOR maps into detections: ``top_k`` candidates per frame kept on the
+    device, the lowest score accumulated into the PR curves (``score_floor``) and the NMS's rotated-IoU
+    threshold (``nms_iou``)."""
+    top_k: int = TOP_K
+    score_floor: float = SCORE_FLOOR
+    nms_iou: float = NMS_IOU
 
 
 def candidates(det_cls, det_reg, top_k: int, floor: float):

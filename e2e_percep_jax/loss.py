@@ -95,8 +95,8 @@ def pose_terms(params, filtered: dict, pred: dict, pose, cfg: Config) -> dict:
                                        pose_belief.grid_of(cfg.model))
         return {k: weight * per_sequence(v, pose.shape[0]) for k, v in parts.items()}
     if head == "reference":
-        return {"pose": pose_term(pred["pose"], pose, REFERENCE_POSE_WEIGHT * weight, raw_metres=True)}
-    return {"pose": pose_term(pred["pose"], pose, weight)}
+        return {"pose": pose_term(pred["pose_normalised"], pose, REFERENCE_POSE_WEIGHT * weight, raw_metres=True)}
+    return {"pose": pose_term(pred["pose_normalised"], pose, weight)}
 
 
 def pose_weight(cfg: Config) -> float:

@@ -20,11 +20,13 @@ Everything here runs on the host in float64: evaluation calls these per frame wi
 array sizes, where JAX's per-call dispatch (~1 ms) and per-shape compilation (~0.3 s) would dominate.
 """
 import dataclasses
+import math
 from typing import NamedTuple
 
 import numpy as np
 
 from e2e_percep_jax import geometry as geo
+from e2e_percep_jax import summary
 
 SUBSETS = ("all", "visible", "occluded")
 NMS_IOU = 0.3  # the evaluation's and the inference API's greedy NMS threshold (rotated IoU)
@@ -342,3 +344,68 @@ class PoseErrorAccumulator:
         out["location_m_by_step"] = {"bin_edges": self.step_bin_edges.copy(), "mean": mean,
                                      "count": self._bin_count.copy()}
         return out
+
+
+# ----------------------------------------------------------------------------- summaries for metrics.json
+
+
+def curve_summary(curve, max_points=200):
+    """A PRCurve as JSON: AP, num_gt and the curve subsampled to <= max_points (ends kept)."""
+    n = len(curve.precision)
+    idx = np.unique(np.linspace(0, n - 1, min(n, max_points)).round().astype(int)) if n else np.zeros(0, int)
+    clean = lambda a: [None if not np.isfinite(v) else round(float(v), 5) for v in a[idx]]
+    return {"ap": None if not np.isfinite(curve.ap) else curve.ap, "num_gt": curve.num_gt,
+            "precision": clean(curve.precision), "recall": clean(curve.recall), "score": clean(curve.score)}
+
+
+def at_threshold(curve, threshold):
+    """(precision, recall) of a PR curve when detections need score >= ``threshold``."""
+    above = curve.score >= threshold - 1e-9
+    if not np.any(above):
+        return None, 0.0 if curve.num_gt else None
+    i = np.nonzero(above)[0][-1]
+    recall = curve.recall[i]
+    return float(curve.precision[i]), (None if not np.isfinite(recall) else float(recall))
+
+
+def mean_pose(poses):
+    """The constant pose closest on average to ``poses [N, 5]``: mean x, y, speed; circular mean heading."""
+    poses = np.asarray(poses, np.float64)
+    heading = math.atan2(poses[:, 3].mean(), poses[:, 2].mean())
+    return np.array([poses[:, 0].mean(), poses[:, 1].mean(), math.cos(heading), math.sin(heading), poses[:, 4].mean()])
+
+
+CONVERGED_M = 10.0  # a drive has converged from the first frame after which its location error stays below this
+
+
+def drive_pose_summary(drives_true, drives_pred) -> dict:
+    """Per-drive pose figures from each drive's true and estimated poses ([frames, 5] each, in order):
+    ``converged_frame`` (per drive: the first frame from which the location error stays below CONVERGED_M,
+    None if it never does) with its median over the drives that converge and their share, and
+    ``drift_per_100m``: the location error at the drives' last frames over the distance they drove
+    (summed over drives), per 100 m: how fast an odometry from a known start drifts."""
+    converged, end_error, distance = [], 0.0, 0.0
+    for true, pred in zip(drives_true, drives_pred):
+        if not len(true):
+            continue
+        true, pred = np.asarray(true, np.float64), np.asarray(pred, np.float64)
+        error = np.linalg.norm(pred[:, :2] - true[:, :2], axis=-1)
+        above = np.nonzero(~(error < CONVERGED_M))[0]  # NaN (no pose) counts as not converged
+        converged.append(0 if not len(above) else (None if above[-1] == len(error) - 1 else int(above[-1]) + 1))
+        end_error += error[-1]
+        distance += np.sum(np.linalg.norm(np.diff(true[:, :2], axis=0), axis=-1))
+    done = [c for c in converged if c is not None]
+    return {"converged_frame": {"per_drive": converged, "within_m": CONVERGED_M,
+                                "share": len(done) / max(len(converged), 1),
+                                "median": float(np.median(done)) if done else None},
+            "drift_per_100m": summary.defined(float(100.0 * end_error / distance)) if distance > 0 else None}
+
+
+def pose_summary(acc: PoseErrorAccumulator) -> dict:
+    """The accumulator's results as JSON (non-finite means as None)."""
+    res = acc.results()
+    by_step = res.pop("location_m_by_step")
+    res["location_m_by_step"] = {"bin_edges": [int(v) for v in by_step["bin_edges"]],
+                                 "mean": [None if not np.isfinite(v) else float(v) for v in by_step["mean"]],
+                                 "count": [int(v) for v in by_step["count"]]}
+    return res

@@ -247,13 +247,13 @@ class PerceptionModel(nn.Module):
 
     def decode(self, z):
         """Latent [N, Z] -> dict: built image means [N, R, R, 3], det_logit / det_cls [N, R, R, 1]
-        (logit / probability), det_reg [N, R, R, 6], and with a regression pose head pose [N, 5]
-        (normalised units)."""
+        (logit / probability), det_reg [N, R, R, 6], and with a regression pose head pose_normalised
+        [N, 5] (:func:`normalise_pose` units)."""
         out = {k: dec(z) for k, dec in self.image_decoders.items()}
         logit, out["det_reg"] = self.pixor_decoder(z)
         out["det_logit"], out["det_cls"] = logit, jax.nn.sigmoid(logit)
         if self.cfg.pose_head != "belief":
-            out["pose"] = self.pose_head(z)
+            out["pose_normalised"] = self.pose_head(z)
         return out
 
     def pose_belief(self, features, z1_loc, z2_loc):

@@ -1,14 +1,22 @@
-"""What an evaluation shows people: the report's tables, the PR curves and the example panels.
+"""What an evaluation leaves for people: where it goes, the report's tables, the PR curves, the example
+panels and the video.
+
+:func:`eval_dir` says where a run's evaluation goes and :func:`finished_evaluation` whether one is there.
 
 ``markdown(metrics)`` renders ``report.md`` from an evaluation's ``metrics.json`` dict alone (the
 paper's Tables I and II with the run's rows, the baseline and the paper's); the pictures are drawn with
-cv2 from the evaluation's NumPy frames and PR curves.
+cv2 from the evaluation's NumPy frames and PR curves (:func:`pr_curves_image`), and :class:`Pictures`
+collects ``drive.mp4`` and ``examples.png`` while the evaluation drives.
 """
+import json
+import os
+
 import cv2
 import numpy as np
 
 from e2e_percep_jax import metrics as metrics_lib
-from e2e_percep_jax import panels
+from e2e_percep_jax import panels, pose_belief, render
+from e2e_percep_jax.config import Config
 
 # The paper's Tables I and II (CARLA Town03), one row per variant.
 PAPER_AP = {  # AP (%) at IoU 0.1 / 0.3 / 0.5 / 0.7
@@ -24,6 +32,32 @@ PAPER_POSE = {  # location (m), heading (rad)
 PAPER_VARIANT_ROW = {"full": "Inputs and roadmap (full)",
                      "no_input_recon": "No inputs reconstruction (no_input_recon)",
                      "no_roadmap_recon": "No roadmap reconstruction (no_roadmap_recon)"}
+
+
+def eval_dir(run: str, cfg: Config) -> str:
+    """Where a run's evaluation goes: ``<run>/eval`` on the training town, ``<run>/eval_town<seed>`` on a
+    held-out one (so a held-out evaluation never overwrites, nor is mistaken for, the training town's), with
+    ``_known_start`` appended under the known-start pose protocol and ``_no_pose_filter`` for the belief head
+    read without its filter."""
+    seed = cfg.eval.town_seed
+    name = "eval" if seed == cfg.world.town_seed else f"eval_town{seed}"
+    name += "_known_start" if cfg.eval.known_start else ""
+    name += "_no_pose_filter" if cfg.model.pose_head == "belief" and cfg.model.pose_filter == "none" else ""
+    return os.path.join(run, name)
+
+
+def finished_evaluation(out_dir: str, label: str, checkpoint_step: int | None, cfg: Config) -> dict | None:
+    """The metrics in ``out_dir`` if they already evaluate ``label`` at ``checkpoint_step`` under exactly
+    ``cfg`` (frames, worlds, seeds and town included), else None: the test for skipping a re-evaluation."""
+    path = os.path.join(out_dir, "metrics.json")
+    if not os.path.exists(path):
+        return None
+    with open(path) as f:
+        done = json.load(f)
+    # Through from_dict, so an evaluation saved before a config field was added (at its default) counts.
+    done_cfg = Config.from_dict(done["config"])
+    same = (done["label"], done["checkpoint_step"], done_cfg) == (label, checkpoint_step, cfg)
+    return done if same else None
 
 
 def title(view, text):
@@ -173,3 +207,88 @@ def markdown(m: dict) -> str:
     lines += ["", "Pictures: `pr_curves.png` (PR curves per IoU; all / visible / occluded), `examples.png` "
               f"(the paper's Fig. 6 layout: {pictured or 'none'}), `drive.mp4` (the same panels over world 0's drive)."]
     return "\n".join(lines) + "\n"
+
+
+class Pictures:
+    """``drive.mp4`` (world 0's first ``video_frames`` frames) and ``examples.png`` (the paper's Fig. 6
+    layout for the frames with the most vehicles in view, one per part of the drives) of an evaluation in
+    ``out_dir``, collected frame by frame while it drives: at most ``num_examples`` frames are held.
+    Each picture is a frame's four views and their reconstructions (:func:`example_rows`) beside the
+    town map with the drive's true path, its estimated path so far and the pose belief.
+
+    ``drives_true``, ``drives_pred`` [E, frames, 5]: the evaluation's per-drive true and estimated
+    poses, filled in as it goes (the map draws each path up to the pictured frame).
+    """
+
+    def __init__(self, town, out_dir: str, drives_true, drives_pred, *, video_frames: int, num_examples: int,
+                 score_threshold: float, panel_px: int = 192):
+        self.out_dir, self.video_frames, self.num_examples = out_dir, video_frames, num_examples
+        self.drives_true, self.drives_pred = drives_true, drives_pred
+        self.score_threshold, self.panel_px = score_threshold, panel_px
+        area = (pose_belief.AREA_ORIGIN_M,) * 2 + (pose_belief.AREA_ORIGIN_M + pose_belief.AREA_SIZE_M,) * 2
+        self.town_view = render.TopDown(town, area, px_per_m=2 * panel_px / pose_belief.AREA_SIZE_M)
+        self.video, self.examples = None, []
+
+    def _with_map(self, frame, boxes, scores, w, frame_index):
+        picture = example_rows(frame, boxes, scores, self.panel_px)
+        path = lambda poses: poses[w, :frame_index + 1, :2]
+        town_map = panels.map_panel(self.town_view, path(self.drives_true), path(self.drives_pred), frame.get("pose_place"))
+        return np.concatenate([picture, town_map], 1)
+
+    def add(self, out, t: int, w: int, frame_index: int, boxes, scores):
+        """Frame ``frame_index`` of world ``w``, at row t of a chunk's ``out`` (the evaluation's chunk
+        program's), with its detections after NMS (boxes [M, 5], scores [M])."""
+        shown = scores >= self.score_threshold
+        if w == 0 and frame_index < self.video_frames:
+            picture = self._with_map(pictured_frame(out, t, 0), boxes[shown], scores[shown], 0, frame_index)
+            px = self.panel_px
+            cv2.putText(picture, f"world 0, frame {frame_index}", (4 * px - 150, 2 * px - 8),
+                        cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
+            if self.video is None:
+                self.video = cv2.VideoWriter(os.path.join(self.out_dir, "drive.mp4"), cv2.VideoWriter_fourcc(*"mp4v"),
+                                             10, (picture.shape[1], picture.shape[0]))
+            self.video.write(cv2.cvtColor(picture, cv2.COLOR_RGB2BGR))
+        if w == out["pictured"][t, 1] and self.num_examples:
+            self.examples.append((frame_index, w, pictured_frame(out, t, 1), boxes[shown], scores[shown]))
+            self.examples = _example_candidates(self.examples, self.drives_true.shape[1], self.num_examples)
+
+    def close(self) -> list:
+        """Finishes the video, writes ``examples.png``; returns which frames it shows (for metrics.json)."""
+        if self.video is not None:
+            self.video.release()
+        chosen = _example_candidates(self.examples, self.drives_true.shape[1], self.num_examples)
+        if chosen:
+            sep = np.full((6, 6 * self.panel_px, 3), 255, np.uint8)  # four panels and the 2 x 2 map
+            rows = []
+            for frame_index, w, frame, boxes, scores in chosen:
+                rows += [self._with_map(frame, boxes, scores, w, frame_index), sep]
+            cv2.imwrite(os.path.join(self.out_dir, "examples.png"),
+                        cv2.cvtColor(np.concatenate(rows[:-1], 0), cv2.COLOR_RGB2BGR))
+        return [{"world": int(w), "frame": int(i), "vehicles_in_view": int(np.sum(frame["boxes_valid"]))}
+                for i, w, frame, _, _ in chosen]
+
+
+def pictured_frame(out, t, slot):
+    """Frame t of a chunk's ``out`` as seen in pictured slot ``slot`` (0: world 0, 1: the most crowded
+    world): its images, reconstructions and ground-truth boxes, as NumPy, for :func:`example_rows`."""
+    frame = {k: np.array(out[k][t, slot]) for k in out
+             if k in ("camera", "lidar", "roadmap", "pose_place") or k.startswith("recon_")}
+    w = out["pictured"][t, slot]
+    frame.update({k: np.array(out[k][t, w]) for k in ("boxes", "boxes_valid", "boxes_occluded")})
+    return frame
+
+
+def _example_candidates(images, window, num_examples):
+    """The kept (frame_index, world, frame, boxes, scores) entries: the drives' frame indices [0,
+    window) are cut into ``num_examples`` equal parts and each part keeps its frame with the most
+    ground-truth vehicles in view (ties: the later frame, where the filter has run longer). Called
+    after every new frame, so at most ``num_examples`` frames are held."""
+    if num_examples <= 0:
+        return []
+    best = {}
+    for entry in images:
+        part = min(num_examples - 1, entry[0] * num_examples // max(window, 1))
+        crowd = int(np.sum(entry[2]["boxes_valid"]))
+        if part not in best or crowd >= best[part][0]:
+            best[part] = (crowd, entry)
+    return [best[p][1] for p in sorted(best)]

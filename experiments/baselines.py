@@ -40,14 +40,14 @@ def main(argv):
         baselines.check(FLAGS.baseline, cfg, FLAGS.workdir)
     except ValueError as e:
         sys.exit(f"error: {e}")
-    from e2e_percep_jax import evaluate as eval_lib
+    from e2e_percep_jax import report
     log = lambda s: print(s, flush=True)
     with train_lib.exit_on_stop():
         for name in FLAGS.baseline:
             m = baselines.run(name, cfg, FLAGS.workdir, video_frames=FLAGS.video_frames,
                               speed_noise_std_mps=FLAGS.odometry_speed_std_mps,
                               yaw_rate_noise_std_rps=FLAGS.odometry_yaw_rate_std_rps, log=log)
-            log(f"{name} ({m['label']}): {eval_lib.eval_dir(os.path.join(FLAGS.workdir, name), cfg)}/report.md")
+            log(f"{name} ({m['label']}): {report.eval_dir(os.path.join(FLAGS.workdir, name), cfg)}/report.md")
 
 
 if __name__ == "__main__":

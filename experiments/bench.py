@@ -32,7 +32,7 @@ from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import evaluate as evaluate_lib
 from e2e_percep_jax import geometry as geo
 from e2e_percep_jax import model as model_lib
-from e2e_percep_jax import pixor, sensors, world
+from e2e_percep_jax import pixor, rollout, sensors, world
 from e2e_percep_jax import train as train_lib
 from e2e_percep_jax.town import build_town
 
@@ -95,7 +95,7 @@ def bench_world(town, repeats):
     """World-steps/s: W worlds of 100 vehicles advanced by dt, 100 steps per timed run."""
     cfg, steps = config_lib.get_config("paper"), 100
     states = _warm_worlds(town, FLAGS.num_worlds, cfg)
-    run = jax.jit(lambda s: jax.lax.fori_loop(0, steps, lambda _, x: jax.vmap(lambda y: world.step(y, town))(x), s))
+    run = jax.jit(jax.vmap(lambda s: rollout.advance(s, town, steps)))
     median = _median_s(lambda: run(states), repeats)
     return {"num_worlds": FLAGS.num_worlds, "num_vehicles": cfg.world.num_vehicles, "steps_per_run": steps,
             "world_steps_per_s": FLAGS.num_worlds * steps / median}
@@ -366,7 +366,7 @@ def bench_eval(town, repeats):
     with tempfile.TemporaryDirectory() as out_dir:
         start = time.perf_counter()
         evaluate_lib.evaluate(cfg, params, out_dir, video_frames=0, log=lambda _: None)
-        return {"config": "cpu", "eval_frames": cfg.eval.num_steps, "wall_s": time.perf_counter() - start}
+        return {"config": "cpu", "eval_frames": cfg.eval.num_frames, "wall_s": time.perf_counter() - start}
 
 
 def _rss_mib(pid):

@@ -2,7 +2,7 @@
 ``--eval.town_seed``, with ``_known_start`` under ``--eval.known_start``): metrics.json, report.md,
 pr_curves.png, examples.png, drive.mp4.
 
-    python experiments/evaluate.py --workdir=runs/demo [--eval.num_steps=2000 --sample --video_frames=300]
+    python experiments/evaluate.py --workdir=runs/demo [--eval.num_frames=2000 --sample --video_frames=300]
 
 The run's config.json is the config; ``--eval.<field>`` flags override its evaluation section
 (number of frames, worlds, start-key seed, town, chunk size, score threshold, the pose protocol:
@@ -35,7 +35,7 @@ INFERENCE_FIELDS = ("model.pose_filter",)  # model fields that change no paramet
 
 
 def main(argv):
-    from e2e_percep_jax import checkpoint, evaluate as eval_lib, world
+    from e2e_percep_jax import checkpoint, detection, evaluate as eval_lib, report, world
     allocator.keep_freed_buffers()
     try:
         config_lib.check_launch(argv)
@@ -62,11 +62,12 @@ def main(argv):
         cfg, params, step = checkpoint.restore_params(FLAGS.workdir, cfg, FLAGS.step)
     except (ValueError, FileNotFoundError) as e:
         sys.exit(f"error: {e}")
-    extra = {k: FLAGS[k].value for k in ("top_k", "score_floor", "nms_iou") if FLAGS[k].value is not None}
-    eval_lib.evaluate(cfg, params, FLAGS.out_dir or eval_lib.eval_dir(FLAGS.workdir, cfg), sample=FLAGS.sample,
+    detect = detection.Settings(**{k: FLAGS[k].value for k in ("top_k", "score_floor", "nms_iou")
+                                   if FLAGS[k].value is not None})
+    eval_lib.evaluate(cfg, params, FLAGS.out_dir or report.eval_dir(FLAGS.workdir, cfg), sample=FLAGS.sample,
                       video_frames=FLAGS.video_frames, num_examples=FLAGS.num_examples,
                       workdir=os.path.abspath(FLAGS.workdir), checkpoint_step=step,
-                      log=lambda s: print(s, flush=True), **extra)
+                      detect=detect, log=lambda s: print(s, flush=True))
 
 
 if __name__ == "__main__":

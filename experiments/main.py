@@ -28,11 +28,12 @@ def run(cfg: config_lib.Config, workdir: str, video_frames: int = 300, log=print
     back if that checkpoint was already evaluated under the same config)."""
     from e2e_percep_jax import checkpoint
     from e2e_percep_jax import evaluate as eval_lib
+    from e2e_percep_jax import report
     from e2e_percep_jax import train as train_lib
     if train_lib.check_run(cfg, workdir) != cfg.train.num_steps:
         train_lib.train(cfg, workdir)
-    out_dir, step = eval_lib.eval_dir(workdir, cfg), cfg.train.num_steps
-    done = eval_lib.finished_evaluation(out_dir, cfg.model.variant, step, cfg)
+    out_dir, step = report.eval_dir(workdir, cfg), cfg.train.num_steps
+    done = report.finished_evaluation(out_dir, cfg.model.variant, step, cfg)
     if done is not None:
         log(f"{out_dir} already evaluates step {step} under this config; nothing to do")
         return done
@@ -54,8 +55,8 @@ def main(argv):
         sys.exit(f"error: {e}")
     with train_lib.exit_on_stop():
         run(cfg, FLAGS.workdir, FLAGS.video_frames, log=lambda s: print(s, flush=True))
-    from e2e_percep_jax import evaluate as eval_lib
-    print(f"report: {os.path.join(eval_lib.eval_dir(FLAGS.workdir, cfg), 'report.md')}")
+    from e2e_percep_jax import report
+    print(f"report: {os.path.join(report.eval_dir(FLAGS.workdir, cfg), 'report.md')}")
 
 
 if __name__ == "__main__":

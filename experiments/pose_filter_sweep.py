@@ -38,7 +38,7 @@ FLAGS = flags.FLAGS
 def main(argv):
     allocator.keep_freed_buffers()
     from e2e_percep_jax import batch as batch_lib
-    from e2e_percep_jax import checkpoint, metrics, pose_belief
+    from e2e_percep_jax import checkpoint, metrics, pose_belief, rollout
     from e2e_percep_jax import config as config_lib
     from e2e_percep_jax import model as model_lib
     from e2e_percep_jax import town as town_lib
@@ -58,7 +58,7 @@ def main(argv):
     town = town_lib.build_town(cfg.world.town_seed)
     drive_cfg = config_lib.replace(cfg, data=dict(batch_size=FLAGS.worlds))
     states = batch_lib.warm_up(jax.random.PRNGKey(FLAGS.eval_seed), town, drive_cfg)
-    _, frames = jax.jit(jax.vmap(lambda s: batch_lib.rollout(s, town, FLAGS.frames, cfg.data.image_size)))(states)
+    _, frames = jax.jit(jax.vmap(lambda s: rollout.drive(s, town, FLAGS.frames, cfg.data.image_size)))(states)
     time_major = lambda x: jnp.swapaxes(x, 0, 1)
     prev_action = jnp.concatenate([jnp.zeros_like(frames["action"][:, :1]), frames["action"][:, :-1]], 1)
 

@@ -21,7 +21,7 @@ import jax
 import numpy as np
 from absl import app, flags
 
-from e2e_percep_jax import batch, config, panels, render, world
+from e2e_percep_jax import config, panels, render, rollout, world
 from e2e_percep_jax.town import build_town
 
 flags.DEFINE_string("out_dir", "runs/world", "where the PNGs and MP4s go")
@@ -52,12 +52,9 @@ def main(argv):
     town = build_town(cfg.world.town_seed)
     state = world.reset(jax.random.PRNGKey(FLAGS.seed), town, cfg.world)
     # (The town goes in as an argument, not a closed-over constant: that compiles faster.)
-    warm = lambda s, tw: jax.lax.fori_loop(0, cfg.data.warmup_steps, lambda _, x: world.step(x, tw), s)
-    state = jax.jit(warm)(state, town)
-    # The same drive twice (the world is deterministic): whole states for the top-down views, frames for the sensors.
-    record = lambda s, tw: jax.lax.scan(lambda x, _: (world.step(x, tw), x), s, None, length=num_frames)[1]
-    states = jax.jit(record)(state, town)
-    _, frames = jax.jit(batch.rollout, static_argnums=(2, 3))(state, town, num_frames, r)
+    state = jax.jit(rollout.advance, static_argnums=2)(state, town, cfg.data.warmup_steps)
+    # Whole states for the top-down views, frames for the sensors.
+    _, frames, states = jax.jit(rollout.drive, static_argnums=(2, 3, 4))(state, town, num_frames, r, True)
     states, frames = jax.tree.map(np.asarray, (states, frames))
     at = lambda tree, t: jax.tree.map(lambda a: a[t], tree)
 

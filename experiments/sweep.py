@@ -76,11 +76,11 @@ def main(argv):
     except ValueError as e:
         sys.exit(f"error: {e}")
 
-    from e2e_percep_jax import evaluate as eval_lib
+    from e2e_percep_jax import report
     runs = [(v, s) for v in FLAGS.variants for s in seeds]
     run_cfg = lambda v, s: config_lib.replace(base, train=dict(seed=s), model=dict(variant=v))
-    out_dir = lambda v, s: eval_lib.eval_dir(os.path.join(FLAGS.sweep_dir, run_name(v, s)), run_cfg(v, s))
-    done = lambda v, s: eval_lib.finished_evaluation(out_dir(v, s), v, base.train.num_steps, run_cfg(v, s))
+    out_dir = lambda v, s: report.eval_dir(os.path.join(FLAGS.sweep_dir, run_name(v, s)), run_cfg(v, s))
+    done = lambda v, s: report.finished_evaluation(out_dir(v, s), v, base.train.num_steps, run_cfg(v, s))
 
     todo = [(v, s) for v, s in runs if done(v, s) is None]
     print(f"sweep: {len(runs)} runs, {len(runs) - len(todo)} already finished", flush=True)

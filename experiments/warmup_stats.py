@@ -15,7 +15,7 @@ import numpy as np
 from absl import app, flags
 
 from e2e_percep_jax import config as config_lib
-from e2e_percep_jax import world
+from e2e_percep_jax import rollout, world
 from e2e_percep_jax.town import build_town
 
 config_lib.define_flags()
@@ -40,8 +40,7 @@ def main(argv):
     town = build_town(cfg.world.town_seed)
     keys = jax.random.split(jax.random.PRNGKey(FLAGS.seed), FLAGS.num_worlds)
     state = jax.vmap(lambda k: world.reset(k, town, cfg.world))(keys)
-    advance = jax.jit(jax.vmap(lambda s, tw: jax.lax.fori_loop(0, FLAGS.every, lambda _, x: world.step(x, tw), s),
-                               in_axes=(0, None)))
+    advance = jax.jit(jax.vmap(lambda s, tw: rollout.advance(s, tw, FLAGS.every), in_axes=(0, None)))
     print("| world steps | NPC mean speed (m/s) | NPCs stopped | ego mean speed (m/s) | egos stopped |")
     print("|---|---|---|---|---|")
     for step in range(0, FLAGS.max_steps + 1, FLAGS.every):

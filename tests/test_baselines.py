@@ -24,7 +24,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 LAUNCHER = [sys.executable, os.path.join(ROOT, "experiments", "baselines.py"), "--config=tiny"]
 # The tracker trains the detector's run first; the pose regressor trains by the same code (its loss and
 # model are tested in this process), left out to save its two compilations.
-CLI_FLAGS = ["--baseline=tracker,dead_reckoning", "--train.num_steps=4", "--eval.num_steps=20", "--video_frames=0"]
+CLI_FLAGS = ["--baseline=tracker,dead_reckoning", "--train.num_steps=4", "--eval.num_frames=20", "--video_frames=0"]
 
 
 @pytest.fixture(scope="module")
@@ -92,7 +92,7 @@ def test_baseline_losses_are_the_perception_loss_terms_in_numpy():
                     "det_reg": w * 0.1 * np.sum(np.where(positive, np_smooth_l1(pred["det_reg"] - batch["det_reg"]), 0)) / b}
         else:
             target = (batch["pose"] - [200, 200, 0, 0, 0]) / [100, 100, 1, 1, 10]
-            want = {"pose": w * np.sum(np_smooth_l1(pred["pose"] - target)) / b}
+            want = {"pose": w * np.sum(np_smooth_l1(pred["pose_normalised"] - target)) / b}
         assert set(metrics) == names | {"total"}
         for k, v in want.items():
             np.testing.assert_allclose(metrics[k], v, rtol=2e-4, err_msg=k)
@@ -103,13 +103,12 @@ def test_baseline_losses_are_the_perception_loss_terms_in_numpy():
 # ----------------------------------------------------------------------------- tracker and dead reckoning
 
 
-def oracle_frame_fn(params, fstate, frame, prev_action, key, pictured):
+def oracle_heads(outputs, frame):
     """The world's own PIXOR targets as detections (score 1 on every vehicle in view); no pose."""
-    decoded = {"det_cls": frame["det_cls"], "det_reg": frame["det_reg"], "pose": jnp.full_like(frame["pose"], jnp.nan)}
-    return fstate, decoded, {}
+    return dict(outputs, det_cls=frame["det_cls"], det_reg=frame["det_reg"])
 
 
-ORACLE_CFG = config.replace(TINY, world=dict(num_vehicles=100), eval=dict(num_steps=160, num_worlds=2, chunk_steps=20))
+ORACLE_CFG = config.replace(TINY, world=dict(num_vehicles=100), eval=dict(num_frames=160, num_worlds=2, chunk_steps=20))
 # Measurements trusted (the filter follows each detection) and every track born at once: the tracks'
 # boxes are the detections', and tracks coasting after a miss score below every detection (0.9^misses).
 TRUSTING = tracking.TrackerConfig(min_hits=1, meas_pos_std_m=1e-3, meas_yaw_std_rad=1e-3, meas_size_std_m=1e-3)
@@ -120,7 +119,8 @@ def oracle_eval(tmp_path_factory):
     """``evaluate`` with the oracle frame function (one compile) and any host function."""
     def run(host_fn, name):
         return eval_lib.evaluate(ORACLE_CFG, {}, str(tmp_path_factory.mktemp(name)), video_frames=0, num_examples=0,
-                                 frame_fn=oracle_frame_fn, host_fn=host_fn, log=lambda _: None)
+                                 perceiver=baselines.SingleFramePerceiver(ORACLE_CFG, None),
+                                 heads=oracle_heads, host_fn=host_fn, log=lambda _: None)
     return run
 
 

@@ -6,7 +6,7 @@ import jax
 import numpy as np
 import pytest
 
-from e2e_percep_jax import batch, config, sensors, world
+from e2e_percep_jax import batch, config, rollout, sensors, world
 from e2e_percep_jax.town import build_town
 
 CFG = config.get_config("tiny")
@@ -131,7 +131,7 @@ def test_batches_per_drive_interleave_drives_hand_over_the_ego_and_resume_mid_dr
             np.testing.assert_array_equal(place(states, [[world.EGO]] * b), place(before, np.array(vehicles)[:, None]))
             np.testing.assert_array_equal(place(states, np.array(vehicles)[:, None]), place(before, [[world.EGO]] * b))
             np.testing.assert_array_equal(np.asarray(states.veh_box)[..., 3:], np.asarray(before.veh_box)[..., 3:])
-            states, piece = jax.vmap(lambda s: batch.rollout(s, town, CFG.data.seq_len + 1, CFG.data.image_size))(states)
+            states, piece = jax.vmap(lambda s: rollout.drive(s, town, CFG.data.seq_len + 1, CFG.data.image_size))(states)
             for key in ("pose", "boxes", "action"):  # another program than the stream's: equal up to rounding
                 np.testing.assert_allclose(stream[step][key], piece[key], atol=1e-3, err_msg=f"{step} {key}")
             assert np.mean(np.asarray(stream[step]["camera"]) == np.asarray(piece["camera"])) > 0.99, step
@@ -158,7 +158,7 @@ def test_carried_state_drives_continue_without_hand_over(town):
     cfg = config.replace(CFG, data=dict(batches_per_drive=per_drive, carry_state=True))
     stream = [b for _, b in itertools.islice(batch.batch_stream(town, cfg, seed=2), per_drive ** 2)]
     states = batch.start_drive(batch.batch_key(2, 0), town, cfg, 0)
-    _, whole = jax.vmap(lambda s: batch.rollout(s, town, per_drive * t1, CFG.data.image_size))(states)
+    _, whole = jax.vmap(lambda s: rollout.drive(s, town, per_drive * t1, CFG.data.image_size))(states)
     for segment in range(per_drive):
         step = segment * per_drive  # slot 0's drive
         for key in ("pose", "action"):  # another program than the stream's: equal up to rounding

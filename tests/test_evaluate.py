@@ -19,6 +19,7 @@ from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import detection
 from e2e_percep_jax import evaluate as eval_lib
 from e2e_percep_jax import model as model_lib
+from e2e_percep_jax import report
 from e2e_percep_jax import sensors, world
 from e2e_percep_jax import town as town_lib
 
@@ -33,7 +34,7 @@ _MEMORY_SCRIPT = textwrap.dedent("""
     import orbax.checkpoint as ocp
     from e2e_percep_jax import checkpoint, config as C, evaluate as ev, train as T
     run = sys.argv[1]
-    cfg = C.replace(C.get_config("tiny"), eval=dict(num_steps=200, num_worlds=4, chunk_steps=25))
+    cfg = C.replace(C.get_config("tiny"), eval=dict(num_frames=200, num_worlds=4, chunk_steps=25))
     os.makedirs(run)
     with open(os.path.join(run, "config.json"), "w") as f:
         f.write(cfg.to_json())
@@ -49,7 +50,7 @@ _MEMORY_SCRIPT = textwrap.dedent("""
     for n, out in ((0, os.path.join(run, "warmup")), (200, os.path.join(run, "eval200")),
                    (2000, os.path.join(run, "eval"))):
         samples[n] = []
-        ev.evaluate(C.replace(cfg, eval=dict(num_steps=n or 200)), params, out, video_frames=%d, workdir=run,
+        ev.evaluate(C.replace(cfg, eval=dict(num_frames=n or 200)), params, out, video_frames=%d, workdir=run,
                     checkpoint_step=step, log=lambda line: samples[n].append(rss()))
     print("RESULT " + json.dumps({"samples": samples,
                                   "maxrss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
@@ -99,7 +100,7 @@ def test_known_start_protocol_follows_the_drive_from_its_first_pose(tmp_path):
     recorded actions alone; the world moves its ego by the same bicycle model, so an untrained model's
     odometry stays on the true path (float32 rounding), every drive counts as converged from frame 0, and
     the drift per 100 m is ~0."""
-    cfg = config_lib.replace(config_lib.get_config("tiny"), eval=dict(num_steps=200, num_worlds=2, chunk_steps=20,
+    cfg = config_lib.replace(config_lib.get_config("tiny"), eval=dict(num_frames=200, num_worlds=2, chunk_steps=20,
                                                                       known_start=True))
     params = model_lib.init_params(jax.random.PRNGKey(0), cfg)
     pose = eval_lib.evaluate(cfg, params, str(tmp_path), video_frames=0, num_examples=0, log=lambda _: None)["pose"]
@@ -115,7 +116,7 @@ def test_oracle_targets_through_the_decode_path_and_a_known_pose_offset(memory_r
     true pose moved 3 m east, 4 m north, turned by 0.25 rad and 1.5 m/s faster: errors 5 m, 0.25 rad,
     1.5 m/s on every frame."""
     cfg = config_lib.replace(config_lib.get_config("tiny"), world=dict(num_vehicles=100),
-                             eval=dict(num_steps=160, num_worlds=2, chunk_steps=20))
+                             eval=dict(num_frames=160, num_worlds=2, chunk_steps=20))
     params = model_lib.init_params(jax.random.PRNGKey(0), cfg)
 
     def oracle(decoded, frame):
@@ -171,8 +172,8 @@ def test_host_detections_follow_floor_view_and_nms():
 
 def test_eval_dir_keeps_protocols_and_the_filterless_reading_apart():
     cfg = config_lib.get_config("tiny")
-    other = lambda **sections: eval_lib.eval_dir("run", config_lib.replace(cfg, **sections))
-    assert eval_lib.eval_dir("run", cfg) == os.path.join("run", "eval")
+    other = lambda **sections: report.eval_dir("run", config_lib.replace(cfg, **sections))
+    assert report.eval_dir("run", cfg) == os.path.join("run", "eval")
     assert other(eval=dict(town_seed=7, known_start=True)) == os.path.join("run", "eval_town7_known_start")
     assert other(model=dict(pose_filter="none")) == os.path.join("run", "eval_no_pose_filter")
 
@@ -234,9 +235,9 @@ def test_finished_evaluation_matches_label_step_and_config_even_from_an_older_co
     del saved["train"]["pose_weight"]  # as written before the field was added
     with open(tmp_path / "metrics.json", "w") as f:
         json.dump({"label": "full", "checkpoint_step": 20, "config": saved}, f)
-    assert eval_lib.finished_evaluation(str(tmp_path), "full", 20, cfg)["label"] == "full"
-    assert eval_lib.finished_evaluation(str(tmp_path), "no_input_recon", 20, cfg) is None
-    assert eval_lib.finished_evaluation(str(tmp_path), "full", 10, cfg) is None
-    for changed in (dict(eval=dict(num_steps=80)), dict(train=dict(pose_weight=5.0))):
-        assert eval_lib.finished_evaluation(str(tmp_path), "full", 20, config_lib.replace(cfg, **changed)) is None
-    assert eval_lib.finished_evaluation(str(tmp_path / "nowhere"), "full", 20, cfg) is None
+    assert report.finished_evaluation(str(tmp_path), "full", 20, cfg)["label"] == "full"
+    assert report.finished_evaluation(str(tmp_path), "no_input_recon", 20, cfg) is None
+    assert report.finished_evaluation(str(tmp_path), "full", 10, cfg) is None
+    for changed in (dict(eval=dict(num_frames=80)), dict(train=dict(pose_weight=5.0))):
+        assert report.finished_evaluation(str(tmp_path), "full", 20, config_lib.replace(cfg, **changed)) is None
+    assert report.finished_evaluation(str(tmp_path / "nowhere"), "full", 20, cfg) is None

@@ -99,9 +99,9 @@ def test_every_term_matches_numpy_per_sequence(setup, pose_head):
     want["det_reg"] = w * 0.1 * np.sum(np.where(positive, np_smooth_l1(pred["det_reg"] - batch["det_reg"]), 0)) / b
     pose = batch["pose"].astype(np.float64)
     if pose_head == "regression":
-        want["pose"] = w * np.sum(np_smooth_l1(pred["pose"] - (pose - [200, 200, 0, 0, 0]) / [100, 100, 1, 1, 10])) / b
+        want["pose"] = w * np.sum(np_smooth_l1(pred["pose_normalised"] - (pose - [200, 200, 0, 0, 0]) / [100, 100, 1, 1, 10])) / b
     elif pose_head == "reference":  # 10 x smooth-L1 on metres, cos / sin and m/s
-        want["pose"] = w * 10 * np.sum(np_smooth_l1(pred["pose"] * [100, 100, 1, 1, 10] + [200, 200, 0, 0, 0] - pose)) / b
+        want["pose"] = w * 10 * np.sum(np_smooth_l1(pred["pose_normalised"] * [100, 100, 1, 1, 10] + [200, 200, 0, 0, 0] - pose)) / b
     else:
         head = jax.tree.map(lambda x: np.asarray(x, np.float64), model.pose_belief_head(params, out, cfg))
         want.update({k: w * np.sum(v) / b for k, v in np_belief_terms(head, pose).items()})

@@ -232,7 +232,7 @@ def test_layers_match_numpy_torch_semantics():
     reg_params = model.init_params(jax.random.PRNGKey(3), regression)["params"]
     got = model.build_model(regression).apply({"params": reg_params}, jnp.asarray(z[None], jnp.float32),
                                               method=PerceptionModel.decode)
-    np.testing.assert_allclose(got["pose"][0], np_mlp(reg_params["pose_head"], z), rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(got["pose_normalised"][0], np_mlp(reg_params["pose_head"], z), rtol=1e-4, atol=1e-5)
 
     z1 = z[:cfg.model.z1_dim]
     loc, scale = net.apply({"params": params}, jnp.asarray(z1[None], jnp.float32),

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from e2e_percep_jax import batch as batch_lib
-from e2e_percep_jax import config, pose_belief, world
+from e2e_percep_jax import config, pose_belief, rollout, world
 from e2e_percep_jax import town as town_lib
 
 GRID = pose_belief.Grid(cell_m=10.0, heading_bins=36)
@@ -157,7 +157,7 @@ def test_the_world_moves_its_ego_by_the_filters_motion_model():
     town = town_lib.build_town(0)
     state = batch_lib.warm_up(jax.random.PRNGKey(4), town, cfg)
     one = jax.tree.map(lambda x: x[0], state)
-    _, frames = jax.jit(lambda s: batch_lib.rollout(s, town, 1000, cfg.data.image_size))(one)
+    _, frames = jax.jit(lambda s: rollout.drive(s, town, 1000, cfg.data.image_size))(one)
     pose, action = np.asarray(frames["pose"]), np.asarray(frames["action"])
     got = known_start_track(pose[0], action[:-1], pose_belief.Grid(cell_m=10.0, heading_bins=36))
     travelled = np.sum(np.linalg.norm(np.diff(pose[:, :2], axis=0), axis=-1))

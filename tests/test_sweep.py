@@ -12,7 +12,7 @@ from e2e_percep_jax.summary import summary_metrics
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
-TINY = ["--config=tiny", "--train.num_steps=4", "--train.checkpoint_every=2", "--eval.num_steps=20"]
+TINY = ["--config=tiny", "--train.num_steps=4", "--train.checkpoint_every=2", "--eval.num_frames=20"]
 
 
 def _sweep(sweep_dir, *argv):
