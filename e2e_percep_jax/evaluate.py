@@ -51,7 +51,7 @@ from e2e_percep_jax import metrics as metrics_lib
 from e2e_percep_jax import report, rollout, summary, world
 from e2e_percep_jax import town as town_lib
 from e2e_percep_jax.api import Perceiver
-from e2e_percep_jax.config import Config
+from e2e_percep_jax.config import Config, WorldConfig
 
 IOU_THRESHOLDS = (0.1, 0.3, 0.5, 0.7)
 RESET_STREAM, SAMPLE_STREAM = 0, 1  # fold_in data of PRNGKey(cfg.eval.seed)
@@ -68,10 +68,11 @@ def start_keys(cfg: Config):
                             cfg.eval.num_worlds)
 
 
-@functools.partial(jax.jit, static_argnames="cfg")
-def start_worlds(keys, town, cfg: Config):
-    """E worlds reset from ``keys`` (their traffic is warmed up by the chunk program's first frames)."""
-    return jax.vmap(lambda k: world.reset(k, town, cfg.world))(keys)
+@functools.partial(jax.jit, static_argnames="world_cfg")
+def start_worlds(keys, town, world_cfg: WorldConfig):
+    """E worlds reset from ``keys`` (their traffic is warmed up by the chunk program's first frames).
+    Static in the world's config alone: evaluations that differ in anything else compile nothing new."""
+    return jax.vmap(lambda k: world.reset(k, town, world_cfg))(keys)
 
 
 def _to_uint8(image):
@@ -157,7 +158,7 @@ def evaluate(cfg: Config, params, out_dir: str, *, perceiver=None, sample: bool 
     town = town_lib.build_town(ev.town_seed)
     params = jax.device_put(params)
     t0 = time.perf_counter()
-    wstate = start_worlds(start_keys(cfg), town, cfg)
+    wstate = start_worlds(start_keys(cfg), town, cfg.world)
     # The default perceiver is keyed as None: it depends on cfg.model and the image size alone, which the
     # key holds, so evaluations that differ only in frames, seeds or thresholds share one program.
     key_perceiver, perceiver = perceiver, Perceiver(cfg) if perceiver is None else perceiver

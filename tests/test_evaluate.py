@@ -85,7 +85,7 @@ def vehicles_in_view(cfg, frames: int):
     town = town_lib.build_town(cfg.eval.town_seed)
     step = jax.jit(jax.vmap(lambda s: world.step(s, town)))
     count = jax.jit(jax.vmap(lambda s: sensors.observe(s, town, cfg.data.image_size)["boxes_valid"].sum()))
-    state = eval_lib.start_worlds(eval_lib.start_keys(cfg), town, cfg)
+    state = eval_lib.start_worlds(eval_lib.start_keys(cfg), town, cfg.world)
     for _ in range(cfg.data.warmup_steps):
         state = step(state)
     counts = []
