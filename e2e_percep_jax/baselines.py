@@ -19,9 +19,6 @@ Training is ``train.train`` with :data:`OBJECTIVES` (same batches, optimiser, st
 evaluation is ``evaluate.evaluate`` with a :class:`SingleFramePerceiver` (the inference API's protocol)
 and a per-drive ``host_fn``. A head a baseline does not have reports nothing: no boxes (AP 0) or a NaN pose ("n/a").
 The loss's ``key`` is unused (nothing is sampled) and kept for ``train.Objective``'s signature.
-
-``evaluate`` and ``tracking`` are imported where used: they compile small constants at import, and
-the launcher's flag checks must compile nothing.
 """
 import dataclasses
 import functools
@@ -34,8 +31,10 @@ import numpy as np
 
 from e2e_percep_jax import checkpoint
 from e2e_percep_jax import config as config_lib
+from e2e_percep_jax import evaluate as eval_lib
 from e2e_percep_jax import loss as loss_lib
 from e2e_percep_jax import model as model_lib
+from e2e_percep_jax import report, tracking
 from e2e_percep_jax import train as train_lib
 from e2e_percep_jax.config import Config, ModelConfig
 
@@ -145,7 +144,6 @@ def tracker_host(tracker_cfg=None):
     """``evaluate``'s ``host_fn``: a fresh ``tracking.Tracker`` per drive, fed each frame's NMS'd
     detections and the frame's true ego pose (ego-motion compensation); its confirmed tracks, coasting
     ones included, replace the detections."""
-    from e2e_percep_jax import tracking
     tracker_cfg = tracker_cfg or tracking.TrackerConfig()
 
     def per_drive(world_index):
@@ -164,7 +162,6 @@ def dead_reckoning_host(speed_noise_std_mps: float, yaw_rate_noise_std_rps: floa
     """``evaluate``'s ``host_fn``: per drive, a ``tracking.DeadReckoner`` started at the drive's true first
     pose and stepped with ``tracking.noisy_odometry`` of consecutive true poses (noise from
     ``default_rng([seed, world])``); its pose replaces the predicted one."""
-    from e2e_percep_jax import tracking
 
     def per_drive(world_index):
         rng = np.random.default_rng([seed, world_index])
@@ -213,8 +210,6 @@ def run(baseline: str, cfg: Config, workdir: str, *, video_frames: int = 300, sp
     """Trains ``baseline`` if it needs it (the tracker reuses the detector's run) and evaluates it into
     ``report.eval_dir`` of ``<workdir>/<baseline>``, unless that already holds this evaluation (same
     label, checkpoint and config). Returns the evaluation's metrics."""
-    from e2e_percep_jax import evaluate as eval_lib
-    from e2e_percep_jax import report
     if baseline == "dead_reckoning":
         label = (f"dead reckoning (odometry noise {speed_noise_std_mps:g} m/s, "
                  f"{yaw_rate_noise_std_rps:g} rad/s)")

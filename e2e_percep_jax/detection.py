@@ -13,7 +13,7 @@ with the model):
    often the k-th candidate still scored above ``score_floor`` (then candidates were cut).
 
 The host then keeps candidates with score >= ``score_floor`` whose centre lies in the BEV view (the
-same rule that makes a ground truth valid, ``sensors.in_bev_view``) and runs greedy NMS on exact
+same rule that makes a ground truth valid, ``geometry.in_bev_view``) and runs greedy NMS on exact
 rotated IoU (``nms_iou``): :func:`frame_detections`. The inference API's ``Perceiver.boxes`` decodes
 whole maps at one score threshold instead: :func:`thresholded_boxes`.
 """
@@ -54,8 +54,9 @@ def candidates(det_cls, det_reg, top_k: int, floor: float):
     prefix, r = scores.shape[:-2], scores.shape[-1]
     boxes, scores = boxes.reshape(prefix + (r * r, 5)), scores.reshape(prefix + (r * r,))
     cells = int(round(geo.BEV_SPAN_M / DEDUP_CELL_M)) + 2  # +1 border cell each side for outside centres
-    row = jnp.clip(jnp.floor((geo.BEV_AHEAD_M - boxes[..., 0]) / DEDUP_CELL_M) + 1, 0, cells - 1)
-    col = jnp.clip(jnp.floor((geo.BEV_SIDE_M - boxes[..., 1]) / DEDUP_CELL_M) + 1, 0, cells - 1)
+    down, across = geo.bev_offset_m(boxes[..., 0], boxes[..., 1])
+    row = jnp.clip(jnp.floor(down / DEDUP_CELL_M) + 1, 0, cells - 1)
+    col = jnp.clip(jnp.floor(across / DEDUP_CELL_M) + 1, 0, cells - 1)
     cell = (row * cells + col).astype(jnp.int32)
     finite = jnp.all(jnp.isfinite(boxes), -1) & jnp.isfinite(scores)
     scores = jnp.where(finite, scores, -1.0)
@@ -75,19 +76,15 @@ def candidates(det_cls, det_reg, top_k: int, floor: float):
 
 def frame_detections(cand_boxes, cand_scores, floor=SCORE_FLOOR, nms_iou=NMS_IOU):
     """One frame's candidates ``[k, 5]``, ``[k]`` (NumPy) -> (boxes ``[M, 5]``, scores ``[M]``) after the
-    score floor, the BEV-view rule (``sensors.in_bev_view``, in NumPy) and greedy rotated NMS at
+    score floor, the BEV-view rule (``geometry.in_bev_view``) and greedy rotated NMS at
     ``nms_iou``, highest score first."""
     cand_boxes, cand_scores = np.asarray(cand_boxes), np.asarray(cand_scores)
-    keep = (cand_scores >= floor) & _in_view_np(cand_boxes[:, :2]) & (cand_boxes[:, 3] > 0) & (cand_boxes[:, 4] > 0)
+    keep = (cand_scores >= floor) & geo.in_bev_view(cand_boxes[:, :2]) & (cand_boxes[:, 3] > 0) & (cand_boxes[:, 4] > 0)
     boxes, scores = cand_boxes[keep].astype(np.float64), np.clip(cand_scores[keep].astype(np.float64), 0.0, 1.0)
     if len(boxes) == 0:
         return boxes.reshape(0, 5), scores
     kept = metrics_lib.nms(boxes, scores, nms_iou)
     return boxes[kept], scores[kept]
-
-
-def _in_view_np(xy):
-    return ((xy[..., 0] >= -geo.BEV_BEHIND_M) & (xy[..., 0] < geo.BEV_AHEAD_M) & (np.abs(xy[..., 1]) < geo.BEV_SIDE_M))
 
 
 def thresholded_boxes(cls_map, reg_map, score_threshold: float, iou_threshold: float = NMS_IOU):

@@ -39,12 +39,6 @@ def _as_boxes(boxes):
     return boxes
 
 
-def _rotate(xy, angle_rad):
-    """NumPy twin of ``geometry.rotate``: points ``[..., 2]`` rotated counter-clockwise."""
-    c, s = np.cos(angle_rad), np.sin(angle_rad)
-    return np.stack([c * xy[..., 0] - s * xy[..., 1], s * xy[..., 0] + c * xy[..., 1]], axis=-1)
-
-
 def _roll_up(a):
     """Each vertex's successor around closed polygons stored vertex-major, ``[V, P] -> [V, P]``."""
     return np.concatenate([a[1:], a[:1]])
@@ -98,8 +92,9 @@ def rotated_iou(boxes_a, boxes_b):
     if ia.size == 0:
         return iou
     a, b = a[ia], b[ib]
-    offset = _rotate(b[:, :2] - a[:, :2], -a[:, 2])  # b's centre in a's frame
-    quad = _rotate(geo.BOX_CORNER_SIGNS * 0.5 * b[:, None, 3:5], (b[:, 2] - a[:, 2])[:, None]) + offset[:, None]
+    # b in a's frame, its yaw unwrapped (geometry.box_to_ego wraps it: the same corners, rounded differently)
+    b_in_a = np.concatenate([geo.town_to_ego(b[:, :2], a[:, :2], a[:, 2]), (b[:, 2] - a[:, 2])[:, None], b[:, 3:5]], 1)
+    quad = geo.box_corners(b_in_a)
     area_a, area_b = a[:, 3] * a[:, 4], b[:, 3] * b[:, 4]
     # Rounding can push a touching pair's area a hair below 0, or an identical pair's above the box area.
     inter = np.clip(_clipped_area(quad, 0.5 * a[:, 3:5]), 0.0, np.minimum(area_a, area_b))
@@ -275,7 +270,7 @@ def pose_errors(pred_pose, true_pose):
     direction (atan2 ignores the vector's length), so an unnormalised prediction is fine.
     """
     pred, true = np.asarray(pred_pose, dtype=np.float64), np.asarray(true_pose, dtype=np.float64)
-    heading_diff = np.arctan2(pred[..., 3], pred[..., 2]) - np.arctan2(true[..., 3], true[..., 2])
+    heading_diff = geo.pose_yaw(pred) - geo.pose_yaw(true)
     return PoseErrors(
         location_m=np.linalg.norm(pred[..., :2] - true[..., :2], axis=-1),
         heading_rad=np.abs(geo.wrap_angle(heading_diff)),

@@ -20,17 +20,15 @@ _TITLES = ("camera", "lidar", "roadmap", "boxes")
 
 def draw_boxes(view, boxes, color, thickness=1):
     """Draws ego-frame boxes [M, 5] as outlines with a heading tick onto a BEV ``view`` [H, H, 3] (in
-    place; any H, the view spans ``geometry.BEV_SPAN_M``). NumPy, not the jax.numpy geometry: that
+    place; any H, the view spans ``geometry.BEV_SPAN_M``). In float64 NumPy: on the device this
     compiled per box count and dispatched per call, which made the evaluation's video its bottleneck."""
     boxes = np.asarray(boxes, np.float64).reshape(-1, 5)
     if len(boxes) == 0:
         return view
-    c, s = np.cos(boxes[:, 2])[:, None], np.sin(boxes[:, 2])[:, None]
-    local = geo.BOX_CORNER_SIGNS[None] * 0.5 * boxes[:, None, 3:5]  # [M, 4, 2]
-    x = boxes[:, None, 0] + c * local[..., 0] - s * local[..., 1]
-    y = boxes[:, None, 1] + s * local[..., 0] + c * local[..., 1]
+    corners = geo.box_corners(boxes, centre_first=True)  # [M, 4, 2]
     px_per_m = view.shape[0] / geo.BEV_SPAN_M
-    pts = np.round(np.stack([(geo.BEV_SIDE_M - y) * px_per_m, (geo.BEV_AHEAD_M - x) * px_per_m], -1)
+    down, across = geo.bev_offset_m(corners[..., 0], corners[..., 1])
+    pts = np.round(np.stack([across * px_per_m, down * px_per_m], -1)
                    * (1 << _SHIFT)).astype(np.int32)  # cv2 wants (x = col, y = row)
     cv2.polylines(view, list(pts), True, color, thickness, cv2.LINE_AA, _SHIFT)
     front, centre = (pts[:, 0] + pts[:, 1]) // 2, (pts[:, 0] + pts[:, 2]) // 2  # front edge's middle

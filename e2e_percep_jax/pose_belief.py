@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from e2e_percep_jax.geometry import wrap_angle
+from e2e_percep_jax.geometry import pose_yaw, wrap_angle
 from e2e_percep_jax.world import DT_S, WHEELBASE_M
 
 # Every town's lanes lie in [-7, 427] m; the margin keeps a vehicle's belief off the grid's edge, where the
@@ -102,10 +102,6 @@ def split_head(raw, grid: Grid) -> dict:
             "heading_logit": parts[2], "heading_offset": parts[3], "speed": parts[4][..., 0]}
 
 
-def _yaw(pose):
-    return jnp.arctan2(pose[..., 3], pose[..., 2])
-
-
 def true_cell(xy, grid: Grid):
     """(flat cell index [...] int32 of town points xy [..., 2] (clipped to the grid), offset from its centre
     [..., 2] in cells)."""
@@ -141,10 +137,10 @@ def _at(values, index):
 def loss_terms(head: dict, pose, grid: Grid) -> dict:
     """Per-frame losses [...] of the belief head's parts against true poses [..., 5] (x m, y m, cos, sin, speed)."""
     cell, offset = true_cell(pose[..., :2], grid)
-    k, heading_offset = true_bin(_yaw(pose), grid)
+    k, heading_offset = true_bin(pose_yaw(pose), grid)
     return {
         "pose_place": optax.softmax_cross_entropy(head["place_logit"], place_target(pose[..., :2], grid)),
-        "pose_heading": optax.softmax_cross_entropy(head["heading_logit"], heading_target(_yaw(pose), grid)),
+        "pose_heading": optax.softmax_cross_entropy(head["heading_logit"], heading_target(pose_yaw(pose), grid)),
         "pose_offset": (jnp.sum(optax.huber_loss(_at(head["place_offset"], cell), offset), -1)
                         + optax.huber_loss(_at(head["heading_offset"], k), heading_offset)),
         "pose_speed": optax.huber_loss(head["speed"], pose[..., 4] / SPEED_SCALE_MPS),
@@ -257,7 +253,7 @@ def filter_step(state: dict, head: dict, prev_action, first, grid: Grid, *, star
     rows = lambda x: first.reshape(first.shape + (1,) * (x.ndim - 1))
     if start_pose is not None:
         point = mean_pose(state, grid)
-        yaw = _yaw(point)
+        yaw = pose_yaw(point)
         v_new, move, dyaw = bicycle(prev_action, point[:, 4], yaw[:, None])
         yaw = yaw + dyaw
         moved = jnp.concatenate([point[:, :2] + move[:, 0], jnp.stack([jnp.cos(yaw), jnp.sin(yaw), v_new], -1)], -1)
@@ -315,7 +311,7 @@ def start_at(pose, grid: Grid):
     nearest cell centres, all in the nearest heading bin with the rest in the offset, so the belief's mean
     (:func:`mean_pose`) is the pose."""
     u = (pose[:, :2] - AREA_ORIGIN_M) / grid.cell_m - 0.5  # in cell-centre units
-    k, offset = true_bin(_yaw(pose), grid)
+    k, offset = true_bin(pose_yaw(pose), grid)
     near = jnp.round(offset).astype(jnp.int32)  # offset is within half a bin of bin k's centre
     wk = jax.nn.one_hot((k + near) % grid.heading_bins, grid.heading_bins)
     wx, wy = _linear_split(u[:, 0], grid.n), _linear_split(u[:, 1], grid.n)
@@ -347,6 +343,6 @@ def negative_log_likelihood(state: dict, pose, grid: Grid):
     probability spread uniformly over its cell_m² x bin_rad)."""
     belief = state["belief"]
     cell, _ = true_cell(pose[:, :2], grid)
-    k, _ = true_bin(_yaw(pose) - state["yaw_offset_rad"], grid)
+    k, _ = true_bin(pose_yaw(pose) - state["yaw_offset_rad"], grid)
     p = belief.reshape(belief.shape[0], grid.heading_bins, -1)[jnp.arange(belief.shape[0]), k, cell]
     return -jnp.log(jnp.maximum(p, 1e-30)) + math.log(grid.cell_m ** 2 * grid.bin_rad)

@@ -4,6 +4,7 @@ Usage: ``view = TopDown(town, window_m, px_per_m)`` draws the static town once; 
 an RGB image [H, W, 3] with lights and vehicles on it. North is up.
 """
 import cv2
+import jax.numpy as jnp
 import numpy as np
 
 from e2e_percep_jax import geometry as geo
@@ -56,7 +57,8 @@ class TopDown:
         return np.round(px * (1 << _SHIFT)).astype(np.int32)
 
     def _box(self, img, box, color, outline, thickness=1):
-        corners = self._px(np.asarray(geo.box_corners(np.asarray(box, np.float32))))
+        # float32 on XLA: NumPy's float32 cos / sin round differently, and the pictures are pinned to these
+        corners = self._px(np.asarray(geo.box_corners(jnp.asarray(box, jnp.float32))))
         cv2.fillPoly(img, [corners], color, cv2.LINE_AA, _SHIFT)
         cv2.polylines(img, [corners], True, outline, thickness, cv2.LINE_AA, _SHIFT)
 

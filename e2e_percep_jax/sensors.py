@@ -91,11 +91,6 @@ class Obstacles(NamedTuple):
 # ----------------------------------------------------------------------------- shared ray casting
 
 
-def _rotate_xy(x, y, cos, sin):
-    """Component-wise :func:`geometry.rotate` (see the performance notes)."""
-    return cos * x - sin * y, sin * x + cos * y
-
-
 def ray_box_slab(origin_x, origin_y, dir_x, dir_y, box):
     """2-D slab test of horizontal rays against boxes; all arguments broadcast (``box`` as ``[..., 5]``),
     all in one frame (e.g. the ego frame).
@@ -107,8 +102,8 @@ def ray_box_slab(origin_x, origin_y, dir_x, dir_y, box):
     """
     cos, sin = jnp.cos(box[..., 2]), jnp.sin(box[..., 2])
     half_l, half_w = 0.5 * box[..., 3], 0.5 * box[..., 4]
-    ox, oy = _rotate_xy(origin_x - box[..., 0], origin_y - box[..., 1], cos, -sin)  # box-local
-    dx, dy = _rotate_xy(dir_x, dir_y, cos, -sin)
+    ox, oy = geo.rotate_xy(origin_x - box[..., 0], origin_y - box[..., 1], cos, -sin)  # box-local
+    dx, dy = geo.rotate_xy(dir_x, dir_y, cos, -sin)
     dx = jnp.where(jnp.abs(dx) < 1e-9, 1e-9, dx)  # parallel to a face: that slab is (-inf, inf) or empty
     dy = jnp.where(jnp.abs(dy) < 1e-9, 1e-9, dy)
     inv_x, inv_y = 1.0 / dx, 1.0 / dy  # two divisions per pair instead of four
@@ -119,7 +114,7 @@ def ray_box_slab(origin_x, origin_y, dir_x, dir_y, box):
     s_out = jnp.minimum(jnp.maximum(tx0, tx1), jnp.maximum(ty0, ty1))
     hit = (s_out >= s_in) & (s_out > 0.0)
     x_face = near_x >= near_y  # entered through a face across the box's length axis
-    normal_x, normal_y = _rotate_xy(jnp.where(x_face, -jnp.sign(dx), 0.0), jnp.where(x_face, 0.0, -jnp.sign(dy)),
+    normal_x, normal_y = geo.rotate_xy(jnp.where(x_face, -jnp.sign(dx), 0.0), jnp.where(x_face, 0.0, -jnp.sign(dy)),
                                     cos, sin)
     s_hit = jnp.where(hit, jnp.maximum(s_in, 0.0), 0.0)
     u_m = jnp.where(x_face, oy + s_hit * dy + half_w, ox + s_hit * dx + half_l)
@@ -294,7 +289,7 @@ def render_camera(obstacles: Obstacles, town: Town, ego_xy, ego_yaw_rad, image_s
 
     # Per candidate [K, A]: everything that does not depend on the row.
     cos, sin = jnp.cos(ego_yaw_rad), jnp.sin(ego_yaw_rad)
-    sun_x, sun_y = _rotate_xy(_SUN_DIR_TOWN[0], _SUN_DIR_TOWN[1], cos, -sin)
+    sun_x, sun_y = geo.rotate_xy(_SUN_DIR_TOWN[0], _SUN_DIR_TOWN[1], cos, -sin)
     shade = 0.62 + 0.33 * (cand.normal_x * sun_x + cand.normal_y * sun_y)  # faces towards the sun are brighter
     bay = cand.u_m - _WINDOW_PITCH_M * jnp.floor(cand.u_m / _WINDOW_PITCH_M)
     kind = jnp.where(obstacles.is_vehicle[cand.idx], 1, jnp.where((bay > 1.0) & (bay < 2.6), 2, 3))  # 2: window bay
@@ -317,7 +312,7 @@ def render_camera(obstacles: Obstacles, town: Town, ego_xy, ego_yaw_rad, image_s
     # session eleven).
     s_ground = jnp.where(slope < 0.0, CAMERA_HEIGHT_M / -jnp.minimum(slope, -1e-6), 0.0)  # [E, 1]
     below = r // 2  # rows r // 2 .. r - 1 look down
-    gx, gy = _rotate_xy(CAMERA_X_M + s_ground[below:], s_ground[below:] * offsets, cos, sin)
+    gx, gy = geo.rotate_xy(CAMERA_X_M + s_ground[below:], s_ground[below:] * offsets, cos, sin)
     cls_below, _, _ = sem_classes_at(town, gx + ego_xy[0], gy + ego_xy[1])  # [E - below, A]
     cls = jnp.concatenate([jnp.full((below, r), SEM_OFFROAD, cls_below.dtype), cls_below])  # [E, A]
     up = jnp.clip(slope, 0.0, 1.0)
@@ -390,8 +385,9 @@ def render_lidar(obstacles: Obstacles, image_size):
     x, y, z, has_return, cand, ends_on = lidar_returns(obstacles)
     r = image_size
     res = geo.bev_metres_per_px(r)
-    row = jnp.floor((geo.BEV_AHEAD_M - x) / res).astype(jnp.int32)  # as geometry.ego_to_bev_px
-    col = jnp.floor((geo.BEV_SIDE_M - y) / res).astype(jnp.int32)
+    down, across = geo.bev_offset_m(x, y)
+    row = jnp.floor(down / res).astype(jnp.int32)  # as geometry.ego_to_bev_px
+    col = jnp.floor(across / res).astype(jnp.int32)
     drawn = has_return & (row >= 0) & (row < r) & (col >= 0) & (col < r) & (z <= LIDAR_TOP_M)
     channel = jnp.where(z < LIDAR_GROUND_BAND_M, 0, 1)
     image = _mark(jnp.where(drawn, (row * r + col) * 3 + channel, -1).ravel(), 3 * r * r).reshape(r, r, 3)
@@ -427,7 +423,7 @@ def render_roadmap(town: Town, ego_xy, ego_yaw_rad, ego_length_m, ego_width_m, i
     cos, sin = jnp.cos(ego_yaw_rad), jnp.sin(ego_yaw_rad)
 
     def class_at(dx_m, dy_m):  # of the points offset by (dx_m, dy_m) from the pixel centres (ego frame)
-        tx, ty = _rotate_xy(x + dx_m, y + dy_m, cos, sin)
+        tx, ty = geo.rotate_xy(x + dx_m, y + dy_m, cos, sin)
         return sem_classes_at(town, tx + ego_xy[0], ty + ego_xy[1])[0]
 
     n = roadmap_samples_per_side(image_size)
@@ -443,12 +439,6 @@ def render_roadmap(town: Town, ego_xy, ego_yaw_rad, ego_length_m, ego_width_m, i
 
 
 # ----------------------------------------------------------------------------- culling and the frame
-
-
-def in_bev_view(xy_ego):
-    """Whether ego-frame points [..., 2] lie inside the BEV view."""
-    return ((xy_ego[..., 0] >= -geo.BEV_BEHIND_M) & (xy_ego[..., 0] < geo.BEV_AHEAD_M)
-            & (jnp.abs(xy_ego[..., 1]) < geo.BEV_SIDE_M))
 
 
 def _reaches_bev_view(box_ego):
@@ -526,6 +516,6 @@ def observe(state: WorldState, town: Town, image_size: int):
         "pose": jnp.stack([ego_xy[0], ego_xy[1], jnp.cos(ego_yaw), jnp.sin(ego_yaw),
                            state.veh_speed_mps[EGO]]).astype(jnp.float32),
         "boxes": boxes.astype(jnp.float32),
-        "boxes_valid": in_bev_view(boxes[:, :2]),
+        "boxes_valid": geo.in_bev_view(boxes[:, :2]),
         "boxes_occluded": ~vehicle_returned,
     }

@@ -29,6 +29,8 @@ import cv2
 import jax.numpy as jnp
 import numpy as np
 
+from e2e_percep_jax.geometry import wrap_angle
+
 # Semantic classes of ``Town.sem_map`` (and of the roadmap image before colouring).
 SEM_OFFROAD = 0  # terrain between roads (buildings stand here)
 SEM_ROAD = 1  # drivable asphalt, junctions included
@@ -221,10 +223,6 @@ def _angle(v):
     return np.arctan2(v[..., 1], v[..., 0])
 
 
-def _wrap(a):
-    return (a + np.pi) % (2 * np.pi) - np.pi
-
-
 def _resample(pts, ds):
     """Resamples a polyline [M, 2] at uniform arc spacing ``ds``; the last sample is the exact end point."""
     seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
@@ -240,7 +238,7 @@ def _bezier(p0, h0, p3, h3):
     Control arms follow the circular-arc approximation for the turn angle, so a symmetric turn is close to
     a circle (the curve of least peak curvature between the two tangents).
     """
-    theta = abs(_wrap(_angle(h3) - _angle(h0)))
+    theta = abs(wrap_angle(_angle(h3) - _angle(h0)))
     chord = np.linalg.norm(p3 - p0)
     arm = chord / 3 if theta < 0.05 else 4 / 3 * np.tan(theta / 4) * chord / (2 * np.sin(theta / 2))
     t = np.linspace(0.0, 1.0, 400)[:, None]
@@ -263,7 +261,7 @@ def _fillet(p0, h0, p3, h3):
     distances to where the lines cross), so the turn is as gentle as the junction allows.
     """
     t, u = np.linalg.solve(np.stack([h0, h3], 1), p3 - p0)  # p0 + t h0 == p3 - u h3 is where the lines cross
-    theta = _wrap(_angle(h3) - _angle(h0))  # > 0 turning left
+    theta = wrap_angle(_angle(h3) - _angle(h0))  # > 0 turning left
     tangent = min(t, u)
     radius = tangent / np.tan(abs(theta) / 2)
     a = p0 + (t - tangent) * h0  # where the arc starts
@@ -391,7 +389,7 @@ def _build_lanes(node_xy, roads, lanes_per_dir, node_kind, major_roads, mouth_m)
                 if r_out == r_in:
                     continue
                 away_out = _unit(node_xy[roads[r_out].sum() - n] - node_xy[n])
-                turn = _wrap(_angle(away_out) - _angle(-away_in))  # > 0 turning left
+                turn = wrap_angle(_angle(away_out) - _angle(-away_in))  # > 0 turning left
                 n_in, n_out = lanes_per_dir[r_in], lanes_per_dir[r_out]
                 if len(incident) == 2 or abs(turn) < np.pi / 4:  # straight on (or the only way, at a bend)
                     pairs = [(k, min(k, n_out - 1)) for k in range(n_in)]
@@ -489,7 +487,7 @@ def _junction_kinds(rng, node_xy, roads, lanes_per_dir, ring_node, interior):
             # The through road: the straightest pair of roads (at a 4-way either pair, at random).
             away = {r: _angle(node_xy[roads[r].sum() - n] - node_xy[n]) for r in incident}
             pairs = [(a, b) for i, a in enumerate(incident) for b in incident[i + 1:]]
-            bend = [abs(np.pi - abs(_wrap(away[a] - away[b]))) + rng.uniform(0.0, 0.5) for a, b in pairs]
+            bend = [abs(np.pi - abs(wrap_angle(away[a] - away[b]))) + rng.uniform(0.0, 0.5) for a, b in pairs]
             major_roads[n] = set(pairs[int(np.argmin(bend))])
     return kind, major_roads
 
@@ -711,6 +709,8 @@ def _buildings(rng, sem, raster, node_xy, roads, ring_xy):
     def place(centre, yaw, length, width, height, color, kind, gap_m):
         c, s = np.cos(yaw), np.sin(yaw)
         half = np.array([[length, width], [length, -width], [-length, -width], [-length, width]]) / 2
+        # Not geometry.box_corners: BLAS rounds this product differently (fused multiply-adds) in the last
+        # bit, and every town's footprints, hence its buildings, are pinned to this rounding.
         corners = centre + half @ np.array([[c, s], [-s, c]])
         pad = int(np.ceil(gap_m / MAP_RES_M)) + 1
         (c0, r0), (c1, r1) = raster.cell(corners.min(0)) - pad, raster.cell(corners.max(0)) + pad
@@ -769,7 +769,8 @@ def _sampled(pts, num_samples):
     end_heading = _unit(pts[-1] - pts[-2])
     xy = np.stack([np.interp(inside, s_dense, pts[:, 0]), np.interp(inside, s_dense, pts[:, 1])], -1)
     xy += (s - inside)[:, None] * end_heading
-    return xy, _wrap(np.interp(inside, s_dense, yaw)), np.where(s > s_dense[-1], 0.0, np.interp(inside, s_dense, curv))
+    curv = np.where(s > s_dense[-1], 0.0, np.interp(inside, s_dense, curv))
+    return xy, wrap_angle(np.interp(inside, s_dense, yaw)), curv
 
 
 @functools.lru_cache(maxsize=8)

@@ -37,6 +37,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from e2e_percep_jax import geometry as geo
 from e2e_percep_jax import metrics
 from e2e_percep_jax.world import DT_S, WHEELBASE_M
 
@@ -46,46 +47,19 @@ _POS, _YAW, _SIZE, _VEL = [0, 1], 2, [3, 4], [5, 6]
 
 
 # ----------------------------------------------------------------------------------------------------------
-# Frames (NumPy twins of geometry's jnp functions; per-frame calls would pay JAX dispatch otherwise)
-
-
-def wrap_angle(angle_rad):
-    """Wraps angles to [-pi, pi) (twin of ``geometry.wrap_angle``)."""
-    return (np.asarray(angle_rad) + np.pi) % (2 * np.pi) - np.pi
-
-
-def pose_yaw(pose):
-    """Ego yaw (rad) from poses ``[..., 5] = (x, y, cos psi, sin psi, speed)`` -> ``[...]``."""
-    pose = np.asarray(pose, dtype=np.float64)
-    return np.arctan2(pose[..., 3], pose[..., 2])
+# Frames (``geometry`` on float64 NumPy: per-frame calls would pay JAX dispatch otherwise)
 
 
 def boxes_ego_to_town(boxes_ego, pose):
     """Ego-frame boxes ``[N, 5]`` of a frame with ego pose ``[5]`` -> town-frame boxes ``[N, 5]``."""
-    boxes_ego = np.asarray(boxes_ego, dtype=np.float64).reshape(-1, 5)
     pose = np.asarray(pose, dtype=np.float64)
-    psi = pose_yaw(pose)
-    c, s = np.cos(psi), np.sin(psi)
-    x, y = boxes_ego[:, 0], boxes_ego[:, 1]
-    out = boxes_ego.copy()
-    out[:, 0] = c * x - s * y + pose[0]
-    out[:, 1] = s * x + c * y + pose[1]
-    out[:, 2] = wrap_angle(boxes_ego[:, 2] + psi)
-    return out
+    return geo.box_to_town(np.asarray(boxes_ego, dtype=np.float64).reshape(-1, 5), pose[:2], geo.pose_yaw(pose))
 
 
 def boxes_town_to_ego(boxes_town, pose):
     """Inverse of :func:`boxes_ego_to_town`: town-frame boxes ``[N, 5]`` -> ego frame of pose ``[5]``."""
-    boxes_town = np.asarray(boxes_town, dtype=np.float64).reshape(-1, 5)
     pose = np.asarray(pose, dtype=np.float64)
-    psi = pose_yaw(pose)
-    c, s = np.cos(psi), np.sin(psi)
-    dx, dy = boxes_town[:, 0] - pose[0], boxes_town[:, 1] - pose[1]
-    out = boxes_town.copy()
-    out[:, 0] = c * dx + s * dy
-    out[:, 1] = -s * dx + c * dy
-    out[:, 2] = wrap_angle(boxes_town[:, 2] - psi)
-    return out
+    return geo.box_to_ego(np.asarray(boxes_town, dtype=np.float64).reshape(-1, 5), pose[:2], geo.pose_yaw(pose))
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -228,8 +202,8 @@ def fold_heading(det_yaw_rad, track_yaw_rad):
     track's heading by its small true difference instead of spinning it round.
     """
     det_yaw_rad = np.asarray(det_yaw_rad, dtype=np.float64)
-    flipped = np.abs(wrap_angle(det_yaw_rad - track_yaw_rad)) > 0.5 * np.pi
-    return wrap_angle(np.where(flipped, det_yaw_rad + np.pi, det_yaw_rad))
+    flipped = np.abs(geo.wrap_angle(det_yaw_rad - track_yaw_rad)) > 0.5 * np.pi
+    return geo.wrap_angle(np.where(flipped, det_yaw_rad + np.pi, det_yaw_rad))
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -323,7 +297,7 @@ def initial_state(det_boxes, cfg: TrackerConfig):
 def kf_predict(mean, cov, f, q):
     """Prediction of tracks ``mean [T, 7], cov [T, 7, 7]`` with transition ``f [7, 7]`` and noise ``q [7, 7]``."""
     mean = mean @ f.T
-    mean[:, 2] = wrap_angle(mean[:, 2])
+    mean[:, 2] = geo.wrap_angle(mean[:, 2])
     return mean, f @ cov @ f.T + q
 
 
@@ -332,11 +306,11 @@ def kf_update(mean, cov, boxes, r):
     already folded, see :func:`fold_heading`), noise ``r [5, 5]``. The yaw innovation is wrapped; the
     covariance uses the Joseph form (stays symmetric positive definite). Returns the new mean, cov."""
     innovation = boxes - mean[:, :5]
-    innovation[:, 2] = wrap_angle(innovation[:, 2])
+    innovation[:, 2] = geo.wrap_angle(innovation[:, 2])
     s = cov[:, :5, :5] + r  # H P H^T + R with H = [I_5 | 0]
     gain = np.linalg.solve(s, cov[:, :5, :]).transpose(0, 2, 1)  # P H^T S^-1  [T, 7, 5]  (S, P symmetric)
     mean = mean + np.einsum("tij,tj->ti", gain, innovation)
-    mean[:, 2] = wrap_angle(mean[:, 2])
+    mean[:, 2] = geo.wrap_angle(mean[:, 2])
     i_kh = np.broadcast_to(np.eye(STATE_DIM), cov.shape).copy()
     i_kh[:, :, :5] -= gain
     cov = i_kh @ cov @ i_kh.transpose(0, 2, 1) + gain @ r @ gain.transpose(0, 2, 1)
@@ -457,7 +431,7 @@ def odometry_from_poses(poses, dt_s=DT_S):
     step k -> k+1 (a gyro integrated over the step), ``wrap(psi[k+1] - psi[k]) / dt``.
     """
     poses = np.asarray(poses, dtype=np.float64)
-    return poses[1:, 4].copy(), wrap_angle(np.diff(pose_yaw(poses))) / dt_s
+    return poses[1:, 4].copy(), geo.wrap_angle(np.diff(geo.pose_yaw(poses))) / dt_s
 
 
 def noisy_odometry(poses, speed_noise_std_mps, yaw_rate_noise_std_rps, rng: np.random.Generator, dt_s=DT_S):
@@ -488,7 +462,7 @@ def dead_reckon(start_pose, speed_mps, yaw_rate_rps, dt_s=DT_S, wheelbase_m=WHEE
     yaw_rate_rps = np.asarray(yaw_rate_rps, dtype=np.float64)
     if speed_mps.shape != yaw_rate_rps.shape or speed_mps.ndim != 1:
         raise ValueError("speed_mps and yaw_rate_rps must both be [T]")
-    psi0 = pose_yaw(start_pose)
+    psi0 = geo.pose_yaw(start_pose)
     speeds = np.concatenate([start_pose[4:5], speed_mps])  # [T+1]
     ds = 0.5 * (speeds[:-1] + speeds[1:]) * dt_s
     dpsi = yaw_rate_rps * dt_s
@@ -512,7 +486,7 @@ class DeadReckoner:
     def __init__(self, start_pose, dt_s=DT_S, wheelbase_m=WHEELBASE_M):
         start_pose = np.asarray(start_pose, dtype=np.float64)
         self.dt_s, self.half_wheelbase_m = dt_s, 0.5 * wheelbase_m
-        self.yaw_rad = float(pose_yaw(start_pose))
+        self.yaw_rad = float(geo.pose_yaw(start_pose))
         self.speed_mps = float(start_pose[4])
         self.rear_xy = start_pose[:2] - self.half_wheelbase_m * np.array([np.cos(self.yaw_rad), np.sin(self.yaw_rad)])
 
@@ -521,7 +495,7 @@ class DeadReckoner:
         dpsi = yaw_rate_rps * self.dt_s
         mid = self.yaw_rad + 0.5 * dpsi
         self.rear_xy = self.rear_xy + ds * np.array([np.cos(mid), np.sin(mid)])
-        self.yaw_rad = float(wrap_angle(self.yaw_rad + dpsi))
+        self.yaw_rad = float(geo.wrap_angle(self.yaw_rad + dpsi))
         self.speed_mps = float(speed_mps)
         return self.pose
 

@@ -16,7 +16,7 @@ import sys
 from absl import app, flags
 
 from e2e_percep_jax import allocator
-from e2e_percep_jax import baselines  # compiles nothing at import (evaluate and tracking load lazily)
+from e2e_percep_jax import baselines, report
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import train as train_lib
 
@@ -40,7 +40,6 @@ def main(argv):
         baselines.check(FLAGS.baseline, cfg, FLAGS.workdir)
     except ValueError as e:
         sys.exit(f"error: {e}")
-    from e2e_percep_jax import report
     log = lambda s: print(s, flush=True)
     with train_lib.exit_on_stop():
         for name in FLAGS.baseline:

@@ -15,8 +15,9 @@ import sys
 
 from absl import app, flags
 
-from e2e_percep_jax import allocator
+from e2e_percep_jax import allocator, checkpoint, detection, report, world
 from e2e_percep_jax import config as config_lib
+from e2e_percep_jax import evaluate as eval_lib
 
 config_lib.define_flags()
 flags.DEFINE_string("workdir", None, "run directory holding config.json and checkpoints/")
@@ -35,7 +36,6 @@ INFERENCE_FIELDS = ("model.pose_filter",)  # model fields that change no paramet
 
 
 def main(argv):
-    from e2e_percep_jax import checkpoint, detection, evaluate as eval_lib, report, world
     allocator.keep_freed_buffers()
     try:
         config_lib.check_launch(argv)

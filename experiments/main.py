@@ -13,8 +13,10 @@ import sys
 
 from absl import app, flags
 
-from e2e_percep_jax import allocator
+from e2e_percep_jax import allocator, checkpoint, report
 from e2e_percep_jax import config as config_lib
+from e2e_percep_jax import evaluate as eval_lib
+from e2e_percep_jax import train as train_lib
 
 config_lib.define_flags()
 flags.DEFINE_string("workdir", None, "run directory")
@@ -26,10 +28,6 @@ def run(cfg: config_lib.Config, workdir: str, video_frames: int = 300, log=print
     """Trains ``cfg`` in ``workdir`` (resuming) and evaluates its final checkpoint into ``workdir/eval``
     (``eval_town<seed>`` for a held-out ``--eval.town_seed``). Returns the evaluation's metrics (read
     back if that checkpoint was already evaluated under the same config)."""
-    from e2e_percep_jax import checkpoint
-    from e2e_percep_jax import evaluate as eval_lib
-    from e2e_percep_jax import report
-    from e2e_percep_jax import train as train_lib
     if train_lib.check_run(cfg, workdir) != cfg.train.num_steps:
         train_lib.train(cfg, workdir)
     out_dir, step = report.eval_dir(workdir, cfg), cfg.train.num_steps
@@ -43,7 +41,6 @@ def run(cfg: config_lib.Config, workdir: str, video_frames: int = 300, log=print
 
 
 def main(argv):
-    from e2e_percep_jax import train as train_lib
     allocator.keep_freed_buffers()
     try:
         config_lib.check_launch(argv)
@@ -55,7 +52,6 @@ def main(argv):
         sys.exit(f"error: {e}")
     with train_lib.exit_on_stop():
         run(cfg, FLAGS.workdir, FLAGS.video_frames, log=lambda s: print(s, flush=True))
-    from e2e_percep_jax import report
     print(f"report: {os.path.join(report.eval_dir(FLAGS.workdir, cfg), 'report.md')}")
 
 

@@ -14,7 +14,7 @@ def _lit(view):
 
 def test_box_outline_matches_geometry():
     view = panels.draw_boxes(np.zeros((VIEW_PX, VIEW_PX, 3), np.uint8), BOX, (255, 255, 255))
-    corners_px = np.asarray(geo.ego_to_bev_px(geo.box_corners(BOX), VIEW_PX))  # (row, col), jnp path
+    corners_px = np.asarray(geo.ego_to_bev_px(geo.box_corners(BOX), VIEW_PX))  # (row, col)
     lit = _lit(view)
     assert len(lit)
     for corner in corners_px:  # every corner is drawn

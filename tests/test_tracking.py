@@ -42,11 +42,11 @@ def test_frame_helpers_match_geometry():
     ref = np.asarray(geo.box_to_ego(jnp.asarray(boxes, jnp.float32), jnp.asarray(pose[:2], jnp.float32),
                                     jnp.float32(2.5)))
     np.testing.assert_allclose(ours[:, :2], ref[:, :2], atol=1e-4)
-    np.testing.assert_allclose(tr.wrap_angle(ours[:, 2] - ref[:, 2]), 0.0, atol=1e-5)
+    np.testing.assert_allclose(geo.wrap_angle(ours[:, 2] - ref[:, 2]), 0.0, atol=1e-5)
     np.testing.assert_allclose(ours[:, 3:], boxes[:, 3:])
     back = tr.boxes_ego_to_town(ours, pose)
     np.testing.assert_allclose(back[:, :2], boxes[:, :2], atol=1e-9)
-    np.testing.assert_allclose(tr.wrap_angle(back[:, 2] - boxes[:, 2]), 0.0, atol=1e-12)
+    np.testing.assert_allclose(geo.wrap_angle(back[:, 2] - boxes[:, 2]), 0.0, atol=1e-12)
 
 
 # ------------------------------------------------------------------------------------------- assignment
@@ -183,7 +183,7 @@ def _simulate_model_targets(cfg, num_targets, num_frames, rng, spacing_m=5000.0)
         x[:, 5:] += dt * accel
         x[:, 2] += cfg.yaw_rate_std_rps * dt * rng.standard_normal(num_targets)
         x[:, 3:5] += cfg.size_std_m * rng.standard_normal((num_targets, 2))
-        x[:, 2] = tr.wrap_angle(x[:, 2])
+        x[:, 2] = geo.wrap_angle(x[:, 2])
     return np.stack(out)
 
 
@@ -207,7 +207,7 @@ def test_kalman_converges_to_steady_state_and_error_matches_covariance():
         np.testing.assert_array_equal(out.track_ids, ids0)  # one track per target, throughout
         if k >= burn_in:
             e = tracker.mean - truth[k]
-            e[:, 2] = tr.wrap_angle(e[:, 2])
+            e[:, 2] = geo.wrap_angle(e[:, 2])
             errors.append(e)
     expected = _expected_steady_state(cfg)
     # Every track's covariance has converged to the closed-form steady state (deterministic: exact).
@@ -257,7 +257,7 @@ def test_crossing_tracks_keep_ids():
             out = tracker.update(det, np.array([0.9, 0.8]), poses[k])
             assert len(out.track_ids) == 2
             # Which reported track lies on which car (nearest heading in the ego frame).
-            owner = np.argmin(np.abs(tr.wrap_angle(out.boxes[:, None, 2] - det[None, :, 2])), axis=1)
+            owner = np.argmin(np.abs(geo.wrap_angle(out.boxes[:, None, 2] - det[None, :, 2])), axis=1)
             ids = out.track_ids[np.argsort(owner)]
             if first_ids is None:
                 first_ids = ids
@@ -305,13 +305,13 @@ def test_heading_flip_does_not_spin_track():
     for k in range(10):
         tracker.update(np.array([_box(5.0, 2.0, yaw)]), np.array([0.9]), IDENTITY_POSE)
     for k in range(5):  # flipped detections: yaw - pi (wrapped), and a small true turn of 0.05 rad
-        det_yaw = tr.wrap_angle(yaw + 0.05 + np.pi)
+        det_yaw = geo.wrap_angle(yaw + 0.05 + np.pi)
         out = tracker.update(np.array([_box(5.0, 2.0, det_yaw)]), np.array([0.9]), IDENTITY_POSE)
         assert out.track_ids.tolist() == [0]
-        d = tr.wrap_angle(out.boxes[0, 2] - yaw)
+        d = geo.wrap_angle(out.boxes[0, 2] - yaw)
         assert 0.0 < d <= 0.05 + 1e-9  # moved towards yaw + 0.05, never towards the flipped yaw
     # Without folding, the wrapped innovation (about -pi) would have pulled the yaw far away.
-    assert abs(tr.wrap_angle(tracker.mean[0, 2] - (yaw + 0.05))) < 0.03
+    assert abs(geo.wrap_angle(tracker.mean[0, 2] - (yaw + 0.05))) < 0.03
 
 
 def test_centre_gate_keeps_young_track_whose_prediction_missed():
@@ -380,7 +380,7 @@ def _bicycle_path_float64(num_steps, rng):
         psi_new = psi + ds * np.tan(steer) / world.WHEELBASE_M
         mid = 0.5 * (psi + psi_new)
         rx, ry = x - half * np.cos(psi) + ds * np.cos(mid), y - half * np.sin(psi) + ds * np.sin(mid)
-        x, y, psi, v = rx + half * np.cos(psi_new), ry + half * np.sin(psi_new), tr.wrap_angle(psi_new), v_new
+        x, y, psi, v = rx + half * np.cos(psi_new), ry + half * np.sin(psi_new), geo.wrap_angle(psi_new), v_new
         poses.append(pose_of(x, y, psi, v))
     return np.stack(poses)
 
@@ -425,7 +425,7 @@ def test_dead_reckoning_reproduces_world_path(world_ego_path):
     # The world integrates in float32 (positions of a few hundred metres: ulp ~3e-5 m); the residual is its
     # rounding, accumulated over 200 steps.
     assert np.abs(est[:, :2] - poses[:, :2]).max() < 2e-3
-    assert np.abs(tr.wrap_angle(tr.pose_yaw(est) - tr.pose_yaw(poses))).max() < 1e-5
+    assert np.abs(geo.wrap_angle(geo.pose_yaw(est) - geo.pose_yaw(poses))).max() < 1e-5
     np.testing.assert_array_equal(est[:, 4], poses[:, 4])
 
 
