@@ -88,7 +88,7 @@ class TrainConfig:
     kl_weight: float = 1.0
     checkpoint_every: int = 500  # steps; a checkpoint is also written at exit
     log_every: int = 10
-    max_nonfinite_in_a_row: int = 10  # K: stop after K consecutive skipped (non-finite) updates
+    max_nonfinite_in_a_row: int = 10  # stop after this many skipped (non-finite) updates in a row
 
 
 @dataclasses.dataclass(frozen=True)

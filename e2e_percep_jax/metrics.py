@@ -110,7 +110,7 @@ def nms(boxes, scores, iou_threshold):
       boxes: ``[M, 5]``. scores: ``[M]``. iou_threshold: a box is dropped when its IoU with an
         already kept, higher-scored box exceeds this (strictly).
     Returns:
-      int64 ``[K]`` indices into ``boxes`` of the kept boxes, highest score first (ties: lower index).
+      int64 ``[kept]`` indices into ``boxes`` of the kept boxes, highest score first (ties: lower index).
     """
     boxes = _as_boxes(boxes)
     order = np.argsort(-np.asarray(scores, dtype=np.float64), kind="stable")
@@ -134,7 +134,7 @@ def match_detections(pred_boxes, pred_scores, gt_boxes, iou_thresholds):
     at most once.
 
     Args:
-      pred_boxes: ``[M, 5]``. pred_scores: ``[M]``. gt_boxes: ``[K, 5]``, real boxes only (no padding).
+      pred_boxes: ``[M, 5]``. pred_scores: ``[M]``. gt_boxes: ``[G, 5]``, real boxes only (no padding).
       iou_thresholds: ``[T]`` thresholds in (0, 1].
     Returns:
       int64 ``[T, M]``: the matched ground-truth index of each detection, -1 if unmatched.
@@ -142,7 +142,7 @@ def match_detections(pred_boxes, pred_scores, gt_boxes, iou_thresholds):
     thresholds = np.asarray(iou_thresholds, dtype=np.float64)
     if np.any((thresholds <= 0.0) | (thresholds > 1.0)):
         raise ValueError(f"IoU thresholds must lie in (0, 1], got {thresholds}")
-    iou = rotated_iou(pred_boxes, gt_boxes)  # [M, K]
+    iou = rotated_iou(pred_boxes, gt_boxes)  # [M, G]
     pred_scores = np.asarray(pred_scores, dtype=np.float64)
     num_thr, (num_pred, num_gt) = len(thresholds), iou.shape
     if pred_scores.shape != (num_pred,):
@@ -153,7 +153,7 @@ def match_detections(pred_boxes, pred_scores, gt_boxes, iou_thresholds):
     gt_taken = np.zeros((num_thr, num_gt), dtype=bool)
     every_thr = np.arange(num_thr)
     for det in np.argsort(-pred_scores, kind="stable"):
-        candidate_iou = np.where(gt_taken, -1.0, iou[det])  # [T, K]
+        candidate_iou = np.where(gt_taken, -1.0, iou[det])  # [T, G]
         best = candidate_iou.argmax(axis=1)
         ok = candidate_iou[every_thr, best] >= thresholds
         matched[ok, det] = best[ok]
@@ -216,8 +216,8 @@ class DetectionAccumulator:
 
         Args:
           pred_boxes: ``[M, 5]`` detections (after NMS). pred_scores: ``[M]`` in [0, 1].
-          gt_boxes: ``[K, 5]`` the world's ground-truth boxes, same frame as the detections.
-          gt_valid: bool ``[K]``, False for padding. gt_occluded: bool ``[K]``.
+          gt_boxes: ``[G, 5]`` the world's ground-truth boxes, same frame as the detections.
+          gt_valid: bool ``[G]``, False for padding. gt_occluded: bool ``[G]``.
         """
         pred_scores = np.asarray(pred_scores, dtype=np.float64)
         if not np.all((pred_scores >= 0.0) & (pred_scores <= 1.0)):  # also catches nan

@@ -81,8 +81,8 @@ def frame_panel(frame, panel_px=256, pred_boxes=None, pred_scores=None, titles=T
 def map_panel(view, true_xy, pred_xy, place=None):
     """uint8 [S, S, 3]: the pose belief's area of the town from above (north up; ``view`` a square
     ``render.TopDown`` of that area), the belief over it (``place`` [n, n], row i along y; brighter is more
-    probable), the true path so far (green line, ``true_xy`` [K, 2] town metres) and the estimated poses
-    (red dots, ``pred_xy`` [K, 2]), the latest of each ringed."""
+    probable), the true path so far (green line, ``true_xy`` [P, 2] town metres) and the estimated poses
+    (red dots, ``pred_xy`` [P, 2]), the latest of each ringed."""
     img = view.draw()
     size = img.shape[1::-1]
     if place is not None:  # blended per cell, then scaled up: no full-size float temporaries

@@ -31,18 +31,18 @@ NEAR_VEHICLES = 32  # vehicles rasterised: those nearest the BEV centre (all tha
 
 
 def _tile_candidates(box_ego):
-    """Per tile, the first CANDIDATES_PER_TILE boxes [K, 5] overlapping it: index [C, TILES, TILES], or K."""
+    """Per tile, the first CANDIDATES_PER_TILE boxes [N, 5] overlapping it: index [C, TILES, TILES], or N."""
     c, s = jnp.cos(box_ego[:, 2]), jnp.sin(box_ego[:, 2])
     half_l, half_w = 0.5 * box_ego[:, 3], 0.5 * box_ego[:, 4]
     centres = geo.BEV_AHEAD_M - (np.arange(TILES) + 0.5) * TILE_M, geo.BEV_SIDE_M - (np.arange(TILES) + 0.5) * TILE_M
-    dx = jnp.asarray(centres[0], jnp.float32)[None, :, None] - box_ego[:, None, None, 0]  # [K, TILES, 1]
-    dy = jnp.asarray(centres[1], jnp.float32)[None, None, :] - box_ego[:, None, None, 1]  # [K, 1, TILES]
+    dx = jnp.asarray(centres[0], jnp.float32)[None, :, None] - box_ego[:, None, None, 0]  # [N, TILES, 1]
+    dy = jnp.asarray(centres[1], jnp.float32)[None, None, :] - box_ego[:, None, None, 1]  # [N, 1, TILES]
     kx = lambda a: a[:, None, None]
     t = 0.5 * TILE_M
     overlap = ((jnp.abs(dx) <= t + kx(half_l * jnp.abs(c) + half_w * jnp.abs(s)))  # tile axes
                & (jnp.abs(dy) <= t + kx(half_l * jnp.abs(s) + half_w * jnp.abs(c)))
                & (jnp.abs(kx(c) * dx + kx(s) * dy) <= kx(half_l + t * (jnp.abs(c) + jnp.abs(s))))  # box axes
-               & (jnp.abs(kx(c) * dy - kx(s) * dx) <= kx(half_w + t * (jnp.abs(c) + jnp.abs(s)))))  # [K, T, T]
+               & (jnp.abs(kx(c) * dy - kx(s) * dx) <= kx(half_w + t * (jnp.abs(c) + jnp.abs(s)))))  # [N, T, T]
     k = box_ego.shape[0]
     ids = jnp.arange(k, dtype=jnp.int32)[:, None, None]
     found, last = [], jnp.full((TILES, TILES), -1, jnp.int32)
@@ -62,7 +62,7 @@ def targets(box_ego, image_size):
     near = jnp.linalg.norm(box_ego[:, :2] - jnp.array([0.5 * (geo.BEV_AHEAD_M - geo.BEV_BEHIND_M), 0.0]), axis=-1)
     box_ego = box_ego[jax.lax.top_k(-near, min(NEAR_VEHICLES, box_ego.shape[0]))[1]]
     idx = _tile_candidates(box_ego)  # [C, T, T]
-    padded = jnp.concatenate([box_ego, jnp.array([[0.0, 0.0, 0.0, 1.0, 1.0]], box_ego.dtype)])  # row K: no box
+    padded = jnp.concatenate([box_ego, jnp.array([[0.0, 0.0, 0.0, 1.0, 1.0]], box_ego.dtype)])  # row N: no box
     cand = padded[idx][:, :, None, :, None, :]  # [C, TILES, 1, TILES, 1, 5] against pixels [TILES, p, TILES, p]
     c, s = jnp.cos(cand[..., 2]), jnp.sin(cand[..., 2])
     centres = geo.bev_pixel_centres(r)

@@ -26,6 +26,7 @@ import functools
 from typing import NamedTuple
 
 import cv2
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -197,7 +198,7 @@ def light_states(town: Town, time_s):
 @functools.lru_cache(maxsize=8)
 def build_town(seed: int) -> Town:
     """Builds (once per seed, then cached) the town of ``seed``: a Town of jax arrays."""
-    return Town(*(jnp.asarray(a) for a in _build_town_np(seed)))
+    return jax.tree.map(jnp.asarray, _build_town_np(seed))
 
 
 def spawn_slots(seed: int) -> int:
@@ -627,7 +628,7 @@ def _rasterise(node_xy, node_kind, roads, lanes_per_dir, mouth_m, L):
     lo = node_xy.min(0) - BUILDING_BELT_M - MAP_MARGIN_M
     hi = node_xy.max(0) + BUILDING_BELT_M + MAP_MARGIN_M
     shape = tuple(np.ceil((hi - lo) / MAP_RES_M).astype(int)[::-1])  # (rows = y, cols = x)
-    R = _Raster(lo, shape)
+    raster = _Raster(lo, shape)
     road = np.zeros(shape, np.uint8)
     ring = np.flatnonzero(node_kind == NODE_ROUNDABOUT)
     for r, (u, v) in enumerate(roads):
@@ -635,33 +636,33 @@ def _rasterise(node_xy, node_kind, roads, lanes_per_dir, mouth_m, L):
         half = lanes_per_dir[r] * LANE_WIDTH_M * _right_of(heading)
         a = node_xy[u] + heading * (mouth_m[u] if u in ring else 0.0)
         b = node_xy[v] - heading * (mouth_m[v] if v in ring else 0.0)
-        R.poly(road, [a + half, b + half, b - half, a - half], 1)
+        raster.poly(road, [a + half, b + half, b - half, a - half], 1)
     for n in range(len(node_xy)):
         if n in ring:
-            R.disk(road, node_xy[n], RING_RADIUS_M + 0.5 * LANE_WIDTH_M + 0.5, 1)
-            R.disk(road, node_xy[n], RING_RADIUS_M - 0.5 * LANE_WIDTH_M - 0.5, 0)
+            raster.disk(road, node_xy[n], RING_RADIUS_M + 0.5 * LANE_WIDTH_M + 0.5, 1)
+            raster.disk(road, node_xy[n], RING_RADIUS_M - 0.5 * LANE_WIDTH_M - 0.5, 0)
             continue
         mouths = []
         for r in np.flatnonzero((roads == n).any(1)):
             away = _unit(node_xy[roads[r].sum() - n] - node_xy[n])
             half = lanes_per_dir[r] * LANE_WIDTH_M * _right_of(away)
             mouths += [node_xy[n] + mouth_m[n] * away + half, node_xy[n] + mouth_m[n] * away - half]
-        R.poly(road, cv2.convexHull(np.array(mouths, np.float32))[:, 0], 1)
+        raster.poly(road, cv2.convexHull(np.array(mouths, np.float32))[:, 0], 1)
     for pts, kind in zip(L.pts, L.kind):
         if kind != LANE_ROAD:  # junction lanes get a strip wider than a lane, so bodies on curves stay on road
-            R.line(road, pts, 1, LANE_WIDTH_M + 1.0)
+            raster.line(road, pts, 1, LANE_WIDTH_M + 1.0)
     sem = np.where(cv2.dilate(road, _disk_kernel(SIDEWALK_WIDTH_M)) > 0, SEM_SIDEWALK, SEM_OFFROAD).astype(np.uint8)
     sem[road > 0] = SEM_ROAD
     for r, (u, v) in enumerate(roads):
         heading = _unit(node_xy[v] - node_xy[u])
         a, b = node_xy[u] + heading * mouth_m[u], node_xy[v] - heading * mouth_m[v]
-        R.line(sem, [a, b], SEM_CENTRE_YELLOW, 0.3)
+        raster.line(sem, [a, b], SEM_CENTRE_YELLOW, 0.3)
         if lanes_per_dir[r] == 2:  # dashes 3 m on, 3 m off between same-direction lanes
             length = np.linalg.norm(b - a)
             for side in (1.0, -1.0):
                 offset = side * LANE_WIDTH_M * _right_of(heading)
                 for t in np.arange(1.5, length - 3.0, 6.0):
-                    R.line(sem, [a + offset + t * heading, a + offset + (t + 3.0) * heading], SEM_LANE_WHITE, 0.2)
+                    raster.line(sem, [a + offset + t * heading, a + offset + (t + 3.0) * heading], SEM_LANE_WHITE, 0.2)
     stop_ends, stop_lane = [], []
     for lane in sorted(L.stop_line):
         end, heading = L.pts[lane][-1], L.end_heading(lane)
@@ -671,7 +672,7 @@ def _rasterise(node_xy, node_kind, roads, lanes_per_dir, mouth_m, L):
         # The painted bar: STOP_BAR_M deep, just before the line; a vehicle that stops comes to rest with its
         # front at the bar's near edge (world.STOP_SHORT_M).
         back = STOP_BAR_M * heading
-        R.poly(sem, [end - across, end + across, end + across - back, end - across - back], SEM_STOP_LINE)
+        raster.poly(sem, [end - across, end + across, end + across - back, end - across - back], SEM_STOP_LINE)
     return sem, lo, np.array(stop_ends), np.array(stop_lane)
 
 
@@ -814,20 +815,27 @@ def _build_town_np(seed):
     kind = np.array(L.kind)
     spawn = _spawn_slots(L, length)
     f32, i32 = np.float32, np.int32
-    return (
-        sem, origin.astype(f32), np.array(MAP_RES_M, f32),
-        *(a.astype(t) for a, t in zip(buildings, (f32, f32, np.uint8, i32))),
-        xy.astype(f32), yaw.astype(f32), curv.astype(f32), length.astype(f32),
-        _pad(L.succ, max(map(len, L.succ)), i32(-1)), np.array([len(s) for s in L.succ], i32),
-        np.array(L.speed, f32), kind.astype(i32), np.array(L.priority, i32), lane_light.astype(i32),
-        np.isin(np.arange(len(kind)), sorted(L.at_mouth)),
-        conf_lane, _pad(mirror, width, i32(0)),
-        _pad([[c[1] for c in row] for row in table], width, f32(0)),
-        _pad([[c[2] for c in row] for row in table], width, f32(0)),
-        _pad([[c[3] for c in row] for row in table], width, False),
-        *(a.astype(t) for a, t in zip(lights, (f32, f32, f32, i32, f32))),
-        stop_line.astype(f32), stop_lane.astype(i32), lane_light[stop_lane].astype(i32),
-        node_xy[roads].astype(f32), lanes_per_dir.astype(i32),
-        node_xy.astype(f32), node_kind.astype(i32), node_degree.astype(i32), np.array(RING_RADIUS_M, f32),
-        np.array([l for l, _ in spawn], i32), np.array([s for _, s in spawn], f32),
+    box, height, color, building_kind = buildings
+    cycle, green_start, green, light_node, light_xy = lights
+    return Town(
+        sem_map=sem, map_origin_m=origin.astype(f32), map_res_m=np.array(MAP_RES_M, f32),
+        building_box=box.astype(f32), building_height_m=height.astype(f32), building_color=color.astype(np.uint8),
+        building_kind=building_kind.astype(i32),
+        lane_xy_m=xy.astype(f32), lane_yaw_rad=yaw.astype(f32), lane_curv_1pm=curv.astype(f32),
+        lane_length_m=length.astype(f32),
+        lane_succ=_pad(L.succ, max(map(len, L.succ)), i32(-1)), lane_num_succ=np.array([len(s) for s in L.succ], i32),
+        lane_speed_limit_mps=np.array(L.speed, f32), lane_kind=kind.astype(i32), lane_priority=np.array(L.priority, i32),
+        lane_light=lane_light.astype(i32), lane_at_mouth=np.isin(np.arange(len(kind)), sorted(L.at_mouth)),
+        conf_lane=conf_lane, conf_mirror=_pad(mirror, width, i32(0)),
+        conf_in_m=_pad([[c[1] for c in row] for row in table], width, f32(0)),
+        conf_out_m=_pad([[c[2] for c in row] for row in table], width, f32(0)),
+        conf_by_priority=_pad([[c[3] for c in row] for row in table], width, False),
+        light_cycle_s=cycle.astype(f32), light_green_start_s=green_start.astype(f32), light_green_s=green.astype(f32),
+        light_node=light_node.astype(i32), light_xy_m=light_xy.astype(f32),
+        stop_line_m=stop_line.astype(f32), stop_line_lane=stop_lane.astype(i32),
+        stop_line_light=lane_light[stop_lane].astype(i32),
+        road_xy_m=node_xy[roads].astype(f32), road_lanes_per_dir=lanes_per_dir.astype(i32),
+        node_xy_m=node_xy.astype(f32), node_kind=node_kind.astype(i32), node_degree=node_degree.astype(i32),
+        ring_radius_m=np.array(RING_RADIUS_M, f32),
+        spawn_lane=np.array([l for l, _ in spawn], i32), spawn_s_m=np.array([s for _, s in spawn], f32),
     )

@@ -21,7 +21,7 @@ clamped), and sits on its lane's centre line. The ego runs the same autopilot, b
 steering are clipped to the action limits and drive a kinematic bicycle model; steering is curvature
 feed-forward plus feedback on the rear axle's lateral and heading error.
 
-Shapes: N + 1 vehicles (the ego is row EGO), R = ROUTE_LEN, K = R + 1 lanes on the known path (the current
+Shapes: N + 1 vehicles (the ego is row EGO), L = ROUTE_LEN + 1 lanes on the known path (the current
 one first), MC conflicts per lane, NL lanes.
 """
 from typing import NamedTuple
@@ -230,8 +230,8 @@ class _Plan(NamedTuple):
     gap_lead_m: jax.Array  # to the leader's rear (inf: none on the known path)
     d_stop_m: jax.Array  # to the stop line it stops at (red light or queued junction exit), inf if none
     d_yield_m: jax.Array  # to the nearest conflict zone it yields at, inf if none
-    path: jax.Array  # int32 [N+1, K], current lane then route
-    limit_mps: jax.Array  # [N+1, K], speed limits along the path
+    path: jax.Array  # int32 [N+1, L], current lane then route
+    limit_mps: jax.Array  # [N+1, L], speed limits along the path
     exit_queued: jax.Array  # bool [N+1]: first on its lane, at a junction mouth whose exit is queued
     lane_rear_m: jax.Array  # [NL], arc position of the rearmost body point on each lane (inf: empty)
 
@@ -248,7 +248,7 @@ def _plan(state: WorldState, town) -> _Plan:
     max_decel = jnp.full(n, NPC_MAX_DECEL_MPS2).at[EGO].set(EGO_ACCEL_LIMIT_MPS2)
     brake_m = v ** 2 / (2 * COMFORT_DECEL_MPS2) + v * DT_S  # room to stop without hard braking
 
-    # The known path: the current lane, then the route. Distances from the centre to each lane's ends [N+1, K].
+    # The known path: the current lane, then the route. Distances from the centre to each lane's ends [N+1, L].
     path = jnp.concatenate([lane[:, None], state.veh_route], 1)
     length = town.lane_length_m[path]
     to_start = [-s]
@@ -292,7 +292,7 @@ def _plan(state: WorldState, town) -> _Plan:
     stop_at_end = (front_to_end >= 0) & (red | blocked)
     d_stop = jnp.min(jnp.where(stop_at_end, front_to_end, jnp.inf), 1)
     first_stop = jnp.where(stop_at_end.any(1), jnp.argmax(stop_at_end, 1), path.shape[1])
-    beyond_stop = jnp.arange(path.shape[1])[None] > first_stop[:, None]  # [N+1, K]
+    beyond_stop = jnp.arange(path.shape[1])[None] > first_stop[:, None]  # [N+1, L]
 
     # Conflict zones on the previous lane and the first CONFLICT_LANES of the path: rows [N+1, 1 + CONFLICT_LANES,
     # MC] (row 1 is the current lane).
