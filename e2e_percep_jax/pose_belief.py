@@ -34,8 +34,11 @@ import numpy as np
 import optax
 
 from e2e_percep_jax.geometry import wrap_angle
-from e2e_percep_jax.world import DT_S, WHEELBASE_M
 
+# The world's time step (s) and the ego's wheelbase: the constants of its bicycle model (:func:`bicycle`),
+# defined here so that the filter needs neither the world nor the town (cv2); the world imports them.
+DT_S = 0.1
+WHEELBASE_M = 2.7
 # Every town's lanes lie in [-7, 427] m; the margin keeps a vehicle's belief off the grid's edge, where the
 # filter's motion would push mass off the grid.
 AREA_ORIGIN_M = -30.0
