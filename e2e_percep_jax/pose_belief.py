@@ -34,7 +34,7 @@ import numpy as np
 import optax
 
 from e2e_percep_jax.geometry import pose_yaw, wrap_angle
-from e2e_percep_jax.world import DT_S, WHEELBASE_M
+from e2e_percep_jax.motion import DT_S, WHEELBASE_M
 
 # Every town's lanes lie in [-7, 427] m; the margin keeps a vehicle's belief off the grid's edge, where the
 # filter's motion would push mass off the grid.

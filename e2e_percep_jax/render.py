@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from e2e_percep_jax import geometry as geo
+from e2e_percep_jax import motion
 from e2e_percep_jax import town as town_lib
 
 # Display colours per semantic class (RGB); the terrain is greener than the roadmap's black.
@@ -68,8 +69,7 @@ class TopDown:
         if state is None:
             return img
         if time_s is None:
-            from e2e_percep_jax.world import DT_S
-            time_s = float(state.step) * DT_S
+            time_s = float(state.step) * motion.DT_S
         lights = np.asarray(town_lib.light_states(self.town, time_s))
         radius = int(max(1.2 * self.ppm, 2) * (1 << _SHIFT))
         for xy, light in zip(self._px(np.asarray(self.town.light_xy_m)), lights):

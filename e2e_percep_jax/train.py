@@ -32,9 +32,8 @@ import signal
 import sys
 import threading
 import time
-from typing import Any, Callable, Iterator, NamedTuple
+from typing import Callable, Iterator
 
-import flax.struct
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -43,63 +42,17 @@ import orbax.checkpoint as ocp
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from e2e_percep_jax import checkpoint
 from e2e_percep_jax import loss as loss_lib
-from e2e_percep_jax import model as model_lib
-from e2e_percep_jax.config import Config, TrainConfig, run_config, validate
-
-MODEL_STREAM = 2**32 - 1  # fold_in data for the model's keys; data uses fold_in(root, step), step < this
-MAX_CHECKPOINTS_KEPT = 3
-# Fields that may change when a run resumes; anything else would make the checkpoint a different run.
-RESUMABLE_CHANGES = ("train.num_steps", "train.log_every", "train.checkpoint_every",
-                     "train.max_nonfinite_in_a_row")
+from e2e_percep_jax.config import Config, TrainConfig, validate
+from e2e_percep_jax.train_state import (PERCEPTION, CarriedTrainState, Objective, TrainState, init_state, model_keys,
+                                        optimizer)
 
 Batches = Callable[[int], Iterator[tuple[int, dict]]]  # start_step -> (step, batch) from start_step on
 
 
-class Objective(NamedTuple):
-    """What is trained: ``init_params(key, cfg) -> params`` and ``loss_fn(params, batch, key, cfg) ->
-    (total, metrics)`` (metrics hold ``total``). Hashable (module-level functions), so a train step is
-    compiled once per objective; the baselines plug their own in."""
-    init_params: Callable
-    loss_fn: Callable
-
-
-PERCEPTION = Objective(model_lib.init_params, loss_lib.loss_fn)  # the paper's model
-
-
-class TrainState(flax.struct.PyTreeNode):
-    """Everything a checkpoint holds.
-
-    step: int32 [], batches consumed (skipped non-finite ones included); params, opt_state: pytrees;
-    nonfinite_in_a_row / nonfinite_total: int32 [], skipped updates. Once ``nonfinite_in_a_row``
-    reaches ``max_nonfinite_in_a_row`` it stays there and no further update is applied.
-    """
-    step: jax.Array
-    params: Any
-    opt_state: Any
-    nonfinite_in_a_row: jax.Array
-    nonfinite_total: jax.Array
-
-
-class CarriedTrainState(TrainState):
-    """The train state of a ``--data.carry_state`` run: also, per drive slot of the stream (K =
-    ``batches_per_drive``), where its drive's last segment left the latent filter: carry = {z1 [K, B,
-    z1_dim], z2 [K, B, z2_dim] (the last frame's samples), action [K, B, 2] (from that frame to the
-    next segment's first)}. Saved with the rest, so a resumed run continues its chains exactly."""
-    carry: Any
-
-
-def _empty_carry(cfg: Config) -> dict:
-    k, b, m = cfg.data.batches_per_drive, cfg.data.batch_size, cfg.model
-    return {"z1": jnp.zeros((k, b, m.z1_dim)), "z2": jnp.zeros((k, b, m.z2_dim)), "action": jnp.zeros((k, b, 2))}
-
-
 class NonFiniteLossError(RuntimeError):
     """Training stopped after ``max_nonfinite_in_a_row`` consecutive non-finite losses."""
-
-
-class NoIntactCheckpointError(RuntimeError):
-    """Every checkpoint of the run being resumed failed to restore (all are left as they were)."""
 
 
 class TrainingInterrupted(Exception):
@@ -117,33 +70,11 @@ def exit_on_stop():
     SIGINT / SIGTERM (after its checkpoint) exits with status 128 + the signal."""
     try:
         yield
-    except (NonFiniteLossError, NoIntactCheckpointError) as e:
+    except (NonFiniteLossError, checkpoint.NoIntactCheckpointError) as e:
         sys.exit(f"error: {e}")
     except TrainingInterrupted as e:
         print(e, file=sys.stderr)
         sys.exit(128 + e.signum)
-
-
-def optimizer(cfg: Config) -> optax.GradientTransformation:
-    """Adam, after a global-norm clip if ``--train.max_grad_norm`` > 0 (plain Adam otherwise, so a run
-    trained without clipping keeps its optimizer state's structure)."""
-    adam = optax.adam(cfg.train.learning_rate)
-    clip = cfg.train.max_grad_norm
-    return optax.chain(optax.clip_by_global_norm(clip), adam) if clip else adam
-
-
-def model_keys(seed: int) -> tuple[jax.Array, jax.Array]:
-    """(init key, noise root) of a run; step s's latent noise is ``fold_in(noise_root, s)``."""
-    init_key, noise_root = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(seed), MODEL_STREAM))
-    return init_key, noise_root
-
-
-def init_state(cfg: Config, objective: Objective = PERCEPTION) -> TrainState:
-    params = objective.init_params(model_keys(cfg.train.seed)[0], cfg)
-    zero = lambda: jnp.zeros((), jnp.int32)  # distinct buffers: the state is donated to the step
-    fields = dict(step=zero(), params=params, opt_state=optimizer(cfg).init(params), nonfinite_in_a_row=zero(),
-                  nonfinite_total=zero())
-    return CarriedTrainState(**fields, carry=_empty_carry(cfg)) if cfg.data.carry_state else TrainState(**fields)
 
 
 def _carried_loss(state: CarriedTrainState, batch: dict, key: jax.Array, cfg: Config):
@@ -176,16 +107,15 @@ def train_step(state: TrainState, batch: dict, key: jax.Array, cfg: Config,
         state = state.replace(carry=carry)
     else:
         (_, metrics), grads = jax.value_and_grad(objective.loss_fn, has_aux=True)(state.params, batch, key, cfg)
-    grad_norm = jnp.sqrt(sum(jnp.sum(g ** 2) for g in jax.tree.leaves(grads)))
+    grad_norm = optax.tree.norm(grads)
     finite = jnp.isfinite(metrics["total"]) & jnp.isfinite(grad_norm)  # a NaN / inf grad makes the norm so
     halted = state.nonfinite_in_a_row >= cfg.train.max_nonfinite_in_a_row
     apply = finite & ~halted
     updates, opt_state = optimizer(cfg).update(grads, state.opt_state, state.params)
-    keep = lambda new, old: jax.tree.map(lambda n, o: jnp.where(apply, n, o), new, old)
     in_a_row = jnp.where(halted, state.nonfinite_in_a_row, jnp.where(finite, 0, state.nonfinite_in_a_row + 1))
     state = state.replace(step=state.step + 1,
-                          params=keep(optax.apply_updates(state.params, updates), state.params),
-                          opt_state=keep(opt_state, state.opt_state),
+                          params=optax.tree.where(apply, optax.apply_updates(state.params, updates), state.params),
+                          opt_state=optax.tree.where(apply, opt_state, state.opt_state),
                           nonfinite_in_a_row=in_a_row,
                           nonfinite_total=state.nonfinite_total + (~finite).astype(jnp.int32))
     return state, dict(metrics, grad_norm=grad_norm, nonfinite_in_a_row=in_a_row,
@@ -252,26 +182,6 @@ def world_batches(cfg: Config) -> Batches:
     return lambda start: batch_lib.batch_stream(town, world_cfg, cfg.train.seed, start_step=start)
 
 
-def _flat_config(cfg: Config) -> dict:
-    return {f"{s}.{k}": v for s, fields in dataclasses.asdict(cfg).items() for k, v in fields.items()}
-
-
-def _flag_value(value) -> str:
-    """``value`` as a flag would spell it (tuples comma-separated)."""
-    return ",".join(map(str, value)) if isinstance(value, (tuple, list)) else str(value)
-
-
-def check_resumable(cfg: Config, workdir: str) -> None:
-    """Raises ValueError naming the first flag that differs from the run already in ``workdir``."""
-    old = _flat_config(run_config(workdir))  # a field added since takes its default
-    for name, value in _flat_config(cfg).items():
-        if name.startswith("eval.") or name in RESUMABLE_CHANGES or old.get(name) == value:
-            continue
-        raise ValueError(f"--{name}={value} differs from the run being resumed in {workdir} "
-                         f"({old.get(name)}); pass --{name}={_flag_value(old.get(name))} to resume it, or use a "
-                         f"new --workdir")
-
-
 def check_run(cfg: Config, workdir: str, objective: Objective = PERCEPTION) -> int | None:
     """Every check that needs no compilation: the config, its fit to the devices, and, if ``workdir``
     holds a checkpoint, that ``cfg`` continues that run. Raises ValueError naming the flag; returns the
@@ -285,80 +195,7 @@ def check_run(cfg: Config, workdir: str, objective: Objective = PERCEPTION) -> i
     if cfg.data.batch_size % n_devices:
         raise ValueError(f"--data.batch_size={cfg.data.batch_size} must be a multiple of the number of "
                          f"devices ({n_devices})")
-    with _checkpoint_manager(workdir, remove_temporary=False) as manager:
-        start = manager.latest_step()
-    if start is not None:
-        check_resumable(cfg, workdir)
-    return start
-
-
-def _checkpoint_manager(workdir: str, remove_temporary: bool = True) -> ocp.CheckpointManager:
-    """``remove_temporary`` deletes a killed save's temporary folders in a background thread that
-    ``close`` does not wait for (orbax 0.12): a process that exits at once, as on a config error after
-    :func:`check_run`, would log that thread's failure at interpreter shutdown. Only the training
-    manager, whose first save waits for it, removes them."""
-    return ocp.CheckpointManager(
-        os.path.join(os.path.abspath(workdir), "checkpoints"),
-        options=ocp.CheckpointManagerOptions(max_to_keep=MAX_CHECKPOINTS_KEPT,
-                                             cleanup_tmp_directories=remove_temporary))
-
-
-def _restore_failure(error: Exception) -> str:
-    """One line for why orbax could not restore a checkpoint (it raises many types, some with pages of text):
-    the first line of the innermost cause (a read error wrapped in orbax's own has the file and the reason)."""
-    while error.__cause__ is not None:
-        error = error.__cause__
-    text = str(error).strip()
-    return f"{type(error).__name__}: {text.splitlines()[0][:300] if text else ''}"
-
-
-def saved_steps(workdir: str) -> list[int]:
-    """The steps of the finished checkpoints ``checkpoints/<step>`` of run ``workdir``, oldest first (orbax
-    writes a checkpoint under a temporary name and renames it when done; a resume sets a damaged one aside as
-    ``<step>.damaged``)."""
-    path = os.path.join(workdir, "checkpoints")
-    names = os.listdir(path) if os.path.isdir(path) else []
-    return sorted(int(d) for d in names if d.isascii() and d.isdigit())
-
-
-def read_checkpoint(workdir: str, step: int, abstract):
-    """Train state ``step`` (one of :func:`saved_steps`) of run ``workdir``, restored into ``abstract`` (shapes,
-    dtypes, shardings): the one reader of a checkpoint, for resuming and for ``checkpoint.restore_params``.
-    Raises ValueError, one line naming the checkpoint, if it cannot be read into that structure (damaged,
-    or written by another config)."""
-    path = os.path.join(os.path.abspath(workdir), "checkpoints", str(step))
-    try:
-        # The one item the training manager saves, read without a manager: a manager reads every step's
-        # metadata when it starts (logging about each damaged one), and fixes its item layout at its first
-        # restore from that step's folder, so a damaged step without the item would fail the older ones too.
-        with ocp.StandardCheckpointer() as checkpointer:
-            return checkpointer.restore(os.path.join(path, ocp.checkpoint_manager.DEFAULT_ITEM_NAME), abstract)
-    except Exception as e:  # orbax raises many types (decode, data loss, tree or shape mismatch): one line
-        raise ValueError(f"{path}: cannot be restored for its config.json (damaged, or written by another "
-                         f"config): {_restore_failure(e)}") from None
-
-
-def _restore_newest_intact(manager: ocp.CheckpointManager, state: TrainState, workdir: str) -> tuple:
-    """(state, step) of the newest checkpoint that restores into ``state``'s structure. The newer ones that
-    did not restore are then renamed ``<step>.damaged`` (kept, and out of the manager's way), one line on
-    stderr each. When none restores, nothing is renamed: the checkpoints may be intact and ``config.json``
-    the odd one out."""
-    abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=x.sharding), state)
-    failed = []
-    for step in reversed(saved_steps(workdir)):
-        try:
-            restored = read_checkpoint(workdir, step, abstract)
-        except ValueError as e:
-            failed.append((os.path.join(workdir, "checkpoints", str(step)), str(e)))
-            continue
-        for path, why in failed:
-            if jax.process_index() == 0:
-                os.rename(path, path + ".damaged")
-            print(f"checkpoint {why}; kept as {path}.damaged", file=sys.stderr, flush=True)
-        manager.reload()
-        return restored, step
-    raise NoIntactCheckpointError(f"no checkpoint in {workdir}/checkpoints restores, nothing was changed; the newest: "
-                                  f"{failed[0][1] if failed else 'none'}")
+    return checkpoint.check_resumable(cfg, workdir)
 
 
 def _host(tree):
@@ -425,7 +262,7 @@ def train(cfg: Config, workdir: str, batches: Batches | None = None,
     workdir = os.path.abspath(workdir)
     main_process = jax.process_index() == 0
     config_path, metrics_path = os.path.join(workdir, "config.json"), os.path.join(workdir, "metrics.jsonl")
-    manager = _checkpoint_manager(workdir)
+    manager = checkpoint.manager(workdir)
     if main_process:
         with open(config_path, "w") as f:
             f.write(cfg.to_json())
@@ -433,7 +270,7 @@ def train(cfg: Config, workdir: str, batches: Batches | None = None,
     mesh = make_mesh()
     state = jax.device_put(init_state(cfg, objective), NamedSharding(mesh, PartitionSpec()))
     if start is not None:
-        state, start = _restore_newest_intact(manager, state, workdir)
+        state, start = checkpoint.restore_newest_intact(manager, state, workdir)
         print(f"resumed from step {start} in {workdir}", flush=True)
     start = start or 0
     if main_process:

@@ -33,15 +33,14 @@ import numpy as np
 from e2e_percep_jax import town as town_lib
 from e2e_percep_jax.config import WorldConfig
 from e2e_percep_jax.geometry import wrap_angle
+from e2e_percep_jax.motion import DT_S, WHEELBASE_M
 
 EGO = 0  # index of the ego in every per-vehicle array
 
-DT_S = 0.1
 ROUTE_LEN = 3
 # Conflict zones are checked on the current lane and the next two: a zone on the lane after those is at least
 # the two lanes' length (> 20 m, tested) away, and it is checked once it becomes the third.
 CONFLICT_LANES = 3
-WHEELBASE_M = 2.7
 EGO_ACCEL_LIMIT_MPS2 = 3.0  # the action's acceleration lies in [-this, this]
 EGO_STEER_LIMIT_RAD = 0.3
 EGO_SIZE_M = (4.6, 1.9, 1.5)  # length, width, height

@@ -1,5 +1,9 @@
 """The public inference API: batching, streaming vs the training-time scan, jit/scan inside user code,
 and loading a trained run. (Bad arguments and damaged runs are rows of test_bad_input.py.)"""
+import os
+import subprocess
+import sys
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -13,6 +17,7 @@ from e2e_percep_jax import train as train_lib
 
 CFG = config_lib.get_config("tiny")
 R = CFG.data.image_size
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 @pytest.fixture(scope="module")
@@ -151,3 +156,16 @@ def test_boxes_recover_the_cars_behind_pixor_maps():
     assert len(boxes) == 2 and np.all(scores == 1.0)
     order = np.argsort(boxes[:, 0])[::-1]
     np.testing.assert_allclose(boxes[order], cars, atol=1e-4)
+
+
+def test_load_imports_no_evaluation_world_or_cv2():
+    """``e2e_percep_jax.load`` needs only the model and the checkpoint reader: in a fresh process, touching it
+    imports neither cv2 nor the world, the town, the sensors or the evaluation."""
+    script = ("import sys, e2e_percep_jax; e2e_percep_jax.load; "
+              "print(' '.join(m for m in sys.modules if m.split('.')[0] in ('e2e_percep_jax', 'cv2')))")
+    env = dict(os.environ, PYTHONPATH=ROOT)
+    loaded = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, check=True)
+    modules = loaded.stdout.split()
+    assert "e2e_percep_jax.api" in modules, modules
+    heavy = ("cv2", "e2e_percep_jax.world", "e2e_percep_jax.town", "e2e_percep_jax.sensors", "e2e_percep_jax.evaluate")
+    assert not [m for m in modules if m in heavy or m.startswith("cv2.")], modules

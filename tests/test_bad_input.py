@@ -279,9 +279,9 @@ def run(tmp_path_factory):
     of FOREIGN)."""
     path = str(tmp_path_factory.mktemp("run"))
     train_lib.train(CFG, path, batches=synthetic_batches)
-    assert train_lib.saved_steps(path) == [1, 2]
+    assert checkpoint.saved_steps(path) == [1, 2]
     foreign = str(tmp_path_factory.mktemp("foreign"))
-    with train_lib._checkpoint_manager(foreign) as manager:
+    with checkpoint.manager(foreign) as manager:
         manager.save(2, args=ocp.args.StandardSave(train_lib.init_state(FOREIGN)))
     return path, foreign
 
@@ -449,7 +449,7 @@ def test_a_resume_sets_a_damaged_latest_checkpoint_aside(run, tmp_path, capfd, h
     assert records[0] == undamaged[0] and [r["step"] for r in records] == [1, 2]  # step 1's record kept
     timeless = lambda record: {k: v for k, v in record.items() if k != "steps_per_s"}
     assert timeless(records[1]) == timeless(undamaged[1])
-    assert int(state.step) == 2 and train_lib.saved_steps(workdir) == [1, 2]
+    assert int(state.step) == 2 and checkpoint.saved_steps(workdir) == [1, 2]
     jax.tree.map(np.testing.assert_array_equal, checkpoint.restore_params(workdir)[1],
                  checkpoint.restore_params(run[0])[1])
 
@@ -471,7 +471,7 @@ def test_a_resume_with_no_checkpoint_that_restores_stops_in_one_line_changing_no
         with open(os.path.join(workdir, "config.json"), "w") as f:
             f.write(cfg.to_json())
     before = snapshot(workdir)
-    with pytest.raises(train_lib.NoIntactCheckpointError) as error:
+    with pytest.raises(checkpoint.NoIntactCheckpointError) as error:
         train_lib.train(cfg, workdir, batches=synthetic_batches)
     assert "\n" not in str(error.value) and f"no checkpoint in {workdir}/checkpoints restores" in str(error.value)
     assert snapshot(workdir) == before

@@ -38,7 +38,7 @@ _MEMORY_SCRIPT = textwrap.dedent("""
     os.makedirs(run)
     with open(os.path.join(run, "config.json"), "w") as f:
         f.write(cfg.to_json())
-    with T._checkpoint_manager(run) as manager:
+    with checkpoint.manager(run) as manager:
         manager.save(7, args=ocp.args.StandardSave(T.init_state(cfg)))
     restored_cfg, params, step = checkpoint.restore_params(run)
     assert restored_cfg == cfg and step == 7, (restored_cfg, step)
