@@ -8,6 +8,7 @@ import sys
 import jax
 import orbax.checkpoint as ocp
 
+from e2e_percep_jax import config as config_lib
 from e2e_percep_jax.config import Config, MissingRunFileError, run_config
 from e2e_percep_jax.train_state import PERCEPTION, Objective, TrainState, init_state
 
@@ -118,11 +119,6 @@ def _flat_config(cfg: Config) -> dict:
     return {f"{s}.{k}": v for s, fields in dataclasses.asdict(cfg).items() for k, v in fields.items()}
 
 
-def _flag_value(value) -> str:
-    """``value`` as a flag would spell it (tuples comma-separated)."""
-    return ",".join(map(str, value)) if isinstance(value, (tuple, list)) else str(value)
-
-
 def check_resumable(cfg: Config, workdir: str) -> int | None:
     """The latest checkpoint's step of run ``workdir`` (None: none, a fresh run), after checking that ``cfg``
     continues that run: raises ValueError naming the first flag that differs from its config.json.
@@ -136,6 +132,6 @@ def check_resumable(cfg: Config, workdir: str) -> int | None:
         if name.startswith("eval.") or name in RESUMABLE_CHANGES or old.get(name) == value:
             continue
         raise ValueError(f"--{name}={value} differs from the run being resumed in {workdir} "
-                         f"({old.get(name)}); pass --{name}={_flag_value(old.get(name))} to resume it, or use a "
+                         f"({old.get(name)}); pass --{name}={config_lib.flag_value(old.get(name))} to resume it, or use a "
                          f"new --workdir")
     return latest

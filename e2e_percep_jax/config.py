@@ -275,6 +275,12 @@ def fields():
             yield section.name, f.name, type(getattr(section.default, f.name))
 
 
+def flag_value(value) -> str:
+    """A config value as its flag spells it: tuples and lists comma-separated (the inverse of the parsing
+    in :func:`from_flags`)."""
+    return ",".join(map(str, value)) if isinstance(value, (tuple, list)) else str(value)
+
+
 def define_flags(flag_values=None) -> None:
     """Defines ``--config`` and one ``--<section>.<field>`` absl flag per config field (default: unset)."""
     from absl import flags

@@ -53,8 +53,7 @@ def _overrides():
     for section, name, _ in config_lib.fields():
         flag = FLAGS[f"{section}.{name}"]
         if flag.present and f"{section}.{name}" not in ("train.seed", "model.variant"):
-            value = ",".join(map(str, flag.value)) if isinstance(flag.value, list) else flag.value
-            passed.append(f"--{section}.{name}={value}")
+            passed.append(f"--{section}.{name}={config_lib.flag_value(flag.value)}")
     return passed
 
 
