@@ -7,7 +7,7 @@ the kernel must fault in and zero. On this project's 2-core VM that was 600-1,80
 1.5-3.7 ms of system time per 32-frame ``sensors.observe`` call (~10 ms of wall time), and its cost
 swung with the host's load: one-second medians fell from ~3,400 to 1,400-1,900 frames/s in some
 seconds. With the limits below, the same call faults ~20 pages and no 1.5-s block fell below 2,447
-frames/s (BUILD_NOTES.md, session eleven).
+frames/s.
 
 The cost: freed memory up to ``trim_threshold_mib`` stays in the process instead of going back to
 the system. A process-wide setting, so the launchers in ``experiments/`` call it and the library

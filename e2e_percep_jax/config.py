@@ -81,10 +81,10 @@ class TrainConfig:
     # paper's B = 32). Per sequence (loss.py's normalisation, whatever B is) that is perception x 32.
     perception_weight: float = 32.0
     # A further factor on the pose term alone (its weight: perception_weight * pose_weight). 1 = the
-    # reference. Larger asks the latent to carry place, which it otherwise barely holds (BUILD_NOTES).
+    # reference. Larger asks the latent to carry place, which it otherwise barely holds.
     pose_weight: float = 1.0
     # beta on the z1 KL (beta-VAE). 1 = the reference's ELBO; < 1 lets the latent hold more of what the
-    # heads need (place: BUILD_NOTES "Known not to work yet") at the price of a looser bound.
+    # heads need (place, above all) at the price of a looser bound.
     kl_weight: float = 1.0
     checkpoint_every: int = 500  # steps; a checkpoint is also written at exit
     log_every: int = 10
@@ -165,7 +165,7 @@ def replace(cfg: Config, **sections: dict) -> Config:
 
 
 # The training presets' stream: 10 batches per drive cost 6-9 % of a `cpu` step against 20-22 % for fresh worlds,
-# and learned as well over three seeds (BUILD_NOTES, session ten). `tiny` (the tests) keeps fresh worlds.
+# and learned as well over three seeds. `tiny` (the tests) keeps fresh worlds.
 _BATCHES_PER_DRIVE = 10
 
 PRESETS = {
@@ -176,8 +176,8 @@ PRESETS = {
         Config(),
         data=dict(image_size=64, batch_size=8, batches_per_drive=_BATCHES_PER_DRIVE),
         model=dict(conv_channels=(16, 32, 64, 128, 128), feature_dim=128, hidden_dim=128, pose_head="belief"),
-        # lr 1e-3, not the paper's 1e-4: reaches 1e-4's 600-step loss in 200 steps (BUILD_NOTES "Demo")
-        # max_grad_norm 1e6: above the steady norms (3e4-6e5), below a spike's (1e13; BUILD_NOTES, fifth session)
+        # lr 1e-3, not the paper's 1e-4: reaches 1e-4's 600-step loss in 200 steps
+        # max_grad_norm 1e6: above the steady norms (3e4-6e5), below a spike's (1e13)
         # pose_weight 4: the belief's terms (~4,000 per sequence at init, cross-entropies of ~2-3 nats a
         # frame once learned) then weigh about as much as one image's reconstruction (~5,000-10,000)
         train=dict(num_steps=3000, learning_rate=1e-3, max_grad_norm=1e6, pose_weight=4.0),
@@ -186,7 +186,7 @@ PRESETS = {
         Config(),
         data=dict(image_size=64, batch_size=8, batches_per_drive=_BATCHES_PER_DRIVE),
         model=dict(conv_channels=(16, 32, 64, 128), feature_dim=128, hidden_dim=128, pose_head="belief"),
-        # 1,000 steps: with the clip the network detects from ~800 (BUILD_NOTES "Learning curve with the clip")
+        # 1,000 steps: with the clip the network detects from ~800
         train=dict(num_steps=1000, checkpoint_every=200, learning_rate=1e-3, max_grad_norm=1e6, pose_weight=4.0),
         eval=dict(num_frames=2000, num_worlds=4)),
     "tiny": replace(

@@ -35,12 +35,10 @@ Outputs in ``out_dir``: metrics.json, report.md, pr_curves.png, examples.png and
 """
 import dataclasses
 import functools
-import json
 import math
 import os
 import time
 
-import cv2
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -263,11 +261,7 @@ def evaluate(cfg: Config, params, out_dir: str, *, perceiver=None, sample: bool 
         "paper": {"ap_percent": {k: dict(zip(map(key, IOU_THRESHOLDS), v)) for k, v in report.PAPER_AP.items()},
                   "pose": {k: {"location_m": v[0], "heading_rad": v[1]} for k, v in report.PAPER_POSE.items()}},
     }
-    with open(os.path.join(out_dir, "metrics.json"), "w") as f:
-        json.dump(metrics, f, indent=1)
-    with open(os.path.join(out_dir, "report.md"), "w") as f:
-        f.write(report.markdown(metrics))
-    cv2.imwrite(os.path.join(out_dir, "pr_curves.png"), report.pr_curves_image(results))
+    report.write(out_dir, metrics, results)
     log(f"eval: wrote {out_dir}: AP@0.5 {report.fmt(metrics['detection']['ap']['0.5']['all'], True)}, "
         f"location error {report.fmt(metrics['pose']['location_m']['mean'], digits=2)} m, "
         f"heading error {report.fmt(metrics['pose']['heading_rad']['mean'], digits=3)} rad")

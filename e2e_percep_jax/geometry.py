@@ -5,7 +5,7 @@ Conventions (used everywhere in the package):
 - Ego frame: origin at the ego centre, x forward, y left (metres); yaw relative to ego heading.
 - A box is ``[..., 5] = (x_m, y_m, yaw_rad, length_m, width_m)``; length lies along yaw.
 - A pose is ``[..., 5] = (x_m, y_m, cos yaw, sin yaw, speed_mps)`` (the frame contract's ego pose).
-- BEV image (frame contract, DESIGN §2): ego heading points up (row 0 is ahead), the view spans
+- BEV image (the frame contract): ego heading points up (row 0 is ahead), the view spans
   ``BEV_AHEAD_M`` ahead, ``BEV_BEHIND_M`` behind and ``BEV_SIDE_M`` to each side, so one pixel is
   ``BEV_SPAN_M / R`` metres. Column 0 is the ego's left.
 

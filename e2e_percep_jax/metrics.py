@@ -1,4 +1,4 @@
-"""Detection and ego-pose metrics for the online evaluation (DESIGN §5), in NumPy.
+"""Detection and ego-pose metrics for the online evaluation, in NumPy.
 
 Boxes follow ``geometry``: ``[..., 5] = (x_m, y_m, yaw_rad, length_m, width_m)``, all boxes of one
 call in the same frame (ego frame in the evaluation).

@@ -1,4 +1,4 @@
-"""The sequential latent perception model (paper §III; DESIGN.md §4) in flax.linen.
+"""The sequential latent perception model (the paper's Section III) in flax.linen.
 
 One frame t flows as (R = image size, F = ``feature_dim``, Z = ``z1_dim + z2_dim``):
 

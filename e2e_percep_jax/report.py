@@ -1,12 +1,11 @@
-"""What an evaluation leaves for people: where it goes, the report's tables, the PR curves, the example
-panels and the video.
+"""What an evaluation leaves for people, and where.
 
-:func:`eval_dir` says where a run's evaluation goes and :func:`finished_evaluation` whether one is there.
+- :func:`eval_dir` says where a run's evaluation goes and :func:`finished_evaluation` whether one is there;
+- :func:`write`: ``metrics.json``, ``report.md`` (:func:`markdown`: the paper's Tables I and II with the
+  run's rows, the baseline and the paper's, from the ``metrics.json`` dict alone) and ``pr_curves.png``;
+- :class:`Pictures`: ``drive.mp4`` and ``examples.png``, collected while the evaluation drives.
 
-``markdown(metrics)`` renders ``report.md`` from an evaluation's ``metrics.json`` dict alone (the
-paper's Tables I and II with the run's rows, the baseline and the paper's); the pictures are drawn with
-cv2 from the evaluation's NumPy frames and PR curves (:func:`pr_curves_image`), and :class:`Pictures`
-collects ``drive.mp4`` and ``examples.png`` while the evaluation drives.
+The drawing itself is :mod:`e2e_percep_jax.pictures`'.
 """
 import json
 import os
@@ -14,8 +13,7 @@ import os
 import cv2
 import numpy as np
 
-from e2e_percep_jax import metrics as metrics_lib
-from e2e_percep_jax import panels, pose_belief, render
+from e2e_percep_jax import pictures, pose_belief
 from e2e_percep_jax.config import Config
 
 # The paper's Tables I and II (CARLA Town03), one row per variant.
@@ -60,69 +58,14 @@ def finished_evaluation(out_dir: str, label: str, checkpoint_step: int | None, c
     return done if same else None
 
 
-def title(view, text):
-    for colour, thick in (((0, 0, 0), 3), ((255, 255, 255), 1)):
-        cv2.putText(view, text, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, colour, thick, cv2.LINE_AA)
-    return view
-
-
-def example_rows(frame, pred_boxes, pred_scores, panel_px=192):
-    """The paper's Fig. 6 layout for one frame: uint8 [2 * panel_px, 4 * panel_px, 3].
-
-    Row 1: camera, lidar, ground-truth roadmap, ground-truth boxes (green visible / orange occluded).
-    Row 2: reconstructed camera, lidar, roadmap (black where the variant does not reconstruct it), and
-    the decoded boxes (cyan, brighter for higher scores) over the reconstructed (else true) roadmap.
-    """
-    r = frame["camera"].shape[0]
-    no_boxes = dict(boxes=np.zeros((0, 5), np.float32), boxes_valid=np.zeros(0, bool), boxes_occluded=np.zeros(0, bool))
-    top = panels.frame_panel(frame, panel_px, titles=False)
-    blank = np.zeros((r, r, 3), np.uint8)
-    recon = {k: frame.get(f"recon_{k}", blank) for k in ("camera", "lidar", "roadmap")}
-    recon_frame = dict(recon, **no_boxes)
-    if "recon_roadmap" not in frame:  # boxes drawn over the true roadmap, dimmed
-        recon_frame["roadmap"] = frame["roadmap"]
-    bottom = panels.frame_panel(recon_frame, panel_px, pred_boxes, pred_scores, titles=False)
-    if "recon_roadmap" not in frame:
-        bottom[:, 2 * panel_px:3 * panel_px] = 0
-    for i, name in enumerate(("camera", "lidar", "GT roadmap", "GT boxes")):
-        title(top[:, i * panel_px:(i + 1) * panel_px], name)
-    for i, (key, name) in enumerate((("camera", "recon. camera"), ("lidar", "recon. lidar"),
-                                     ("roadmap", "recon. roadmap"), (None, "decoded boxes"))):
-        view = bottom[:, i * panel_px:(i + 1) * panel_px]
-        title(view, name if key is None or f"recon_{key}" in frame else f"{name}: not decoded")
-    return np.concatenate([top, bottom], 0)
-
-
-def pr_curves_image(results, size=360):
-    """uint8 BGR picture of the PR curves: one panel per subset (all / visible / occluded), one curve per IoU."""
-    colours = {0.1: (200, 120, 30), 0.3: (40, 160, 40), 0.5: (30, 110, 230), 0.7: (160, 40, 160)}  # BGR
-    margin_l, margin_b, margin_t, margin_r = 48, 40, 28, 12
-    views = []
-    for subset in metrics_lib.SUBSETS:
-        img = np.full((size + margin_t + margin_b, size + margin_l + margin_r, 3), 255, np.uint8)
-        px = lambda rec, prec: (int(round(margin_l + rec * size)), int(round(margin_t + (1 - prec) * size)))
-        for v in np.linspace(0, 1, 6):
-            cv2.line(img, px(v, 0), px(v, 1), (225, 225, 225), 1)
-            cv2.line(img, px(0, v), px(1, v), (225, 225, 225), 1)
-            cv2.putText(img, f"{v:.1f}", (px(v, 0)[0] - 9, px(v, 0)[1] + 14), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
-            cv2.putText(img, f"{v:.1f}", (4, px(0, v)[1] + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
-        cv2.rectangle(img, px(0, 1), px(1, 0), (0, 0, 0), 1)
-        cv2.putText(img, "recall", (margin_l + size // 2 - 20, size + margin_t + 32), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
-        cv2.putText(img, f"precision vs recall: {subset} GT", (margin_l, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
-        for j, thr in enumerate(sorted(results)):
-            curve = results[thr][subset]
-            colour = colours.get(thr, (0, 0, 0))
-            if curve.num_gt and len(curve.recall):
-                rec = np.concatenate([[0.0], curve.recall])
-                prec = np.concatenate([[curve.precision[0]], curve.precision])
-                pts = np.array([px(a, b) for a, b in zip(rec, prec)], np.int32)
-                cv2.polylines(img, [pts], False, colour, 2, cv2.LINE_AA)
-            ap = "n/a" if not np.isfinite(curve.ap) else f"{100 * curve.ap:.1f}%"
-            y = margin_t + 16 + 16 * j
-            cv2.line(img, (margin_l + size - 150, y - 4), (margin_l + size - 130, y - 4), colour, 2)
-            cv2.putText(img, f"IoU {thr:.1f}: AP {ap}", (margin_l + size - 125, y), cv2.FONT_HERSHEY_SIMPLEX, 0.38, (0, 0, 0), 1, cv2.LINE_AA)
-        views.append(img)
-    return np.concatenate(views, 1)
+def write(out_dir: str, metrics: dict, results) -> None:
+    """An evaluation's files in ``out_dir``: ``metrics.json``, ``report.md`` and ``pr_curves.png``
+    (``results``: the detection accumulator's PR curves)."""
+    with open(os.path.join(out_dir, "metrics.json"), "w") as f:
+        json.dump(metrics, f, indent=1)
+    with open(os.path.join(out_dir, "report.md"), "w") as f:
+        f.write(markdown(metrics))
+    cv2.imwrite(os.path.join(out_dir, "pr_curves.png"), pictures.pr_curves_image(results))
 
 
 def fmt(v, pct=False, digits=1):
@@ -226,13 +169,13 @@ class Pictures:
         self.drives_true, self.drives_pred = drives_true, drives_pred
         self.score_threshold, self.panel_px = score_threshold, panel_px
         area = (pose_belief.AREA_ORIGIN_M,) * 2 + (pose_belief.AREA_ORIGIN_M + pose_belief.AREA_SIZE_M,) * 2
-        self.town_view = render.TopDown(town, area, px_per_m=2 * panel_px / pose_belief.AREA_SIZE_M)
+        self.town_view = pictures.TopDown(town, area, px_per_m=2 * panel_px / pose_belief.AREA_SIZE_M)
         self.video, self.examples = None, []
 
     def _with_map(self, frame, boxes, scores, w, frame_index):
-        picture = example_rows(frame, boxes, scores, self.panel_px)
+        picture = pictures.example_rows(frame, boxes, scores, self.panel_px)
         path = lambda poses: poses[w, :frame_index + 1, :2]
-        town_map = panels.map_panel(self.town_view, path(self.drives_true), path(self.drives_pred), frame.get("pose_place"))
+        town_map = pictures.map_panel(self.town_view, path(self.drives_true), path(self.drives_pred), frame.get("pose_place"))
         return np.concatenate([picture, town_map], 1)
 
     def add(self, out, t: int, w: int, frame_index: int, boxes, scores):

@@ -1,6 +1,6 @@
 """Camera, lidar and roadmap images of one world state, by vectorised geometry in pure JAX.
 
-:func:`observe` is the frame contract's adapter (DESIGN §2): it culls the town and the traffic to
+:func:`observe` is the frame contract's adapter: it culls the town and the traffic to
 the nearby obstacles, then calls the renderers below, which take explicit ego-frame arrays so tests
 can place known geometry and check known answers. Everything is jit- and vmap-able; the image size
 R is static.
@@ -308,8 +308,7 @@ def render_camera(obstacles: Obstacles, town: Town, ego_xy, ego_yaw_rad, image_s
     # Background: sky above the horizon; below it the town's semantic map seen through the pinhole. The
     # camera has no pitch, so the rows below the horizon are the lower half, and only they look the map
     # up. The look-up is a gather, which kept XLA:CPU from vectorising the per-pixel pass: done for
-    # every row it took 63 % of the camera's time, and halving its rows halved the camera's (BUILD_NOTES,
-    # session eleven).
+    # every row it took 63 % of the camera's time, and halving its rows halved the camera's.
     s_ground = jnp.where(slope < 0.0, CAMERA_HEIGHT_M / -jnp.minimum(slope, -1e-6), 0.0)  # [E, 1]
     below = r // 2  # rows r // 2 .. r - 1 look down
     gx, gy = geo.rotate_xy(CAMERA_X_M + s_ground[below:], s_ground[below:] * offsets, cos, sin)
@@ -490,7 +489,7 @@ def lidar_obstacles(state: WorldState, town: Town, building_box_ego, vehicle_box
 
 
 def observe(state: WorldState, town: Town, image_size: int):
-    """One frame of the contract (DESIGN §2) except ``action``, which belongs to the transition t -> t+1
+    """One frame of the contract (:class:`rollout.Frames`) except ``action``, which belongs to the transition t -> t+1
     and is added by ``batch.rollout`` from the next state.
 
     Returns a dict: camera, lidar, roadmap uint8 [R, R, 3]; det_cls float32 [R, R, 1]; det_reg

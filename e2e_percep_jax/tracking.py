@@ -1,9 +1,9 @@
-"""Classical modular baselines (issue 8), in NumPy on the host: a bird-eye Kalman tracker and dead reckoning.
+"""Classical modular baselines, in NumPy on the host: a bird-eye Kalman tracker and dead reckoning.
 
 Tracker (AB3DMOT style, :class:`Tracker`)
 - State per track, town frame: ``(x_m, y_m, yaw_rad, length_m, width_m, vx_mps, vy_mps)``, constant velocity.
 - Ego motion: detections arrive in the ego frame of their frame together with that frame's ego pose
-  ``[5] = (x_m, y_m, cos psi, sin psi, speed_mps)`` (frame contract, DESIGN §2). They are moved to the town
+  ``[5] = (x_m, y_m, cos psi, sin psi, speed_mps)`` (the frame contract). They are moved to the town
   frame with that pose, tracked there, and the tracks are moved back into the current ego frame for output.
   With the true pose this compensates ego motion exactly (a static car stays static in the filter). With an
   estimated pose (the model's, or dead reckoning) the pose error enters as a detection error in the town frame

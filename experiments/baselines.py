@@ -1,4 +1,4 @@
-"""Trains and evaluates the modular baselines (issue 8), each in ``WORKDIR/<baseline>/``.
+"""Trains and evaluates the modular baselines, each in ``WORKDIR/<baseline>/``.
 
     python experiments/baselines.py --config=demo --workdir=runs/baselines [--baseline=detector,tracker]
 

@@ -1,4 +1,4 @@
-"""Benchmarks: every performance figure of BUILD_NOTES.md, measured the same way each time.
+"""Benchmarks: every performance figure of the lab notebook, measured the same way each time.
 
     python experiments/bench.py                      # every figure (world ... memory, see BENCHMARKS)
     python experiments/bench.py --what=train --train_sizes=8x10x64 --repeats=7
@@ -107,7 +107,7 @@ FRAMES_SECONDS = 6  # the frames figure's one-second blocks
 def bench_frames(town, repeats):
     """Full frames/s: ``sensors.observe`` (every contract key) on W world states at once.
 
-    This VM's speed swings by up to 2x from one second to the next (BUILD_NOTES, session eleven), so
+    This VM's speed swings by up to 2x from one second to the next, so
     the figure is the median over FRAMES_SECONDS one-second blocks, and the slowest and fastest block's
     medians show the spread."""
     cfg, r = config_lib.get_config("paper"), FLAGS.frames_image_size

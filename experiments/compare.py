@@ -1,4 +1,4 @@
-"""One table: the end-to-end variants against the modular pipeline (issue 8), on every town evaluated.
+"""One table: the end-to-end variants against the modular pipeline, on every town evaluated.
 
     python experiments/compare.py --sweep_dir=runs/repro --baselines_dir=runs/baselines [--out=runs/compare.md]
 

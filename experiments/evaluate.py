@@ -1,4 +1,4 @@
-"""Evaluates a trained run online (DESIGN §5) and writes RUN/eval/ (RUN/eval_town<seed>/ on a held-out
+"""Evaluates a trained run online and writes RUN/eval/ (RUN/eval_town<seed>/ on a held-out
 ``--eval.town_seed``, with ``_known_start`` under ``--eval.known_start``): metrics.json, report.md,
 pr_curves.png, examples.png, drive.mp4.
 

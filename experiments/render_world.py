@@ -21,7 +21,7 @@ import jax
 import numpy as np
 from absl import app, flags
 
-from e2e_percep_jax import config, panels, render, rollout, world
+from e2e_percep_jax import config, pictures, rollout, world
 from e2e_percep_jax.town import build_town
 
 flags.DEFINE_string("out_dir", "runs/world", "where the PNGs and MP4s go")
@@ -60,10 +60,10 @@ def main(argv):
 
     os.makedirs(FLAGS.out_dir, exist_ok=True)
     out = lambda name: os.path.join(FLAGS.out_dir, name)
-    view = render.TopDown(town, px_per_m=FLAGS.town_px_per_m, draw_lanes=True)
+    view = pictures.TopDown(town, px_per_m=FLAGS.town_px_per_m, draw_lanes=True)
     cv2.imwrite(out("town.png"), view.draw(at(states, 0))[..., ::-1])
     write_video(out("traffic.mp4"), (view.draw(at(states, t)) for t in range(num_frames)))
-    panel = lambda t: panels.frame_panel(at(frames, t), FLAGS.panel_px)
+    panel = lambda t: pictures.frame_panel(at(frames, t), FLAGS.panel_px)
     seen = (frames["boxes_valid"] & ~frames["boxes_occluded"]).sum(-1)  # [T] vehicles the lidar sees
     cv2.imwrite(out(f"sensors_R{r}.png"), panel(int(np.argmax(seen)))[..., ::-1])
     write_video(out(f"sensors_R{r}.mp4"), (panel(t) for t in range(num_frames)))

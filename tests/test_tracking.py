@@ -1,4 +1,4 @@
-"""Tests of the classical baselines (issue 8): Kalman tracker and privileged dead reckoning.
+"""Tests of the classical baselines: Kalman tracker and privileged dead reckoning.
 
 Independent truths: the closed-form steady state of the discrete white-noise-acceleration alpha-beta filter
 (Bar-Shalom, Li & Kirubarajan, "Estimation with Applications to Tracking and Navigation", §6.5.3) and of a

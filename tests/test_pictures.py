@@ -1,8 +1,8 @@
-"""Pictures for people (e2e_percep_jax/panels.py): boxes land where the geometry module puts them."""
+"""Pictures for people (e2e_percep_jax/pictures.py): boxes land where the geometry module puts them."""
 import numpy as np
 
 from e2e_percep_jax import geometry as geo
-from e2e_percep_jax import panels
+from e2e_percep_jax import pictures
 
 VIEW_PX = 256  # the panel is drawn at a higher resolution than any frame; R only sets the scale below
 BOX = np.array([6.0, 3.0, 0.4, 4.5, 2.0], np.float32)  # ego frame: x m ahead, y m left, yaw, length, width
@@ -13,7 +13,7 @@ def _lit(view):
 
 
 def test_box_outline_matches_geometry():
-    view = panels.draw_boxes(np.zeros((VIEW_PX, VIEW_PX, 3), np.uint8), BOX, (255, 255, 255))
+    view = pictures.draw_boxes(np.zeros((VIEW_PX, VIEW_PX, 3), np.uint8), BOX, (255, 255, 255))
     corners_px = np.asarray(geo.ego_to_bev_px(geo.box_corners(BOX), VIEW_PX))  # (row, col)
     lit = _lit(view)
     assert len(lit)
@@ -27,7 +27,7 @@ def test_box_outline_matches_geometry():
 
 
 def test_heading_tick_points_to_the_front():
-    view = panels.draw_boxes(np.zeros((VIEW_PX, VIEW_PX, 3), np.uint8), BOX, (255, 255, 255))
+    view = pictures.draw_boxes(np.zeros((VIEW_PX, VIEW_PX, 3), np.uint8), BOX, (255, 255, 255))
     # a pixel between the centre and the front edge is on the tick; the mirror point toward the rear is not
     for sign, lit in ((1.0, True), (-1.0, False)):
         xy = BOX[:2] + sign * 0.25 * BOX[3] * np.array([np.cos(BOX[2]), np.sin(BOX[2])])
@@ -40,10 +40,10 @@ def test_frame_panel_colours_visible_and_occluded_boxes():
     frame = dict(camera=np.zeros((r, r, 3), np.uint8), lidar=np.zeros((r, r, 3), np.uint8),
                  roadmap=np.zeros((r, r, 3), np.uint8), boxes=np.stack([BOX, BOX * [-1, -1, 1, 1, 1]]),
                  boxes_valid=np.array([True, True]), boxes_occluded=np.array([False, True]))
-    panel = panels.frame_panel(frame, panel_px=VIEW_PX, titles=False)
+    panel = pictures.frame_panel(frame, panel_px=VIEW_PX, titles=False)
     boxes_view = panel[:, 3 * VIEW_PX:]
     pixels = boxes_view.reshape(-1, 3).astype(float)
-    for colour in (panels.VISIBLE_RGB, panels.OCCLUDED_RGB):  # each drawn (anti-aliased: near, not equal)
+    for colour in (pictures.VISIBLE_RGB, pictures.OCCLUDED_RGB):  # each drawn (anti-aliased: near, not equal)
         assert np.min(np.linalg.norm(pixels - colour, axis=-1)) < 40, colour
     assert panel.shape == (VIEW_PX, 4 * VIEW_PX, 3)
 
@@ -51,16 +51,16 @@ def test_frame_panel_colours_visible_and_occluded_boxes():
 def test_town_map_puts_the_belief_and_the_paths_where_the_town_frame_says():
     """The map of the belief's area (north up): a belief of one cell colours that cell's square only, and
     the estimate's ring is drawn around its town position."""
-    from e2e_percep_jax import pose_belief, render
+    from e2e_percep_jax import pose_belief
     from e2e_percep_jax import town as town_lib
     grid = pose_belief.Grid(cell_m=10.0, heading_bins=36)
     lo, size = pose_belief.AREA_ORIGIN_M, pose_belief.AREA_SIZE_M
-    view = render.TopDown(town_lib.build_town(0), (lo, lo, lo + size, lo + size), px_per_m=0.8)
+    view = pictures.TopDown(town_lib.build_town(0), (lo, lo, lo + size, lo + size), px_per_m=0.8)
     place = np.zeros((grid.n, grid.n))
     i, j = 30, 12  # row along y (north), column along x
     place[i, j] = 1.0
-    blank = panels.map_panel(view, np.zeros((0, 2)), np.zeros((0, 2)))
-    img = panels.map_panel(view, np.zeros((0, 2)), np.zeros((0, 2)), place)
+    blank = pictures.map_panel(view, np.zeros((0, 2)), np.zeros((0, 2)))
+    img = pictures.map_panel(view, np.zeros((0, 2)), np.zeros((0, 2)), place)
     changed = np.argwhere(np.any(img != blank, -1))  # (row, col) pixels
     px = 0.8 * grid.cell_m  # 8 px a cell
     want_rows = (grid.n - 1 - i) * px, (grid.n - i) * px  # image rows run south
@@ -68,6 +68,6 @@ def test_town_map_puts_the_belief_and_the_paths_where_the_town_frame_says():
     assert changed[:, 1].min() >= j * px - 1 and changed[:, 1].max() <= (j + 1) * px + 1
     assert len(changed) > 0.8 * px * px
     xy = np.array([[lo + 100.0, lo + 300.0]])  # town metres
-    ring = np.argwhere(np.any(panels.map_panel(view, xy, xy) != blank, -1))
+    ring = np.argwhere(np.any(pictures.map_panel(view, xy, xy) != blank, -1))
     centre = np.array([size - 300.0, 100.0]) * 0.8  # (row, col)
     assert np.all(np.linalg.norm(ring - centre, axis=-1) < 10)

@@ -1,0 +1,250 @@
+"""Pictures for people (host-side NumPy + cv2): everything the project draws.
+
+- the town from above (:class:`TopDown`): roads, lights and vehicles, north up;
+- one frame as four views (:func:`frame_panel`): camera | lidar | roadmap | boxes over the bird-eye view,
+  the ground-truth boxes green where the lidar sees them and orange where it does not, and predicted boxes
+  (cyan, brighter for higher scores) over the dimmed roadmap;
+- the town map of a drive (:func:`map_panel`): its true path, the estimates and the pose belief;
+- an evaluation's pictures: the paper's Fig. 6 rows (:func:`example_rows`) and the PR curves
+  (:func:`pr_curves_image`).
+"""
+import cv2
+import jax.numpy as jnp
+import numpy as np
+
+from e2e_percep_jax import geometry as geo
+from e2e_percep_jax import metrics as metrics_lib
+from e2e_percep_jax import motion
+from e2e_percep_jax import town as town_lib
+
+VISIBLE_RGB = (60, 230, 60)
+OCCLUDED_RGB = (255, 150, 30)
+PREDICTED_RGB = (40, 220, 255)
+ESTIMATE_RGB = (255, 60, 60)  # the estimated ego pose on the map
+_SHIFT = 4  # cv2 fractional bits: sub-pixel box corners
+_TITLES = ("camera", "lidar", "roadmap", "boxes")
+# Display colours per semantic class (RGB); the terrain is greener than the roadmap's black.
+_SEM_VIEW = np.array([[38, 52, 38], [62, 62, 66], [140, 140, 136], [230, 230, 230], [230, 200, 40],
+                      [255, 255, 255]], np.uint8)
+_LIGHT_RGB = {town_lib.LIGHT_RED: (230, 30, 30), town_lib.LIGHT_YELLOW: (250, 200, 0),
+              town_lib.LIGHT_GREEN: (40, 220, 60)}
+_EGO_RGB = (255, 0, 255)
+
+
+
+class TopDown:
+    """A north-up view of the town window ``window_m = (x_min, y_min, x_max, y_max)`` (whole town if None)."""
+
+    def __init__(self, town, window_m=None, px_per_m=2.0, draw_lanes=False):
+        self.town = town
+        sem = np.asarray(town.sem_map)
+        res, origin = float(town.map_res_m), np.asarray(town.map_origin_m, np.float64)
+        if window_m is None:  # the road network and its building belt, without the empty margin
+            node_xy = np.asarray(town.node_xy_m)
+            pad = town_lib.BUILDING_BELT_M + 5.0
+            window_m = (*(node_xy.min(0) - pad), *(node_xy.max(0) + pad))
+        self.x0, self.y0, x1, self.y1 = map(float, window_m)
+        self.ppm = px_per_m
+        size = (int(round((x1 - self.x0) * px_per_m)), int(round((self.y1 - self.y0) * px_per_m)))
+        # Each output pixel takes the class of the map cell under its centre (north up: rows run south).
+        cols = ((self.x0 + (np.arange(size[0]) + 0.5) / px_per_m - origin[0]) / res).astype(int)
+        rows = ((self.y1 - (np.arange(size[1]) + 0.5) / px_per_m - origin[1]) / res).astype(int)
+        inside_r = (rows >= 0) & (rows < sem.shape[0])
+        inside_c = (cols >= 0) & (cols < sem.shape[1])
+        classes = np.zeros((size[1], size[0]), np.uint8)
+        classes[np.ix_(inside_r, inside_c)] = sem[np.ix_(rows[inside_r], cols[inside_c])]
+        self.background = _SEM_VIEW[classes]
+        if draw_lanes:
+            for xy, length in zip(np.asarray(town.lane_xy_m), np.asarray(town.lane_length_m)):
+                n = int(np.ceil(length / town_lib.LANE_DS_M)) + 1
+                cv2.polylines(self.background, [self._px(xy[:n])], False, (90, 120, 160), 1, cv2.LINE_AA, _SHIFT)
+        boxes = np.asarray(town.building_box)
+        order = np.argsort(np.asarray(town.building_height_m))  # tall ones on top
+        for i in order:
+            color = tuple(int(c) for c in np.asarray(town.building_color)[i])
+            self._box(self.background, boxes[i], color, outline=tuple(int(c * 0.55) for c in color))
+
+    def _px(self, xy):
+        xy = np.asarray(xy, np.float64)
+        px = np.stack([(xy[..., 0] - self.x0) * self.ppm, (self.y1 - xy[..., 1]) * self.ppm], -1)
+        return np.round(px * (1 << _SHIFT)).astype(np.int32)
+
+    def _box(self, img, box, color, outline, thickness=1):
+        # float32 on XLA: NumPy's float32 cos / sin round differently, and the pictures are pinned to these
+        corners = self._px(np.asarray(geo.box_corners(jnp.asarray(box, jnp.float32))))
+        cv2.fillPoly(img, [corners], color, cv2.LINE_AA, _SHIFT)
+        cv2.polylines(img, [corners], True, outline, thickness, cv2.LINE_AA, _SHIFT)
+
+    def draw(self, state=None, time_s=None):
+        """The town with its lights at ``time_s`` (default: the state's time) and the state's vehicles."""
+        img = self.background.copy()
+        if state is None:
+            return img
+        if time_s is None:
+            time_s = float(state.step) * motion.DT_S
+        lights = np.asarray(town_lib.light_states(self.town, time_s))
+        radius = int(max(1.2 * self.ppm, 2) * (1 << _SHIFT))
+        for xy, light in zip(self._px(np.asarray(self.town.light_xy_m)), lights):
+            cv2.circle(img, tuple(xy), radius, _LIGHT_RGB[int(light)], -1, cv2.LINE_AA, _SHIFT)
+        boxes, colors = np.asarray(state.veh_box), np.asarray(state.veh_color)
+        for i, (box, color) in enumerate(zip(boxes, colors)):
+            ego = i == 0
+            self._box(img, box, tuple(int(c) for c in color), outline=_EGO_RGB if ego else (0, 0, 0),
+                      thickness=2 if ego else 1)
+            nose = box[:2] + 0.4 * box[3] * np.array([np.cos(box[2]), np.sin(box[2])])
+            cv2.line(img, tuple(self._px(box[:2])), tuple(self._px(nose)), (0, 0, 0), 1, cv2.LINE_AA, _SHIFT)
+        return img
+
+
+
+def draw_boxes(view, boxes, color, thickness=1):
+    """Draws ego-frame boxes [M, 5] as outlines with a heading tick onto a BEV ``view`` [H, H, 3] (in
+    place; any H, the view spans ``geometry.BEV_SPAN_M``). In float64 NumPy: on the device this
+    compiled per box count and dispatched per call, which made the evaluation's video its bottleneck."""
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 5)
+    if len(boxes) == 0:
+        return view
+    corners = geo.box_corners(boxes, centre_first=True)  # [M, 4, 2]
+    px_per_m = view.shape[0] / geo.BEV_SPAN_M
+    down, across = geo.bev_offset_m(corners[..., 0], corners[..., 1])
+    pts = np.round(np.stack([across * px_per_m, down * px_per_m], -1)
+                   * (1 << _SHIFT)).astype(np.int32)  # cv2 wants (x = col, y = row)
+    cv2.polylines(view, list(pts), True, color, thickness, cv2.LINE_AA, _SHIFT)
+    front, centre = (pts[:, 0] + pts[:, 1]) // 2, (pts[:, 0] + pts[:, 2]) // 2  # front edge's middle
+    for a, b in zip(centre, front):
+        cv2.line(view, tuple(int(v) for v in a), tuple(int(v) for v in b), color, thickness, cv2.LINE_AA, _SHIFT)
+    return view
+
+
+def draw_ground_truth(view, frame):
+    """A frame's true boxes onto a BEV ``view``: green where the lidar sees them, orange where not."""
+    boxes, valid, occluded = (np.asarray(frame[k]) for k in ("boxes", "boxes_valid", "boxes_occluded"))
+    thickness = max(1, view.shape[0] // 160)
+    draw_boxes(view, boxes[valid & occluded], OCCLUDED_RGB, thickness)
+    draw_boxes(view, boxes[valid & ~occluded], VISIBLE_RGB, thickness)
+    return view
+
+
+def draw_predictions(view, boxes, scores=None):
+    """Predicted ego-frame boxes [M, 5] onto a BEV ``view``: cyan, brighter for higher ``scores`` [M]."""
+    boxes = np.asarray(boxes).reshape(-1, 5)
+    scores = np.ones(len(boxes)) if scores is None else np.asarray(scores).reshape(-1)
+    thickness = max(1, view.shape[0] // 160)
+    for box, score in zip(boxes, scores):
+        draw_boxes(view, box, tuple(int(c * (0.4 + 0.6 * float(score))) for c in PREDICTED_RGB), thickness)
+    return view
+
+
+def frame_panel(frame, panel_px=256, pred_boxes=None, pred_scores=None, titles=True):
+    """uint8 [panel_px, 4 * panel_px, 3]: camera | lidar | roadmap | boxes, from one frame of the contract.
+
+    frame: dict with camera, lidar, roadmap [R, R, 3] and boxes [N, 5], boxes_valid, boxes_occluded [N]
+    (NumPy or JAX). pred_boxes [M, 5] (ego frame) and pred_scores [M] are optional predictions.
+    """
+    r = frame["camera"].shape[0]
+    up = lambda im, how: cv2.resize(np.asarray(im), (panel_px, panel_px), interpolation=how)
+    camera = up(frame["camera"], cv2.INTER_LINEAR)
+    lidar = up(frame["lidar"], cv2.INTER_NEAREST)  # keep single returns crisp
+    roadmap = up(frame["roadmap"], cv2.INTER_NEAREST)
+    boxes_view = draw_ground_truth((0.55 * roadmap).astype(np.uint8), frame)
+    if pred_boxes is not None:
+        draw_predictions(boxes_view, pred_boxes, pred_scores)
+    views = [camera, lidar, roadmap, boxes_view]
+    if titles:
+        for view, title in zip(views, _TITLES):
+            cv2.putText(view, title, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 3, cv2.LINE_AA)
+            cv2.putText(view, title, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
+    return np.concatenate(views, axis=1)
+
+
+def map_panel(view, true_xy, pred_xy, place=None):
+    """uint8 [S, S, 3]: the pose belief's area of the town from above (north up; ``view`` a square
+    :class:`TopDown` of that area), the belief over it (``place`` [n, n], row i along y; brighter is more
+    probable), the true path so far (green line, ``true_xy`` [P, 2] town metres) and the estimated poses
+    (red dots, ``pred_xy`` [P, 2]), the latest of each ringed."""
+    img = view.draw()
+    size = img.shape[1::-1]
+    if place is not None:  # blended per cell, then scaled up: no full-size float temporaries
+        p = np.flipud(np.asarray(place, np.float64))  # image rows run south
+        heat = (255 * p / max(p.max(), 1e-30)).astype(np.uint8)
+        colour = cv2.cvtColor(cv2.applyColorMap(heat, cv2.COLORMAP_INFERNO), cv2.COLOR_BGR2RGB)
+        alpha = cv2.resize((0.85 * heat).astype(np.uint8), size, interpolation=cv2.INTER_NEAREST)[..., None]
+        colour = cv2.resize(colour, size, interpolation=cv2.INTER_NEAREST)
+        img = ((img.astype(np.uint16) * (255 - alpha) + colour.astype(np.uint16) * alpha) // 255).astype(np.uint8)
+    true_px, pred_px = view._px(np.reshape(true_xy, (-1, 2))), view._px(np.reshape(pred_xy, (-1, 2)))
+    if len(true_px):
+        cv2.polylines(img, [true_px], False, VISIBLE_RGB, 1, cv2.LINE_AA, _SHIFT)
+        cv2.circle(img, tuple(true_px[-1]), 6 << _SHIFT, VISIBLE_RGB, 2, cv2.LINE_AA, _SHIFT)
+    for xy in pred_px:
+        cv2.circle(img, tuple(xy), 1 << _SHIFT, ESTIMATE_RGB, -1, cv2.LINE_AA, _SHIFT)
+    if len(pred_px):
+        cv2.circle(img, tuple(pred_px[-1]), 6 << _SHIFT, ESTIMATE_RGB, 2, cv2.LINE_AA, _SHIFT)
+    for colour, thick in (((0, 0, 0), 3), ((255, 255, 255), 1)):
+        cv2.putText(img, "town: true path, estimate, belief", (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
+                    colour, thick, cv2.LINE_AA)
+    return img
+
+
+def title(view, text):
+    for colour, thick in (((0, 0, 0), 3), ((255, 255, 255), 1)):
+        cv2.putText(view, text, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, colour, thick, cv2.LINE_AA)
+    return view
+
+
+def example_rows(frame, pred_boxes, pred_scores, panel_px=192):
+    """The paper's Fig. 6 layout for one frame: uint8 [2 * panel_px, 4 * panel_px, 3].
+
+    Row 1: camera, lidar, ground-truth roadmap, ground-truth boxes (green visible / orange occluded).
+    Row 2: reconstructed camera, lidar, roadmap (black where the variant does not reconstruct it), and
+    the decoded boxes (cyan, brighter for higher scores) over the reconstructed (else true) roadmap.
+    """
+    r = frame["camera"].shape[0]
+    no_boxes = dict(boxes=np.zeros((0, 5), np.float32), boxes_valid=np.zeros(0, bool), boxes_occluded=np.zeros(0, bool))
+    top = frame_panel(frame, panel_px, titles=False)
+    blank = np.zeros((r, r, 3), np.uint8)
+    recon = {k: frame.get(f"recon_{k}", blank) for k in ("camera", "lidar", "roadmap")}
+    recon_frame = dict(recon, **no_boxes)
+    if "recon_roadmap" not in frame:  # boxes drawn over the true roadmap, dimmed
+        recon_frame["roadmap"] = frame["roadmap"]
+    bottom = frame_panel(recon_frame, panel_px, pred_boxes, pred_scores, titles=False)
+    if "recon_roadmap" not in frame:
+        bottom[:, 2 * panel_px:3 * panel_px] = 0
+    for i, name in enumerate(("camera", "lidar", "GT roadmap", "GT boxes")):
+        title(top[:, i * panel_px:(i + 1) * panel_px], name)
+    for i, (key, name) in enumerate((("camera", "recon. camera"), ("lidar", "recon. lidar"),
+                                     ("roadmap", "recon. roadmap"), (None, "decoded boxes"))):
+        view = bottom[:, i * panel_px:(i + 1) * panel_px]
+        title(view, name if key is None or f"recon_{key}" in frame else f"{name}: not decoded")
+    return np.concatenate([top, bottom], 0)
+
+
+def pr_curves_image(results, size=360):
+    """uint8 BGR picture of the PR curves: one panel per subset (all / visible / occluded), one curve per IoU."""
+    colours = {0.1: (200, 120, 30), 0.3: (40, 160, 40), 0.5: (30, 110, 230), 0.7: (160, 40, 160)}  # BGR
+    margin_l, margin_b, margin_t, margin_r = 48, 40, 28, 12
+    views = []
+    for subset in metrics_lib.SUBSETS:
+        img = np.full((size + margin_t + margin_b, size + margin_l + margin_r, 3), 255, np.uint8)
+        px = lambda rec, prec: (int(round(margin_l + rec * size)), int(round(margin_t + (1 - prec) * size)))
+        for v in np.linspace(0, 1, 6):
+            cv2.line(img, px(v, 0), px(v, 1), (225, 225, 225), 1)
+            cv2.line(img, px(0, v), px(1, v), (225, 225, 225), 1)
+            cv2.putText(img, f"{v:.1f}", (px(v, 0)[0] - 9, px(v, 0)[1] + 14), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
+            cv2.putText(img, f"{v:.1f}", (4, px(0, v)[1] + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
+        cv2.rectangle(img, px(0, 1), px(1, 0), (0, 0, 0), 1)
+        cv2.putText(img, "recall", (margin_l + size // 2 - 20, size + margin_t + 32), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+        cv2.putText(img, f"precision vs recall: {subset} GT", (margin_l, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+        for j, thr in enumerate(sorted(results)):
+            curve = results[thr][subset]
+            colour = colours.get(thr, (0, 0, 0))
+            if curve.num_gt and len(curve.recall):
+                rec = np.concatenate([[0.0], curve.recall])
+                prec = np.concatenate([[curve.precision[0]], curve.precision])
+                pts = np.array([px(a, b) for a, b in zip(rec, prec)], np.int32)
+                cv2.polylines(img, [pts], False, colour, 2, cv2.LINE_AA)
+            ap = "n/a" if not np.isfinite(curve.ap) else f"{100 * curve.ap:.1f}%"
+            y = margin_t + 16 + 16 * j
+            cv2.line(img, (margin_l + size - 150, y - 4), (margin_l + size - 130, y - 4), colour, 2)
+            cv2.putText(img, f"IoU {thr:.1f}: AP {ap}", (margin_l + size - 125, y), cv2.FONT_HERSHEY_SIMPLEX, 0.38, (0, 0, 0), 1, cv2.LINE_AA)
+        views.append(img)
+    return np.concatenate(views, 1)
