@@ -42,8 +42,11 @@ import orbax.checkpoint as ocp
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from e2e_percep_jax import batch as batch_lib
 from e2e_percep_jax import checkpoint
 from e2e_percep_jax import loss as loss_lib
+from e2e_percep_jax import town as town_lib
+from e2e_percep_jax import world
 from e2e_percep_jax.config import Config, TrainConfig, validate
 from e2e_percep_jax.train_state import (PERCEPTION, CarriedTrainState, Objective, TrainState, init_state, model_keys,
                                         optimizer)
@@ -171,10 +174,6 @@ def _jitted_train_step(cfg: Config, mesh: Mesh, objective: Objective):
 
 def world_batches(cfg: Config) -> Batches:
     """The world's batch stream for ``cfg`` (town built once)."""
-    # Imported here: the world's modules build JAX constants at import, and the launcher's checks
-    # (check_run) must compile nothing.
-    from e2e_percep_jax import batch as batch_lib
-    from e2e_percep_jax import town as town_lib
     town = town_lib.build_town(cfg.world.town_seed)
     # Batches read only the world and data sections: the rest reset, so runs that differ in training
     # fields share one compilation of the batch.
@@ -186,7 +185,6 @@ def check_run(cfg: Config, workdir: str, objective: Objective = PERCEPTION) -> i
     """Every check that needs no compilation: the config, its fit to the devices, and, if ``workdir``
     holds a checkpoint, that ``cfg`` continues that run. Raises ValueError naming the flag; returns the
     step to resume from (None for a fresh run)."""
-    from e2e_percep_jax import world  # NumPy work only: the town's spawn slots
     validate(cfg)
     world.check_vehicle_count(cfg.world, cfg.world.town_seed)
     if cfg.data.carry_state and objective is not PERCEPTION:

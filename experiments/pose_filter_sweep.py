@@ -21,6 +21,11 @@ import numpy as np
 from absl import app, flags
 
 from e2e_percep_jax import allocator
+from e2e_percep_jax import batch as batch_lib
+from e2e_percep_jax import checkpoint, metrics, pose_belief, rollout
+from e2e_percep_jax import config as config_lib
+from e2e_percep_jax import model as model_lib
+from e2e_percep_jax import town as town_lib
 
 flags.DEFINE_string("workdir", None, "a training run with the belief pose head")
 flags.DEFINE_integer("step", None, "checkpoint (default: the latest)")
@@ -37,11 +42,6 @@ FLAGS = flags.FLAGS
 
 def main(argv):
     allocator.keep_freed_buffers()
-    from e2e_percep_jax import batch as batch_lib
-    from e2e_percep_jax import checkpoint, metrics, pose_belief, rollout
-    from e2e_percep_jax import config as config_lib
-    from e2e_percep_jax import model as model_lib
-    from e2e_percep_jax import town as town_lib
     try:
         config_lib.check_launch(argv)
         settings = [tuple(map(float, s)) for s in itertools.product(FLAGS.floors, FLAGS.powers, FLAGS.speed_gains,

@@ -20,6 +20,7 @@ import time
 from absl import app, flags
 
 from e2e_percep_jax import config as config_lib
+from e2e_percep_jax import report
 from e2e_percep_jax.summary import mean_std, summary_metrics
 
 MAIN = os.path.join(os.path.dirname(os.path.abspath(__file__)), "main.py")
@@ -75,7 +76,6 @@ def main(argv):
     except ValueError as e:
         sys.exit(f"error: {e}")
 
-    from e2e_percep_jax import report
     runs = [(v, s) for v in FLAGS.variants for s in seeds]
     run_cfg = lambda v, s: config_lib.replace(base, train=dict(seed=s), model=dict(variant=v))
     out_dir = lambda v, s: report.eval_dir(os.path.join(FLAGS.sweep_dir, run_name(v, s)), run_cfg(v, s))

@@ -30,7 +30,7 @@ import numpy as np
 from absl import app, flags
 
 from e2e_percep_jax import config as config_lib
-from e2e_percep_jax import geometry, world
+from e2e_percep_jax import evaluate, geometry, world
 from e2e_percep_jax import town as town_lib
 
 config_lib.define_flags()
@@ -125,7 +125,6 @@ def main(argv):
     os.makedirs(FLAGS.out, exist_ok=True)
     town = town_lib.build_town(town_seed)
     if FLAGS.eval_drives:
-        from e2e_percep_jax import evaluate  # the evaluation's start keys
         keys = evaluate.start_keys(cfg)
         labels = [f"eval drive {i}" for i in range(len(keys))]
     else:
