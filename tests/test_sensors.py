@@ -317,6 +317,7 @@ def scene():
     return make_town(blocky_sem_map(2), buildings), make_state([5.0, 2.0, ego_yaw, 4.6, 1.9], vehicles)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("r", [32, 64, 128])
 def test_observe_follows_the_frame_contract(r):
     town, state = scene()
@@ -335,6 +336,7 @@ def test_observe_follows_the_frame_contract(r):
     assert frame["det_cls"].sum() > 0 and np.all(frame["lidar"][..., 2] == 0)
 
 
+@pytest.mark.slow
 def test_observe_vmaps_like_single_frames():
     town, state = scene()
     moved = state._replace(veh_box=state.veh_box + np.array([1.5, -0.5, 0.1, 0.0, 0.0], np.float32))
@@ -366,6 +368,7 @@ def marched_lidar_hits(boxes_ego, heights_m, reach_m):
     return np.bincount(which[which >= 0], minlength=len(boxes_ego))
 
 
+@pytest.mark.slow
 def test_boxes_occluded_means_no_lidar_return_on_the_box():
     # Two walls with a car right behind each (hidden from the sensor), and cars scattered over the view.
     walls = [([13.0, 9.0, 0.3, 2.0, 9.0], 6.0, [120, 110, 100]), ([-7.0, -9.0, 1.0, 1.0, 7.0], 4.0, [90, 90, 90])]
