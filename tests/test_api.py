@@ -43,6 +43,7 @@ def _stream(perceiver, params, camera, lidar, prev_action, keys=None):
     return jax.tree.map(lambda *x: jnp.stack(x, 1), *outs)
 
 
+@pytest.mark.slow
 def test_batch_of_streams_equals_each_stream_alone(params):
     perceiver = e2e.Perceiver(CFG)
     camera, lidar, action = _inputs(3, 4)
@@ -53,6 +54,7 @@ def test_batch_of_streams_equals_each_stream_alone(params):
             np.testing.assert_allclose(together[k][i:i + 1], alone[k], rtol=1e-5, atol=1e-5, err_msg=k)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sampled", [False, True])
 def test_streaming_equals_the_training_scan(params, sampled):
     perceiver = e2e.Perceiver(CFG)
@@ -66,6 +68,7 @@ def test_streaming_equals_the_training_scan(params, sampled):
     np.testing.assert_allclose(streamed["z"], z, rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.slow
 def test_step_inside_a_users_jit_and_scan(params):
     perceiver = e2e.Perceiver(CFG)
     camera, lidar, action = _inputs(2, 3, seed=2)
@@ -84,6 +87,7 @@ def test_step_inside_a_users_jit_and_scan(params):
     assert poses.shape == (2, 3, 5)
 
 
+@pytest.mark.slow
 def test_pose_belief_through_the_api_known_start_and_global(params):
     """The belief head's outputs: ``pose_place`` is a distribution over the cells; with ``start_pose`` the
     pose is the known start on a stream's first frame, then that start moved by the actions alone (the
@@ -108,6 +112,7 @@ def test_pose_belief_through_the_api_known_start_and_global(params):
     assert not np.allclose(out["pose"][:, :2], start[:, :2])  # it moved
 
 
+@pytest.mark.slow
 def test_pose_filter_none_reads_the_head_frame_by_frame(params):
     """Without the filter the pose is the frame's head decoded alone (mode + offset) and the belief is the
     head's own place x heading distribution, whatever came before."""
@@ -134,6 +139,7 @@ def trained_run(tmp_path_factory):
     return workdir, cfg, train_lib.train(cfg, str(workdir))
 
 
+@pytest.mark.slow
 def test_load_returns_the_trained_params_and_boxes_decode(trained_run):
     tmp_path, cfg, trained = trained_run
     perceiver, params = e2e.load(str(tmp_path))

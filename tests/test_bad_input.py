@@ -13,7 +13,6 @@ and goes on from the one before; :func:`test_a_resume_sets_a_damaged_latest_chec
 import concurrent.futures
 import contextlib
 import hashlib
-import json
 import logging
 import os
 import shutil
@@ -25,15 +24,13 @@ import jax
 import numpy as np
 import orbax.checkpoint as ocp
 import pytest
-from test_model import synthetic_batch
+from helpers import ROOT, TINY, read_jsonl, synthetic_batch
 
 import e2e_percep_jax as e2e
 from e2e_percep_jax import checkpoint
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import train as train_lib
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-TINY = config_lib.get_config("tiny")
 CFG = config_lib.replace(TINY, train=dict(num_steps=2, checkpoint_every=1, log_every=1))  # the run's config
 R, Z1, Z2 = TINY.data.image_size, TINY.model.z1_dim, TINY.model.z2_dim
 FOREIGN = config_lib.replace(CFG, model=dict(hidden_dim=TINY.model.hidden_dim // 2))  # another model width
@@ -359,7 +356,9 @@ def _step_inputs(case):
 # ----------------------------------------------------------------------------- the table
 
 
-@pytest.mark.parametrize("name", list(CASES))
+# The launcher rows are slow together: the first one starts all of them (``launched``).
+@pytest.mark.parametrize("name", [pytest.param(name, marks=pytest.mark.slow) if case.target in LAUNCHERS else name
+                                  for name, case in CASES.items()])
 def test_bad_input_fails_in_one_line_naming_it_and_writes_nothing(name, request, tmp_path):
     case = CASES[name]
     if case.target in LAUNCHERS:
@@ -415,13 +414,9 @@ def test_bad_input_fails_in_one_line_naming_it_and_writes_nothing(name, request,
 # ----------------------------------------------------------------------------- resuming a damaged run
 
 
-def _read_jsonl(path):
-    with open(path) as f:
-        return [json.loads(line) for line in f]
-
-
 @pytest.mark.parametrize("how", ["array files truncated", "checkpoint overwritten with random bytes",
                                  "empty step folder", "checkpoint of another model width"])
+@pytest.mark.slow
 def test_a_resume_sets_a_damaged_latest_checkpoint_aside(run, tmp_path, capfd, how):
     """Training resumed on a run whose latest checkpoint is damaged says so in one line, renames that one
     (its files untouched) to ``2.damaged``, resumes from step 1 (untouched, as is config.json) and ends
@@ -445,7 +440,7 @@ def test_a_resume_sets_a_damaged_latest_checkpoint_aside(run, tmp_path, capfd, h
     for name, digest in before.items():
         if name == "config.json" or name.startswith("checkpoints/1/"):
             assert after[name] == digest, name
-    records, undamaged = (_read_jsonl(os.path.join(path, "metrics.jsonl")) for path in (workdir, run[0]))
+    records, undamaged = (read_jsonl(os.path.join(path, "metrics.jsonl")) for path in (workdir, run[0]))
     assert records[0] == undamaged[0] and [r["step"] for r in records] == [1, 2]  # step 1's record kept
     timeless = lambda record: {k: v for k, v in record.items() if k != "steps_per_s"}
     assert timeless(records[1]) == timeless(undamaged[1])
@@ -454,6 +449,7 @@ def test_a_resume_sets_a_damaged_latest_checkpoint_aside(run, tmp_path, capfd, h
                  checkpoint.restore_params(run[0])[1])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("trouble", ["every checkpoint damaged", "config.json of another model"])
 def test_a_resume_with_no_checkpoint_that_restores_stops_in_one_line_changing_nothing(run, tmp_path, trouble):
     """No checkpoint restores for config.json, whether they are damaged or config.json is the odd one out

@@ -14,13 +14,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_loss import np_focal, np_smooth_l1
-from test_model import TINY, synthetic_batch
+from helpers import ROOT, TINY, np_focal, np_smooth_l1, synthetic_batch
 
 from e2e_percep_jax import baselines, config, model, tracking
 from e2e_percep_jax import evaluate as eval_lib
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 LAUNCHER = [sys.executable, os.path.join(ROOT, "experiments", "baselines.py"), "--config=tiny"]
 # The tracker trains the detector's run first; the pose regressor trains by the same code (its loss and
 # model are tested in this process), left out to save its two compilations.
@@ -54,6 +52,7 @@ def cli_run(tmp_path_factory):
 # ----------------------------------------------------------------------------- single-frame models
 
 
+@pytest.mark.slow
 def test_single_frame_output_ignores_other_frames_while_the_filter_remembers(cli_run):
     """Frames other than t replaced by new random images: the baselines' outputs at t are unchanged (bit for
     bit), the perception model's latent at t is not (it filters through time)."""
@@ -124,6 +123,7 @@ def oracle_eval(tmp_path_factory):
     return run
 
 
+@pytest.mark.slow
 def test_tracker_on_oracle_detections_keeps_their_ap(oracle_eval):
     plain = oracle_eval(None, "plain")["detection"]
     tracked = oracle_eval(baselines.tracker_host(TRUSTING), "tracked")["detection"]
@@ -134,6 +134,7 @@ def test_tracker_on_oracle_detections_keeps_their_ap(oracle_eval):
             assert tracked["ap"][iou][subset] >= plain["ap"][iou][subset] - 1e-3, (iou, subset, tracked["ap"], plain["ap"])
 
 
+@pytest.mark.slow
 def test_dead_reckoning_without_noise_follows_the_true_path(oracle_eval):
     """Zero odometry noise: the reckoned pose is the true one up to float32 rounding of ~400 m
     coordinates; with noise the error is positive and grows with time since the start."""
@@ -149,6 +150,7 @@ def test_dead_reckoning_without_noise_follows_the_true_path(oracle_eval):
 # ----------------------------------------------------------------------------- launcher
 
 
+@pytest.mark.slow
 def test_cli_trains_evaluates_and_resumes(cli_run):
     r = cli_run()
     workdir = r["workdir"]
@@ -176,6 +178,7 @@ def test_cli_trains_evaluates_and_resumes(cli_run):
     assert r["again"].count("nothing to do") == 2 and "training" not in r["again"], r["again"]
 
 
+@pytest.mark.slow
 def test_bad_flags_fail_in_one_line_before_any_compile(tmp_path):
     """JAX_LOG_COMPILES=1 logs every compilation to stderr: a one-line stderr means nothing compiled."""
     cases = [(["--baseline=detector,kalman"], "--baseline=detector,kalman"),

@@ -22,6 +22,7 @@ def first_batch(town):
     return jax.tree.map(np.asarray, batch.make_batch(batch.batch_key(0, 0), town, CFG))
 
 
+@pytest.mark.slow
 def test_batch_follows_the_contract(first_batch):
     b, t1, r, n = CFG.data.batch_size, CFG.data.seq_len + 1, CFG.data.image_size, CFG.world.num_vehicles
     expected = {"camera": (np.uint8, (r, r, 3)), "lidar": (np.uint8, (r, r, 3)), "roadmap": (np.uint8, (r, r, 3)),
@@ -37,6 +38,7 @@ def test_batch_follows_the_contract(first_batch):
     assert np.all(np.abs(first_batch["action"][..., 1]) <= 0.3 + 1e-6)
 
 
+@pytest.mark.slow
 def test_same_key_same_batch_other_key_other_batch(town, first_batch):
     again = batch.make_batch(batch.batch_key(0, 0), town, CFG)
     for key in first_batch:
@@ -45,6 +47,7 @@ def test_same_key_same_batch_other_key_other_batch(town, first_batch):
     assert not np.array_equal(np.asarray(other["pose"]), first_batch["pose"])
 
 
+@pytest.mark.slow
 def test_successive_batches_are_decorrelated(town, first_batch):
     # Each sequence starts from its own reset, so the sequences of successive batch keys neither continue one
     # another nor start near one another, and their traffic differs.
@@ -59,6 +62,7 @@ def test_successive_batches_are_decorrelated(town, first_batch):
         assert not np.array_equal(before["boxes"], after["boxes"])
 
 
+@pytest.mark.slow
 def test_stream_resumes_at_the_same_data(town):
     steps = list(itertools.islice(batch.batch_stream(town, CFG, seed=3), 3))
     assert [s for s, _ in steps] == [0, 1, 2]
@@ -84,6 +88,7 @@ def test_frames_pair_state_t_with_the_action_to_t_plus_1(town, first_batch):
         assert np.mean(first_batch["roadmap"][0, t] == np.asarray(frame["roadmap"])) > 0.99
 
 
+@pytest.mark.slow
 def test_stream_of_fresh_worlds_is_make_batch_of_each_step_key(town):
     (s0, b0), (s1, b1) = itertools.islice(batch.batch_stream(town, CFG, seed=5, start_step=7), 2)
     assert (s0, s1) == (7, 8)
@@ -108,6 +113,7 @@ def test_drive_slot_visits_each_drive_k_times_and_successive_steps_differ():
             assert all(b - a == per_drive for (a, _), (b, _) in zip(steps, steps[1:]))
 
 
+@pytest.mark.slow
 def test_batches_per_drive_interleave_drives_hand_over_the_ego_and_resume_mid_drive(town):
     # Truth: each drive's warmed-up worlds driven on by hand, K segments of T+1 frames, the ego handed over
     # to the NPC drawn from (drive key, segment) before each; the stream's batches are those segments, taken
@@ -151,6 +157,7 @@ def test_batches_per_drive_interleave_drives_hand_over_the_ego_and_resume_mid_dr
             np.testing.assert_array_equal(np.asarray(resumed[key]), np.asarray(stream[start][key]), err_msg=key)
 
 
+@pytest.mark.slow
 def test_carried_state_drives_continue_without_hand_over(town):
     # Truth: the drive's warmed-up worlds driven on by hand for K (T+1) frames without any hand-over; with
     # --data.carry_state the stream's segments of that drive are its consecutive pieces.

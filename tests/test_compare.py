@@ -6,10 +6,9 @@ import subprocess
 import sys
 
 import pytest
+from helpers import ROOT, load_experiment
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, os.path.join(REPO, "experiments"))
-import compare  # noqa: E402  (experiments/ is not a package)
+compare = load_experiment("compare")
 
 IOUS, SUBSETS = ("0.1", "0.3", "0.5", "0.7"), ("all", "visible", "occluded")  # as evaluate writes them
 
@@ -66,9 +65,10 @@ def test_different_protocols_are_refused_by_name(runs):
         compare.check_comparable(compare.collect(sweep, base))
 
 
+@pytest.mark.slow
 def test_launcher_writes_the_table_and_names_bad_flags(runs, tmp_path):
     out = tmp_path / "table.md"
-    cmd = [sys.executable, os.path.join(REPO, "experiments", "compare.py")]
+    cmd = [sys.executable, os.path.join(ROOT, "experiments", "compare.py")]
     ok = subprocess.run(cmd + [f"--sweep_dir={runs[0]}", f"--baselines_dir={runs[1]}", f"--out={out}"],
                         capture_output=True, text=True, timeout=300)
     assert ok.returncode == 0 and out.read_text() == compare.table(compare.collect(*runs)), ok.stderr

@@ -17,7 +17,7 @@ import jax
 import numpy as np
 import orbax.checkpoint as ocp
 import pytest
-from test_train import LAUNCHER, TINY_FLAGS, checkpoint_steps, free_port, read_jsonl, tiny
+from helpers import LAUNCHER, TINY_FLAGS, checkpoint_steps, free_port, read_jsonl, tiny
 
 from e2e_percep_jax import train
 

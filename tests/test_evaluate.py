@@ -110,6 +110,7 @@ def test_known_start_protocol_follows_the_drive_from_its_first_pose(tmp_path):
     assert "known start" in open(os.path.join(tmp_path, "report.md")).read()
 
 
+@pytest.mark.slow
 def test_oracle_targets_through_the_decode_path_and_a_known_pose_offset(memory_run, tmp_path):
     """The world's own PIXOR targets in place of the decoded maps go through the same device top-k,
     score floor, BEV-view rule, NMS and matching: AP >= 0.99 at IoU 0.5. The pose head replaced by the
@@ -178,6 +179,7 @@ def test_eval_dir_keeps_protocols_and_the_filterless_reading_apart():
     assert other(model=dict(pose_filter="none")) == os.path.join("run", "eval_no_pose_filter")
 
 
+@pytest.mark.slow
 def test_memory_is_flat_in_the_number_of_steps(memory_run):
     r = memory_run()
     short, long = r["samples"]["200"], r["samples"]["2000"]
@@ -191,6 +193,7 @@ def test_memory_is_flat_in_the_number_of_steps(memory_run):
     assert max(long[-len(long) // 4:]) <= max(long[:len(long) // 10]) + 8.0, long
 
 
+@pytest.mark.slow
 def test_end_to_end_report_files(memory_run):
     run = memory_run()["run"]
     out = os.path.join(run, "eval")

@@ -5,7 +5,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_model import TINY, loss_and_grads, synthetic_batch
+from helpers import TINY, loss_and_grads, np_focal, np_smooth_l1, synthetic_batch
 
 from e2e_percep_jax import config, loss, model
 
@@ -22,17 +22,6 @@ def test_distrax_gaussian_kl_and_log_prob_match_closed_form():
     np.testing.assert_allclose(distrax.MultivariateNormalDiag(f32(mq), f32(sq)).log_prob(f32(x)), log_prob, rtol=1e-5)
     # The formula itself, per dimension by hand: ln 2 + .34/2 - .5, ln(.7/1.5) + 4.81/.98 - .5, ln 2 + .26/.08 - .5.
     np.testing.assert_allclose(kl, 0.363147 + 3.646023 + 3.443147, rtol=1e-6)
-
-
-def np_focal(logit, y):
-    """The torch peer's focal loss (on clamped probabilities), elementwise."""
-    p = np.clip(1 / (1 + np.exp(-logit)), 1e-6, 1 - 1e-6)
-    pt, a = np.where(y > 0.5, p, 1 - p), np.where(y > 0.5, 0.25, 0.75)
-    return -a * (1 - pt) ** 2 * np.log(pt)
-
-
-def np_smooth_l1(d):
-    return np.where(np.abs(d) < 1, 0.5 * d ** 2, np.abs(d) - 0.5)
 
 
 def test_focal_loss_matches_torch_form():
@@ -74,6 +63,7 @@ def np_belief_terms(head, pose):
             "pose_speed": np_smooth_l1(head["speed"] - pose[..., 4] / 10)}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("pose_head", ["belief", "regression", "reference"])
 def test_every_term_matches_numpy_per_sequence(setup, pose_head):
     """With posterior means (key None) the loss is deterministic: recompute each term in NumPy from
@@ -113,6 +103,7 @@ def test_every_term_matches_numpy_per_sequence(setup, pose_head):
     assert want["det_reg"] > 0 and want["kl"] > 0
 
 
+@pytest.mark.slow
 def test_loss_is_per_sequence_whatever_the_batch_size(setup):
     """The batch duplicated (B = 4) has the same loss and terms as the batch (B = 2): a mean over sequences."""
     cfg, params, batch = setup
@@ -138,6 +129,7 @@ def test_variant_selects_the_reconstruction_terms_and_decoders(variant, images):
                                                              "pose_heading", "pose_offset", "pose_speed"}
 
 
+@pytest.mark.slow
 def test_gradients_finite_and_reach_every_network():
     """Full variant, sampled latents; B = 4 so that the 4-device test reuses this compilation."""
     params = model.init_params(jax.random.PRNGKey(0), TINY)

@@ -1,7 +1,6 @@
 """Model tests: shapes at every size, the paper's parameter count by hand, layers against a NumPy
 re-implementation of the torch peer's layers, and the filtering recursion (scan = streaming)."""
 import dataclasses
-import functools
 
 import distrax
 import flax.linen as nn
@@ -9,39 +8,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import TINY, synthetic_batch
 
-from e2e_percep_jax import config, loss, model, pose_belief
+from e2e_percep_jax import config, model, pose_belief
 from e2e_percep_jax.model import PerceptionModel
-
-TINY = config.get_config("tiny")
 
 
 def with_sizes(cfg, image_size=None, **model_fields):
     data = cfg.data if image_size is None else dataclasses.replace(cfg.data, image_size=image_size)
     return dataclasses.replace(cfg, data=data, model=dataclasses.replace(cfg.model, **model_fields))
-
-
-def synthetic_batch(seed, cfg, batch_size=None):
-    """Random frames (NumPy, no compile) with the frame contract's keys, dtypes and shapes [B, T+1, ...]."""
-    b, t1, r = batch_size or cfg.data.batch_size, cfg.data.seq_len + 1, cfg.data.image_size
-    rng = np.random.default_rng(seed)
-    image = lambda: rng.integers(0, 256, (b, t1, r, r, 3), np.uint8)
-    heading = rng.uniform(0, 2 * np.pi, (b, t1))
-    pose = np.stack([rng.uniform(0, 400, (b, t1)), rng.uniform(0, 400, (b, t1)), np.cos(heading), np.sin(heading),
-                     rng.uniform(0, 12, (b, t1))], -1)
-    det_cls = (rng.uniform(size=(b, t1, r, r, 1)) > 0.9).astype(np.float32)
-    # Regression targets exist at positive pixels only; elsewhere anything, here NaN / inf as a worst case.
-    det_reg = np.where(det_cls > 0.5, rng.normal(size=(b, t1, r, r, 6)), rng.choice([np.nan, np.inf], (b, t1, r, r, 6)))
-    return {"camera": image(), "lidar": image(), "roadmap": image(), "det_cls": det_cls,
-            "det_reg": det_reg.astype(np.float32),
-            "pose": pose.astype(np.float32),
-            "action": rng.uniform(-0.3, 0.3, (b, t1, 2)).astype(np.float32)}
-
-
-@functools.partial(jax.jit, static_argnames="cfg")
-def loss_and_grads(params, batch, key, cfg):
-    """((total, metrics), gradients) of the loss; one jitted object shared by the loss and training tests."""
-    return jax.value_and_grad(loss.loss_fn, has_aux=True)(params, batch, key, cfg)
 
 
 # ----------------------------------------------------------------------------- shapes and counts
@@ -176,6 +151,7 @@ def np_trunk(p, z):
     return x
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kernel,features", [(3, 3), (5, 3), (3, 8), (5, 9)])
 def test_subpixel_deconv_equals_flax_conv_transpose(kernel, features):
     lo = kernel - 1 - kernel // 2
@@ -193,6 +169,7 @@ def test_subpixel_deconv_equals_flax_conv_transpose(kernel, features):
         np.testing.assert_allclose(g, want, rtol=1e-4, atol=1e-4)
 
 
+@pytest.mark.slow
 def test_layers_match_numpy_torch_semantics():
     """Paddings (torch's k // 2, output_padding 1), leaky slope 0.2 after every conv / deconv incl. the
     image decoders' last deconv and the reg head, sigmoid class head, softplus + 1e-5 scales."""
@@ -256,6 +233,7 @@ def filtered():
     return cfg, params, batch, key, out
 
 
+@pytest.mark.slow
 def test_scan_equals_streaming_steps(filtered):
     cfg, params, batch, key, scanned = filtered
     t1 = batch["camera"].shape[1]
@@ -273,6 +251,7 @@ def test_scan_equals_streaming_steps(filtered):
     np.testing.assert_array_equal(scanned["p_z1_scale"][:, 0], 1.0)
 
 
+@pytest.mark.slow
 def test_z2_kl_is_identically_zero(filtered):
     """q(z2_t) is p(z2_t | z1_t, z2_t-1, a_t-1) evaluated at the posterior z1_t: the same distribution."""
     cfg, params, batch, _, out = filtered
@@ -289,6 +268,7 @@ def test_z2_kl_is_identically_zero(filtered):
     assert not any("q_z2" in name for name in params["params"])
 
 
+@pytest.mark.slow
 def test_first_flag_restarts_a_row_and_none_key_gives_means(filtered):
     cfg, params, batch, _, _ = filtered
     cam, lidar, act = batch["camera"][:, 0], batch["lidar"][:, 0], batch["action"][:, 0]
@@ -310,6 +290,7 @@ def test_pose_normalisation_is_a_fixed_affine_map():
     np.testing.assert_allclose(model.pose_to_metres(model.normalise_pose(pose)), pose, atol=1e-5)
 
 
+@pytest.mark.slow
 def test_carried_segments_equal_one_long_scan(filtered):
     """A sequence filtered in two pieces, the second started from the first's ``end_state`` (the carried
     state of training), gives the same outputs as one scan over the whole sequence."""

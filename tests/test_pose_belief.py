@@ -52,6 +52,7 @@ def test_mode_and_offset_decoding_round_trips_a_pose():
     np.testing.assert_allclose(got, pose, atol=1e-4)  # float32 metres of a 480 m area
 
 
+@pytest.mark.slow
 def test_measurement_update_is_bayes_rule_against_brute_force():
     """A tiny grid (40 m cells: 12 x 12, 4 headings), a random prior and random head outputs, no motion:
     the filter's posterior equals (prior with the relocation share of each cell spread over its headings) x
@@ -128,6 +129,7 @@ def histogram_track(start, actions, grid):
     return np.array(poses)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("steer", [0.0, 0.12])
 def test_histogram_motion_follows_the_bicycle_model_for_a_point_mass(steer):
     """A point mass (bilinear over cells, one bin and the heading offset) moved by the histogram step by
@@ -150,6 +152,7 @@ def test_histogram_motion_follows_the_bicycle_model_for_a_point_mass(steer):
         assert error_m.max() < 0.01 and heading_error.max() < 1e-4
 
 
+@pytest.mark.slow
 def test_the_world_moves_its_ego_by_the_filters_motion_model():
     """A real drive of the world: the filter started at the first true pose and fed the recorded actions
     alone (the known-start protocol, an odometry) stays on the true path for 1,000 frames."""
@@ -172,6 +175,7 @@ def test_negative_log_likelihood_of_a_uniform_belief_is_the_log_volume():
     np.testing.assert_allclose(nll, math.log(480.0 ** 2 * 2 * math.pi), rtol=1e-5)
 
 
+@pytest.mark.slow
 def test_position_estimate_is_the_local_mean_around_the_mode():
     """A belief holding a point bilinearly (four neighbouring cells) reads back that point; a second,
     smaller mode far away does not pull the estimate."""

@@ -317,6 +317,7 @@ def scene():
     return make_town(blocky_sem_map(2), buildings), make_state([5.0, 2.0, ego_yaw, 4.6, 1.9], vehicles)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("r", [32, 64, 128])
 def test_observe_follows_the_frame_contract(r):
     town, state = scene()
@@ -324,7 +325,7 @@ def test_observe_follows_the_frame_contract(r):
     expected = {"camera": (np.uint8, (r, r, 3)), "lidar": (np.uint8, (r, r, 3)), "roadmap": (np.uint8, (r, r, 3)),
                 "det_cls": (np.float32, (r, r, 1)), "det_reg": (np.float32, (r, r, 6)), "pose": (np.float32, (5,)),
                 "boxes": (np.float32, (3, 5)), "boxes_valid": (np.bool_, (3,)), "boxes_occluded": (np.bool_, (3,))}
-    assert set(frame) == set(expected)  # "action" is added by batch.rollout (it needs the next state)
+    assert set(frame) == set(expected)  # "action" is added by rollout.drive (it needs the next state)
     for key, (dtype, shape) in expected.items():
         assert frame[key].dtype == dtype and frame[key].shape == shape, key
     np.testing.assert_allclose(frame["pose"], [5.0, 2.0, np.cos(2.3), np.sin(2.3), 3.0], atol=1e-5)
@@ -335,6 +336,7 @@ def test_observe_follows_the_frame_contract(r):
     assert frame["det_cls"].sum() > 0 and np.all(frame["lidar"][..., 2] == 0)
 
 
+@pytest.mark.slow
 def test_observe_vmaps_like_single_frames():
     town, state = scene()
     moved = state._replace(veh_box=state.veh_box + np.array([1.5, -0.5, 0.1, 0.0, 0.0], np.float32))
@@ -366,6 +368,7 @@ def marched_lidar_hits(boxes_ego, heights_m, reach_m):
     return np.bincount(which[which >= 0], minlength=len(boxes_ego))
 
 
+@pytest.mark.slow
 def test_boxes_occluded_means_no_lidar_return_on_the_box():
     # Two walls with a car right behind each (hidden from the sensor), and cars scattered over the view.
     walls = [([13.0, 9.0, 0.3, 2.0, 9.0], 6.0, [120, 110, 100]), ([-7.0, -9.0, 1.0, 1.0, 7.0], 4.0, [90, 90, 90])]

@@ -7,16 +7,15 @@ import sys
 
 import numpy as np
 import pytest
+from helpers import ROOT
 
 from e2e_percep_jax.summary import summary_metrics
-
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 TINY = ["--config=tiny", "--train.num_steps=4", "--train.checkpoint_every=2", "--eval.num_frames=20"]
 
 
 def _sweep(sweep_dir, *argv):
-    cmd = [sys.executable, os.path.join(REPO, "experiments", "sweep.py"), f"--sweep_dir={sweep_dir}", *TINY, *argv]
+    cmd = [sys.executable, os.path.join(ROOT, "experiments", "sweep.py"), f"--sweep_dir={sweep_dir}", *TINY, *argv]
     return subprocess.run(cmd, capture_output=True, text=True, timeout=1200)
 
 
@@ -35,6 +34,7 @@ def sweeps(tmp_path_factory):
     return a, b
 
 
+@pytest.mark.slow
 def test_same_seed_gives_identical_metrics(sweeps):
     a, b = sweeps
     m_a, m_b = _metrics(a, "full-seed0"), _metrics(b, "full-seed0")
@@ -43,6 +43,7 @@ def test_same_seed_gives_identical_metrics(sweeps):
     assert summary_metrics(m_a) != summary_metrics(_metrics(a, "full-seed1"))  # seeds matter
 
 
+@pytest.mark.slow
 def test_rerun_skips_finished_runs(sweeps):
     a, _ = sweeps
     before = os.path.getmtime(os.path.join(a, "full-seed0", "eval", "metrics.json"))
@@ -51,6 +52,7 @@ def test_rerun_skips_finished_runs(sweeps):
     assert os.path.getmtime(os.path.join(a, "full-seed0", "eval", "metrics.json")) == before
 
 
+@pytest.mark.slow
 def test_summary_is_mean_and_std_of_the_runs(sweeps):
     a, _ = sweeps
     with open(os.path.join(a, "summary.json")) as f:
@@ -61,6 +63,7 @@ def test_summary_is_mean_and_std_of_the_runs(sweeps):
     assert os.path.exists(os.path.join(a, "summary.md"))
 
 
+@pytest.mark.slow
 def test_held_out_town_is_evaluated_apart_without_retraining(sweeps):
     a, _ = sweeps
     run = os.path.join(a, "full-seed0")
@@ -79,6 +82,7 @@ def test_held_out_town_is_evaluated_apart_without_retraining(sweeps):
     assert again.returncode == 0 and "1 already finished" in again.stdout
 
 
+@pytest.mark.slow
 def test_bad_sweep_flags_are_named(tmp_path):
     for argv, flag in ((["--seeds=0,x"], "--seeds"), (["--variants=full,bogus"], "--variants"),
                        (["--parallel=0"], "--parallel"), (["--data.image_size=48"], "--data.image_size")):

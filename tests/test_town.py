@@ -174,6 +174,7 @@ def test_town_is_a_pytree_of_arrays_usable_under_jit():
     np.testing.assert_allclose(total, np.asarray(town.lane_length_m).sum(), rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_same_seed_same_town_and_other_seeds_differ():
     default = town_lib.build_town(DEFAULT_TOWN_SEED)
     rebuilt = town_lib.build_town.__wrapped__(DEFAULT_TOWN_SEED)  # bypass the cache
@@ -185,6 +186,7 @@ def test_same_seed_same_town_and_other_seeds_differ():
             or (np.asarray(default.sem_map) != np.asarray(other.sem_map)).mean() > 0.05)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [DEFAULT_TOWN_SEED, HELD_OUT_SEED, 7])
 def test_spawn_slots_from_the_lane_graph_match_the_built_town(seed):
     """The launchers' vehicle-count check reads the lane graph alone; the built town must agree."""

@@ -419,6 +419,7 @@ def world_ego_path():
     return poses
 
 
+@pytest.mark.slow
 def test_dead_reckoning_reproduces_world_path(world_ego_path):
     poses = world_ego_path
     est = tr.dead_reckon(poses[0], *tr.odometry_from_poses(poses))
@@ -429,6 +430,7 @@ def test_dead_reckoning_reproduces_world_path(world_ego_path):
     np.testing.assert_array_equal(est[:, 4], poses[:, 4])
 
 
+@pytest.mark.slow
 def test_dead_reckoning_error_grows_with_noise(world_ego_path):
     poses = world_ego_path
     rng = np.random.default_rng(7)

@@ -12,7 +12,6 @@ import json
 import os
 import pickle
 import signal
-import socket
 import subprocess
 import sys
 import textwrap
@@ -23,27 +22,14 @@ import numpy as np
 import optax
 import orbax.checkpoint as ocp
 import pytest
-from test_model import TINY, loss_and_grads, synthetic_batch
+from helpers import (LAUNCHER, ROOT, TINY, TINY_FLAGS, checkpoint_steps, free_port, loss_and_grads, read_jsonl,
+                     synthetic_batch, tiny)
 
 from e2e_percep_jax import config, loss, model, train
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-LAUNCHER = [sys.executable, os.path.join(ROOT, "experiments", "train.py")]
-
-
-def tiny(**train_fields):
-    # learning rate 1e-3 for every run, so that the world run's KL is past its rise within a few hundred
-    # steps (at initialisation q and p are alike, the KL is small; it peaks once the posterior encodes
-    # the frames); 100 vehicles so the 32 m view often holds one (det_reg is non-zero only then).
-    return config.replace(TINY, world=dict(num_vehicles=100),
-                          train=dict(dict(learning_rate=1e-3, max_nonfinite_in_a_row=3), **train_fields))
-
-
-# The same run from the launcher: flags on top of --config=tiny.
-TINY_FLAGS = ["--config=tiny", "--world.num_vehicles=100", "--train.learning_rate=1e-3",
-              "--train.max_nonfinite_in_a_row=3"]
 CFG = tiny(num_steps=8, checkpoint_every=2, log_every=2)
 POSE_TERMS = ("pose_place", "pose_heading", "pose_offset", "pose_speed")  # the belief head's loss terms
+START_FIRST = ["subprocess_runs"]  # see conftest.start_first
 
 
 def synthetic_batches(nan_steps=(), stop=None):
@@ -57,11 +43,6 @@ def synthetic_batches(nan_steps=(), stop=None):
             yield step, batch
             step += 1
     return stream
-
-
-def read_jsonl(path):
-    with open(path) as f:
-        return [json.loads(line) for line in f]
 
 
 def saved_params(workdir, step):
@@ -83,7 +64,7 @@ def four_device_loss_and_grads(workdir):
     r = run_python(f"""
         import pickle, jax
         from jax.sharding import NamedSharding, PartitionSpec
-        from test_model import TINY, loss_and_grads, synthetic_batch
+        from helpers import TINY, loss_and_grads, synthetic_batch
         from e2e_percep_jax import model, train
         assert jax.device_count() == 4
         mesh = train.make_mesh()
@@ -99,10 +80,10 @@ def four_device_loss_and_grads(workdir):
         return pickle.load(f)
 
 
-@pytest.fixture(scope="module", autouse=True)
+@pytest.fixture(scope="module")
 def subprocess_runs(tmp_path_factory):
-    """The subprocess runs, started before the first test of this file: XLA compiles on one core, so on
-    this 2-core machine they overlap with the in-process tests. Futures of their results."""
+    """The subprocess runs, started before the first test of this file (``START_FIRST``): XLA compiles on one
+    core, so on this 2-core machine they overlap with the in-process tests. Futures of their results."""
     with concurrent.futures.ThreadPoolExecutor(2) as pool:
         yield {"four_devices": pool.submit(four_device_loss_and_grads, tmp_path_factory.mktemp("four")),
                "stops": pool.submit(stops_and_resumes, tmp_path_factory.mktemp("stops"))}
@@ -111,6 +92,7 @@ def subprocess_runs(tmp_path_factory):
 # ----------------------------------------------------------------------------- non-finite losses
 
 
+@pytest.mark.slow
 def test_nonfinite_batch_skips_the_update():
     cfg = CFG
     mesh = train.make_mesh()
@@ -130,6 +112,7 @@ def test_nonfinite_batch_skips_the_update():
                               before.params["params"]["pose_belief_head"]["Dense_2"]["bias"])
 
 
+@pytest.mark.slow
 def test_compiled_step_uses_the_perception_pose_and_kl_weights():
     """``train.perception_weight``, ``train.pose_weight`` and ``train.kl_weight`` reach the jitted step (its
     config is trimmed for compile reuse): perception weight 1 against the default 32 divides the perception
@@ -181,6 +164,7 @@ def test_gradient_clip_is_adam_on_the_rescaled_gradient():
     np.testing.assert_allclose(nu, 0.001 * (np.array([3.0, 0.0, -4.0]) * clip / 5.0) ** 2, rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_stops_after_max_nonfinite_in_a_row_keeping_the_last_good_checkpoint(tmp_path):
     # Steps 0, 1 update; 2, 3, 4 are non-finite (the 3rd in a row halts updates), found at the log of step 6.
     with pytest.raises(train.NonFiniteLossError, match=r"stopping at step 6: 3 non-finite .*"
@@ -196,6 +180,7 @@ def test_stops_after_max_nonfinite_in_a_row_keeping_the_last_good_checkpoint(tmp
 # ----------------------------------------------------------------------------- logs and resuming
 
 
+@pytest.mark.slow
 def test_logs_metrics_progress_and_resumes(tmp_path, capsys):
     train.train(CFG, str(tmp_path), batches=synthetic_batches(stop=4))  # data ends: checkpoint at exit
     records = read_jsonl(tmp_path / "metrics.jsonl")
@@ -217,12 +202,7 @@ def test_logs_metrics_progress_and_resumes(tmp_path, capsys):
 # ----------------------------------------------------------------------------- launcher errors
 
 
-def free_port():
-    with socket.socket() as s:
-        s.bind(("localhost", 0))
-        return s.getsockname()[1]
-
-
+@pytest.mark.slow
 def test_launcher_with_a_coordinator_counts_both_processes_devices_before_any_compile(tmp_path):
     """Both processes of a 2-process run in parallel. jax.distributed.initialize makes their 2 devices one mesh,
     so the batch-size error counts both; JAX_LOG_COMPILES=1 logs any compilation to stderr, so a one-line
@@ -242,6 +222,7 @@ def test_launcher_with_a_coordinator_counts_both_processes_devices_before_any_co
 # ----------------------------------------------------------------------------- data parallel
 
 
+@pytest.mark.slow
 def test_four_devices_equal_one_device(subprocess_runs):
     """Loss and gradients with the batch sharded over 4 simulated CPU devices (a subprocess) equal 1 device."""
     metrics4, grads4 = subprocess_runs["four_devices"].result()
@@ -279,6 +260,7 @@ def world_run(tmp_path_factory):
     return at_kill_steps, jax.device_get(at_end.params), read_jsonl(os.path.join(workdir, "metrics.jsonl")), held_out
 
 
+@pytest.mark.slow
 def test_tiny_run_on_world_batches_lowers_every_loss_term(world_run):
     """Every term, with posterior means on the same 8 held-out batches, is lower at the end than at step
     KILL_STEPS. Not from step 0: the KL starts near zero (q and p alike at initialisation) and peaks within
@@ -304,12 +286,6 @@ def launch(workdir, cache):
                                                      "--train.checkpoint_every=2", "--train.log_every=10"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env=dict(os.environ, JAX_COMPILATION_CACHE_DIR=str(cache)))
-
-
-def checkpoint_steps(workdir):
-    """Finished checkpoints (orbax writes into a temporary name and renames it to the step when done)."""
-    path = os.path.join(workdir, "checkpoints")
-    return sorted(int(d) for d in os.listdir(path) if d.isdigit()) if os.path.isdir(path) else []
 
 
 def wait_for_checkpoint(proc, workdir, after):
@@ -345,6 +321,7 @@ def stops_and_resumes(tmp_path):
     return {sig: stop_and_resume(tmp_path, sig) for sig in (signal.SIGKILL, signal.SIGTERM)}
 
 
+@pytest.mark.slow
 def test_sigkill_then_resume_equals_an_uninterrupted_run(subprocess_runs, world_run):
     status, killed_at, _, out, params = subprocess_runs["stops"].result()[signal.SIGKILL]
     assert status == -signal.SIGKILL
@@ -353,6 +330,7 @@ def test_sigkill_then_resume_equals_an_uninterrupted_run(subprocess_runs, world_
     assert_trees_equal(params, world_run[0])
 
 
+@pytest.mark.slow
 def test_sigterm_saves_the_step_it_was_on_and_resume_equals_an_uninterrupted_run(subprocess_runs, world_run):
     """The launcher finishes the step it is on, checkpoints it (on any step, not only a multiple of
     checkpoint_every), says so in one line and exits with 128 + SIGTERM; a rerun continues from there."""
@@ -364,6 +342,7 @@ def test_sigterm_saves_the_step_it_was_on_and_resume_equals_an_uninterrupted_run
     assert_trees_equal(params, world_run[0])
 
 
+@pytest.mark.slow
 def test_carried_state_chains_segments_and_resumes_bit_identically(tmp_path):
     """With --data.carry_state the step starts each drive's first segment afresh (its loss is the plain
     loss's) and continues later ones from the carry its slot left; a run stopped and resumed equals the
@@ -391,6 +370,7 @@ def test_carried_state_chains_segments_and_resumes_bit_identically(tmp_path):
     np.testing.assert_allclose(step_fn(state, batches[2], key)[1]["total"], expected, rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_resume_from_a_damaged_latest_checkpoint_falls_back_to_the_newest_intact_one(tmp_path, capsys):
     """The latest checkpoint truncated: the run says so in one line, keeps it as <step>.damaged, resumes from
     the one before, and ends where an uninterrupted run ends; the older checkpoints are untouched."""

@@ -100,12 +100,14 @@ def assert_no_overlaps(boxes):
     return pairs
 
 
+@pytest.mark.slow
 def test_no_two_vehicles_ever_overlap(recorded):
     _, states = recorded
     pairs = assert_no_overlaps(states.veh_box.reshape(-1, *states.veh_box.shape[2:]))  # [T W, N, 5]
     assert pairs > 100  # the check did meet vehicles close together (queues)
 
 
+@pytest.mark.slow
 def test_every_corner_of_every_vehicle_stays_on_drivable_area(recorded):
     town, states = recorded
     sem = sem_at(town, corners(states.veh_box))  # [T, W, N, 4]
@@ -114,6 +116,7 @@ def test_every_corner_of_every_vehicle_stays_on_drivable_area(recorded):
     assert not off.any(), f"{off.sum()} corners off road, e.g. step {t[:3]} world {w[:3]} vehicle {v[:3]}"
 
 
+@pytest.mark.slow
 def test_no_vehicle_crosses_a_stop_line_on_red(recorded):
     """A crossing is the front-centre point passing the line segment from behind to beyond during a step."""
     town, states = recorded
@@ -144,6 +147,7 @@ def test_no_vehicle_crosses_a_stop_line_on_red(recorded):
     assert crossings_on_green > 50  # the detector does see vehicles pass lights
 
 
+@pytest.mark.slow
 def test_speeds_are_bounded_and_match_the_motion(recorded):
     town, states = recorded
     v = states.veh_speed_mps
@@ -159,6 +163,7 @@ def test_speeds_are_bounded_and_match_the_motion(recorded):
     assert (heading_change <= moved_m / town_lib.MIN_TURN_RADIUS_M * 1.3 + 1e-3).all()
 
 
+@pytest.mark.slow
 def test_traffic_keeps_moving(recorded):
     _, states = recorded
     window = 100  # 10 s
@@ -169,6 +174,7 @@ def test_traffic_keeps_moving(recorded):
     assert states.veh_speed_mps[NUM_STEPS // 2:].mean() > 2.0
 
 
+@pytest.mark.slow
 def test_ego_action_is_within_limits_and_is_what_moved_the_ego(recorded):
     _, states = recorded
     accel, steer = states.ego_action[1:, :, 0], states.ego_action[1:, :, 1]
@@ -183,6 +189,7 @@ def test_ego_action_is_within_limits_and_is_what_moved_the_ego(recorded):
     np.testing.assert_allclose(dyaw, ds * np.tan(steer) / world.WHEELBASE_M, atol=1e-4)
 
 
+@pytest.mark.slow
 def test_ego_hand_overs_keep_bodies_apart_on_the_road_and_the_ego_within_its_limits():
     """The ego role passed to a random NPC every 11 steps (batches_per_drive > 1), 40 hand-overs in each
     of three worlds: no two bodies overlap and every corner stays on the road, right after each swap of
@@ -220,6 +227,7 @@ def town0():
     return town_lib.build_town(DEFAULT_TOWN_SEED)
 
 
+@pytest.mark.slow
 def test_same_key_is_bit_identical_and_other_keys_differ(town0):
     keys = jnp.stack([jax.random.PRNGKey(5), jax.random.PRNGKey(5), jax.random.PRNGKey(6)])
     last = jax.tree.map(lambda a: a[-1], drive(town0, keys))
@@ -244,6 +252,7 @@ _jit_step = jax.jit(world.step)
 _jit_reset = jax.jit(world.reset, static_argnums=2)
 
 
+@pytest.mark.slow
 def test_jit_equals_no_jit(town0):
     states = drive(town0, world_keys(DEFAULT_TOWN_SEED))  # the recorded worlds (a compile-cache hit)
     state = jax.tree.map(lambda a: jnp.asarray(a[300, 0]), states)  # warmed up: queues, lights, junctions
@@ -253,6 +262,7 @@ def test_jit_equals_no_jit(town0):
     _assert_states_close(jitted, eager)  # (eager reset is not compared: op-by-op it costs ~10 s for little)
 
 
+@pytest.mark.slow
 def test_vmap_over_worlds_equals_a_python_loop(town0):
     keys = world_keys(DEFAULT_TOWN_SEED)
     batched = drive(town0, keys)  # the recorded worlds (a compile-cache hit)

@@ -1,0 +1,14 @@
+"""Fixtures for every test module. Plain helpers that test modules import are in helpers.py."""
+import pytest
+
+
+@pytest.fixture(scope="module", autouse=True)
+def start_first(request):
+    """Sets up, before the first test of a module, the module-scoped fixtures that the module names in
+    ``START_FIRST``: work started in the background (subprocess runs) that overlaps the module's other tests.
+    Only those that a test selected to run uses: under ``-m "not slow"`` a background run that only slow
+    tests read is never started, nor waited for."""
+    selected = [item for item in request.session.items if getattr(item, "module", None) is request.module]
+    for name in getattr(request.module, "START_FIRST", ()):
+        if any(name in item.fixturenames for item in selected):
+            request.getfixturevalue(name)

@@ -1,0 +1,105 @@
+"""What more than one test module uses: the tiny config and its synthetic frames, the jitted loss and
+gradients, NumPy forms of the loss terms, and the training launcher with the files a run writes.
+
+A plain module, not conftest.py: the tests import these names directly (``from helpers import ...``), and so
+does code that the training tests run in a fresh ``python -c`` subprocess, which imports no pytest plugin.
+``pythonpath = ["tests"]`` in pyproject.toml puts this folder on ``sys.path``, whatever the import mode.
+Fixtures shared by test modules belong in conftest.py.
+"""
+import functools
+import importlib.util
+import json
+import os
+import socket
+import sys
+
+import jax
+import numpy as np
+
+from e2e_percep_jax import config, loss
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # the repository
+TINY = config.get_config("tiny")
+
+
+@functools.cache
+def load_experiment(name):
+    """The script ``experiments/<name>.py`` as a module (experiments/ is not a package), loaded once: a
+    script defines its absl flags when loaded, and a second definition would be an error."""
+    spec = importlib.util.spec_from_file_location(name, os.path.join(ROOT, "experiments", f"{name}.py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+# ----------------------------------------------------------------------------- frames, loss and its terms
+
+
+def synthetic_batch(seed, cfg, batch_size=None):
+    """Random frames (NumPy, no compile) with the frame contract's keys, dtypes and shapes [B, T+1, ...]."""
+    b, t1, r = batch_size or cfg.data.batch_size, cfg.data.seq_len + 1, cfg.data.image_size
+    rng = np.random.default_rng(seed)
+    image = lambda: rng.integers(0, 256, (b, t1, r, r, 3), np.uint8)
+    heading = rng.uniform(0, 2 * np.pi, (b, t1))
+    pose = np.stack([rng.uniform(0, 400, (b, t1)), rng.uniform(0, 400, (b, t1)), np.cos(heading), np.sin(heading),
+                     rng.uniform(0, 12, (b, t1))], -1)
+    det_cls = (rng.uniform(size=(b, t1, r, r, 1)) > 0.9).astype(np.float32)
+    # Regression targets exist at positive pixels only; elsewhere anything, here NaN / inf as a worst case.
+    det_reg = np.where(det_cls > 0.5, rng.normal(size=(b, t1, r, r, 6)), rng.choice([np.nan, np.inf], (b, t1, r, r, 6)))
+    return {"camera": image(), "lidar": image(), "roadmap": image(), "det_cls": det_cls,
+            "det_reg": det_reg.astype(np.float32),
+            "pose": pose.astype(np.float32),
+            "action": rng.uniform(-0.3, 0.3, (b, t1, 2)).astype(np.float32)}
+
+
+@functools.partial(jax.jit, static_argnames="cfg")
+def loss_and_grads(params, batch, key, cfg):
+    """((total, metrics), gradients) of the loss; one jitted object shared by the loss and training tests."""
+    return jax.value_and_grad(loss.loss_fn, has_aux=True)(params, batch, key, cfg)
+
+
+def np_focal(logit, y):
+    """The torch peer's focal loss (on clamped probabilities), elementwise."""
+    p = np.clip(1 / (1 + np.exp(-logit)), 1e-6, 1 - 1e-6)
+    pt, a = np.where(y > 0.5, p, 1 - p), np.where(y > 0.5, 0.25, 0.75)
+    return -a * (1 - pt) ** 2 * np.log(pt)
+
+
+def np_smooth_l1(d):
+    return np.where(np.abs(d) < 1, 0.5 * d ** 2, np.abs(d) - 0.5)
+
+
+# ----------------------------------------------------------------------------- training runs and their files
+
+
+LAUNCHER = [sys.executable, os.path.join(ROOT, "experiments", "train.py")]
+
+
+def tiny(**train_fields):
+    # learning rate 1e-3 for every run, so that the world run's KL is past its rise within a few hundred
+    # steps (at initialisation q and p are alike, the KL is small; it peaks once the posterior encodes
+    # the frames); 100 vehicles so the 32 m view often holds one (det_reg is non-zero only then).
+    return config.replace(TINY, world=dict(num_vehicles=100),
+                          train=dict(dict(learning_rate=1e-3, max_nonfinite_in_a_row=3), **train_fields))
+
+
+# The same run from the launcher: flags on top of --config=tiny.
+TINY_FLAGS = ["--config=tiny", "--world.num_vehicles=100", "--train.learning_rate=1e-3",
+              "--train.max_nonfinite_in_a_row=3"]
+
+
+def read_jsonl(path):
+    with open(path) as f:
+        return [json.loads(line) for line in f]
+
+
+def checkpoint_steps(workdir):
+    """Finished checkpoints (orbax writes into a temporary name and renames it to the step when done)."""
+    path = os.path.join(workdir, "checkpoints")
+    return sorted(int(d) for d in os.listdir(path) if d.isdigit()) if os.path.isdir(path) else []
+
+
+def free_port():
+    with socket.socket() as s:
+        s.bind(("localhost", 0))
+        return s.getsockname()[1]
