@@ -1,6 +1,9 @@
 """Fixtures for every test module. Plain helpers that test modules import are in helpers.py."""
 import pytest
 
+from e2e_percep_jax import config
+from e2e_percep_jax import town as town_lib
+
 
 @pytest.fixture(scope="module", autouse=True)
 def start_first(request):
@@ -12,3 +15,9 @@ def start_first(request):
     for name in getattr(request.module, "START_FIRST", ()):
         if any(name in item.fixturenames for item in selected):
             request.getfixturevalue(name)
+
+
+@pytest.fixture(scope="session")
+def town():
+    """The ``tiny`` config's town, for the modules that drive it (a module may define its own ``town``)."""
+    return town_lib.build_town(config.get_config("tiny").world.town_seed)

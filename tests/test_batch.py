@@ -7,14 +7,8 @@ import numpy as np
 import pytest
 
 from e2e_percep_jax import batch, config, rollout, sensors, world
-from e2e_percep_jax.town import build_town
 
 CFG = config.get_config("tiny")
-
-
-@pytest.fixture(scope="module")
-def town():
-    return build_town(CFG.world.town_seed)
 
 
 @pytest.fixture(scope="module")

@@ -5,14 +5,8 @@ import numpy as np
 import pytest
 
 from e2e_percep_jax import config, rollout, world
-from e2e_percep_jax.town import build_town
 
 CFG = config.get_config("tiny")
-
-
-@pytest.fixture(scope="module")
-def town():
-    return build_town(CFG.world.town_seed)
 
 
 @pytest.fixture(scope="module")
@@ -29,6 +23,7 @@ def test_advance_is_that_many_single_steps(town, start):
     jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-4), advanced, stepped)
 
 
+@pytest.mark.slow
 def test_drive_chains_and_returns_the_states_it_saw(town, start):
     drive = jax.jit(rollout.drive, static_argnums=(2, 3, 4))
     last, frames, states = drive(start, town, 6, 32, True)
@@ -53,6 +48,7 @@ def test_frames_are_a_read_only_mapping_of_the_contract(town, start):
         frames["replace"]  # a dataclass method, not a field
 
 
+@pytest.mark.slow
 def test_drive_perceiving_sees_the_frames_drive_records(town, start):
     """A perceiver that copies what it is shown: after ``warm`` unobserved steps, frame t is ``drive``'s
     frame warm + t, its previous action ``drive``'s action warm + t - 1; warm-up frames give zeros."""
