@@ -1,17 +1,18 @@
 """Training batches generated on the fly, in one jit: reset B worlds, warm their traffic up, drive and observe.
 
 A batch is :class:`e2e_percep_jax.rollout.Frames` (the frame contract, field by field with units and
-shapes) with leading [B, T+1] axes. Every sequence starts from a fresh ``world.reset`` with its own key and records after
-``cfg.data.warmup_steps`` steps (steady traffic), so a batch depends only on its key and successive
-batches are independent. Nothing touches the disk.
+shapes) with leading [B, T+1] axes. Every sequence starts from a fresh ``world.reset`` with its own key
+and records after ``cfg.data.warmup_steps`` steps (steady traffic), so a batch depends only on its key
+and successive batches are independent. Nothing touches the disk.
 
 Opt-in, ``--data.batches_per_drive=K`` > 1: each drive of B worlds feeds K batches, each the next T+1
-frames, so the 200 warm-up steps are paid once per K batches (most of a batch's cost at the `cpu` config). Before each segment the ego role passes to a random NPC of its world
-(``world.hand_over_ego``): the traffic goes on, but every batch is seen from B fresh places, so the
-sequences are not continuations of the last visit's. With ``--data.carry_state`` there is no hand-over:
-segment j + 1 of a drive continues segment j frame for frame (training then carries the latent across). The stream keeps K drives and takes its batches from
-them in turn (step s from drive slot s % K), so successive batches come from independent worlds; a drive is
-revisited every K steps, K times, then replaced by a fresh one. Batch s is still a function of (seed, s)
+frames, so the 200 warm-up steps are paid once per K batches (most of a batch's cost at the `cpu`
+config). Before each segment the ego role passes to a random NPC of its world (``world.hand_over_ego``):
+the traffic goes on, but every batch is seen from B fresh places, so the sequences are not continuations
+of the last visit's. With ``--data.carry_state`` there is no hand-over: segment j + 1 of a drive
+continues segment j frame for frame (training then carries the latent across). The stream keeps K drives
+and takes its batches from them in turn (step s from drive slot s % K), so successive batches come from
+independent worlds; a drive is revisited every K steps, K times, then replaced by a fresh one. Batch s is still a function of (seed, s)
 alone: a stream resumed at s re-drives each slot's worlds from their reset, hand-overs included, without
 observing.
 """

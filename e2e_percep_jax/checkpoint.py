@@ -131,7 +131,6 @@ def check_resumable(cfg: Config, workdir: str) -> int | None:
     for name, value in _flat_config(cfg).items():
         if name.startswith("eval.") or name in RESUMABLE_CHANGES or old.get(name) == value:
             continue
-        raise ValueError(f"--{name}={value} differs from the run being resumed in {workdir} "
-                         f"({old.get(name)}); pass --{name}={config_lib.flag_value(old.get(name))} to resume it, or use a "
-                         f"new --workdir")
+        raise ValueError(f"--{name}={value} differs from the run being resumed in {workdir} ({old.get(name)}); "
+                         f"pass --{name}={config_lib.flag_value(old.get(name))} to resume it, or use a new --workdir")
     return latest

@@ -56,7 +56,6 @@ RESET_STREAM, SAMPLE_STREAM = 0, 1  # fold_in data of PRNGKey(cfg.eval.seed)
 _COMPILED = {}  # compiled chunk programs by everything they depend on
 
 
-
 # ----------------------------------------------------------------------------- device side
 
 
@@ -84,9 +83,9 @@ def make_chunk_fn(cfg: Config, town, perceiver, sample: bool, detect: detection.
 
     ``out`` holds per frame [C, E, ...]: cand_boxes [k, 5], cand_scores [k] (k = ``detect.top_k``),
     saturated, the true boxes / boxes_valid / boxes_occluded and pose, pose_pred (metres) and pose_nll
-    (the perceiver's negative log-likelihood of the true pose, NaN if it has none); ``pictured`` int32 [C, 2]: world 0 (the video's
-    drive) and the world with the most vehicles in view (the examples' candidate), with those two worlds'
-    images [C, 2, R, R, 3] uint8: camera, lidar, roadmap, the perceiver's reconstructions
+    (the perceiver's negative log-likelihood of the true pose, NaN if it has none); ``pictured`` int32
+    [C, 2]: world 0 (the video's drive) and the world with the most vehicles in view (the examples'
+    candidate), with those two worlds' images [C, 2, R, R, 3] uint8: camera, lidar, roadmap, the perceiver's reconstructions
     ``recon_<name>`` and its pose belief ``pose_place`` [C, 2, n, n] where it has them.
 
     ``heads(outputs, frame) -> outputs``, traced inside the program, may replace the perceiver's
@@ -117,9 +116,9 @@ def make_chunk_fn(cfg: Config, town, perceiver, sample: bool, detect: detection.
         return pstate, out
 
     def chunk(params, wstate, pstate, key, warm):
-        keys, c = jax.random.split(key, cfg.eval.chunk_steps), cfg.eval.chunk_steps
-        return rollout.drive_perceiving(wstate, pstate, town, cfg.data.image_size, keys, jnp.arange(c) < warm,
-                                        functools.partial(perceive, params))
+        c = cfg.eval.chunk_steps
+        return rollout.drive_perceiving(wstate, pstate, town, cfg.data.image_size, jax.random.split(key, c),
+                                        jnp.arange(c) < warm, functools.partial(perceive, params))
 
     return jax.jit(chunk)
 

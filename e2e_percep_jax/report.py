@@ -5,7 +5,7 @@
   run's rows, the baseline and the paper's, from the ``metrics.json`` dict alone) and ``pr_curves.png``;
 - :class:`Pictures`: ``drive.mp4`` and ``examples.png``, collected while the evaluation drives.
 
-The drawing itself is :mod:`e2e_percep_jax.pictures`'.
+The drawing itself is in :mod:`e2e_percep_jax.pictures`.
 """
 import json
 import os
