@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from e2e_percep_jax import checkpoint, detection, pose_belief
+from e2e_percep_jax import checkpoint, detection, pose_belief, xla_cpu
 from e2e_percep_jax import model as model_lib
 from e2e_percep_jax.config import Config
 
@@ -127,6 +127,10 @@ class Perceiver:
 
 
 def load(workdir: str, step: int | None = None):
-    """(Perceiver, params) of the training run in ``workdir`` at checkpoint ``step`` (default: latest)."""
+    """(Perceiver, params) of the training run in ``workdir`` at checkpoint ``step`` (default: latest).
+
+    Called before this process's first computation, it also routes XLA:CPU's convolutions as the
+    launchers do (:func:`e2e_percep_jax.xla_cpu.prefer_eigen_convolutions`, process-wide)."""
+    xla_cpu.prefer_eigen_convolutions()
     cfg, params, _ = checkpoint.restore_params(workdir, step=step)
     return Perceiver(cfg), params

@@ -9,7 +9,8 @@ One frame t flows as (R = image size, F = ``feature_dim``, Z = ``z1_dim + z2_dim
 Layers match the torch peer (``shared/peer/torch_peer_bench.py``) layer for layer, so the parameter
 counts are equal: torch's stride-2 ``Conv2d(k, 2, k // 2)`` is a flax ``Conv`` with explicit padding,
 its ``ConvTranspose2d(k, 2, k // 2, output_padding=1)`` is :class:`Deconv2x` (a stride-2 layer halves /
-doubles the size exactly). Leaky-ReLU with slope 0.2 follows every layer except the Gaussian outputs
+doubles the size exactly), and the encoder's last ``Conv2d(4)`` (4 x 4 -> 1 x 1) and the trunks' first
+``ConvTranspose2d(4)`` (1 x 1 -> 4 x 4) are matmuls (:class:`WholeMapConv`, :class:`WholeMapConvTranspose`). Leaky-ReLU with slope 0.2 follows every layer except the Gaussian outputs
 of the latent MLPs, the pose head's output and the PIXOR class logit (a sigmoid).
 
 Public API (``cfg`` is the full :class:`~e2e_percep_jax.config.Config`; params are a plain pytree):
@@ -108,6 +109,36 @@ class Deconv2x(nn.Module):
         return y.reshape(nb, 2 * h, 2 * wd, self.features) + b
 
 
+class WholeMapConv(nn.Module):
+    """flax ``Conv(features, (k, k), padding="VALID")`` on a k x k map, [N, k, k, C] -> [N, features],
+    as one matmul with the same parameters (``kernel`` [k, k, C, features], ``bias``): a kernel that
+    covers the whole map is a dense layer, and XLA:CPU runs it faster as one."""
+    features: int
+
+    @nn.compact
+    def __call__(self, x):
+        n, k, _, c = x.shape
+        w = self.param("kernel", nn.initializers.lecun_normal(), (k, k, c, self.features))
+        b = self.param("bias", nn.initializers.zeros, (self.features,))
+        return x.reshape(n, k * k * c) @ w.reshape(k * k * c, self.features) + b
+
+
+class WholeMapConvTranspose(nn.Module):
+    """flax ``ConvTranspose(features, (k, k), padding="VALID")`` on a 1 x 1 map, [N, C] -> [N, k, k,
+    features], as one matmul with the same parameters. flax does not flip the kernel
+    (``transpose_kernel=False``), so output pixel (i, j) is tap (k-1-i, k-1-j)."""
+    features: int
+    kernel: int
+
+    @nn.compact
+    def __call__(self, z):
+        n, c, k = z.shape[0], z.shape[1], self.kernel
+        w = self.param("kernel", nn.initializers.lecun_normal(), (k, k, c, self.features))
+        b = self.param("bias", nn.initializers.zeros, (self.features,))
+        flipped = w[::-1, ::-1].transpose(2, 0, 1, 3).reshape(c, k * k * self.features)
+        return (z @ flipped).reshape(n, k, k, self.features) + b
+
+
 class Encoder(nn.Module):
     """uint8 image [N, R, R, 3] -> feature [N, feature_dim]."""
     widths: tuple
@@ -118,8 +149,7 @@ class Encoder(nn.Module):
         x = image.astype(jnp.float32) / 255.0
         for i, width in enumerate(self.widths):
             x = _act(_conv_s2(width, 5 if i == 0 else 3)(x))
-        x = _act(nn.Conv(self.feature_dim, (4, 4), padding="VALID")(x))  # 4 x 4 -> 1 x 1
-        return x.reshape(x.shape[0], -1)
+        return _act(WholeMapConv(self.feature_dim, name=f"Conv_{len(self.widths)}")(x))  # 4 x 4 -> 1 x 1
 
 
 class Trunk(nn.Module):
@@ -129,8 +159,7 @@ class Trunk(nn.Module):
 
     @nn.compact
     def __call__(self, z):
-        x = z[:, None, None, :]
-        x = _act(nn.ConvTranspose(self.feature_dim, (4, 4), padding="VALID")(x))  # 1 x 1 -> 4 x 4
+        x = _act(WholeMapConvTranspose(self.feature_dim, 4, name="ConvTranspose_0")(z))  # 1 x 1 -> 4 x 4
         for width in reversed(self.widths[:-1]):
             x = _act(Deconv2x(width, 3)(x))
         return x

@@ -15,7 +15,7 @@ import sys
 
 from absl import app, flags
 
-from e2e_percep_jax import allocator
+from e2e_percep_jax import allocator, xla_cpu
 from e2e_percep_jax import baselines, report
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import train as train_lib
@@ -31,6 +31,7 @@ FLAGS = flags.FLAGS
 
 def main(argv):
     allocator.keep_freed_buffers()
+    xla_cpu.prefer_eigen_convolutions()
     try:
         config_lib.check_launch(argv)
         for name in ("video_frames", "odometry_speed_std_mps", "odometry_yaw_rate_std_rps"):

@@ -9,11 +9,17 @@ one JSON line and writes it to ``--out_dir/<name>.json``; a table of all of them
 ``train`` also runs the eager PyTorch peer (``../shared/peer/torch_peer_bench.py``, with
 ``--peer_python``) at the same (B, T, R) right after ours and reports ``ratio_vs_peer`` = our
 frames/s over the peer's. ``frames_parts`` and ``train_parts`` are the profiles behind ``frames`` and
-``train``: the same work split into its parts.
+``train``: the same work split into its parts; ``train_profile`` is the step's per-op profile beside the
+peer's. ``--noeigen_convolutions`` measures XLA's default convolution path instead of the launchers'.
 """
+import bisect
+import collections
+import glob
 import itertools
 import json
+import math
 import os
+import re
 import statistics
 import subprocess
 import sys
@@ -26,7 +32,7 @@ import numpy as np
 from absl import app, flags
 from flax import linen as nn
 
-from e2e_percep_jax import allocator
+from e2e_percep_jax import allocator, xla_cpu
 from e2e_percep_jax import batch as batch_lib
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import evaluate as evaluate_lib
@@ -36,7 +42,7 @@ from e2e_percep_jax import pixor, rollout, sensors, world
 from e2e_percep_jax import train as train_lib
 from e2e_percep_jax.town import build_town
 
-BENCHMARKS = ("world", "frames", "frames_parts", "batch", "loop", "train", "train_parts", "deconv", "infer", "compile", "eval", "memory")
+BENCHMARKS = ("world", "frames", "frames_parts", "batch", "loop", "train", "train_parts", "train_profile", "deconv", "infer", "compile", "eval", "memory")
 _REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PEER_SCRIPT = os.path.join(_REPO, "..", "shared", "peer", "torch_peer_bench.py")
 
@@ -44,6 +50,7 @@ flags.DEFINE_list("what", list(BENCHMARKS), f"benchmarks to run, any of {BENCHMA
 flags.DEFINE_string("out_dir", "runs/bench", "one <benchmark>.json per figure goes here")
 flags.DEFINE_integer("repeats", 5, "timed runs per figure, at least (short figures get more, to fill 1 s); the median is reported")
 flags.DEFINE_list("train_sizes", ["8x10x64", "4x10x128"], "BxTxR of the training-step figures")
+flags.DEFINE_integer("peer_rounds", 3, "train: rounds of (ours, the peer) alternated, each of --repeats steps")
 flags.DEFINE_string("peer_python", os.path.join(_REPO, ".venv-peer", "bin", "python"),
                     "python with torch for the peer benchmark; empty: skip the peer")
 flags.DEFINE_integer("num_worlds", 32, "worlds stepped in parallel (world) / frames observed at once (frames)")
@@ -54,6 +61,8 @@ flags.DEFINE_integer("batches_per_drive", None, "K of the batch figure's stream 
 flags.DEFINE_integer("memory_steps", 300, "training steps of the cpu-config run whose resident memory is sampled")
 flags.DEFINE_boolean("keep_freed_buffers", True, "reuse freed buffers as the launchers do (allocator.py), "
                      "here and in the peer; --nokeep_freed_buffers measures glibc's default")
+flags.DEFINE_boolean("eigen_convolutions", True, "run convolutions on XLA:CPU's Eigen path as the launchers do "
+                     "(xla_cpu.py); --noeigen_convolutions measures XLA's default")
 FLAGS = flags.FLAGS
 
 
@@ -241,20 +250,28 @@ def _peer(batch_size, seq_len, image_size, repeats):
 
 
 def bench_train(town, repeats):
-    """Training-step frames/s (B·(T+1) per step) at the paper's widths, beside the eager PyTorch peer."""
+    """Training-step frames/s (B·(T+1) per step) at the paper's widths, beside the eager PyTorch peer:
+    ``--peer_rounds`` rounds of ours then the peer's, ``repeats`` steps each, so that a slow spell of this
+    shared VM falls on both; each side's figure is the median of its rounds' medians."""
     figures = []
     for size in FLAGS.train_sizes:
         b, t, r = _size(size)
         cfg = _paper_config(b, t, r)
         compile_s, run = _train_step_runner(cfg, batch_lib.make_batch(jax.random.PRNGKey(0), town, cfg))
-        step_s = _median_s(run, repeats)
+        ours_s, peers = [], []
+        for _ in range(FLAGS.peer_rounds):
+            ours_s.append(_median_s(run, repeats))
+            peers.append(_peer(b, t, r, repeats))
+        step_s = statistics.median(ours_s)
         params = sum(x.size for x in jax.tree.leaves(jax.eval_shape(model_lib.init_params, jax.random.PRNGKey(0), cfg)))
         figure = {"batch": b, "seq_len": t, "image_size": r, "params": params, "compile_s": compile_s,
-                  "step_s_median": step_s, "frames_per_s": b * (t + 1) / step_s}
-        peer = _peer(b, t, r, repeats)
-        if peer is not None:
-            figure.update(peer_frames_per_s=peer["frames_per_s"], peer_params=peer["params"],
-                          peer_threads=peer["threads"], ratio_vs_peer=figure["frames_per_s"] / peer["frames_per_s"])
+                  "step_s_median": step_s, "step_s_rounds": ours_s, "frames_per_s": b * (t + 1) / step_s}
+        if peers[0] is not None:
+            peer_s = [peer["step_s_median"] for peer in peers]
+            figure.update(peer_step_s_median=statistics.median(peer_s), peer_step_s_rounds=peer_s,
+                          peer_frames_per_s=b * (t + 1) / statistics.median(peer_s), peer_params=peers[0]["params"],
+                          peer_threads=peers[0]["threads"], ratio_vs_peer=statistics.median(peer_s) / step_s,
+                          ratio_vs_peer_rounds=[p / o for p, o in zip(peer_s, ours_s)])
         figures.append(figure)
     return {"sizes": figures}
 
@@ -280,6 +297,117 @@ def bench_train_parts(town, repeats):
     for name, fn in parts.items():
         grad = jax.jit(jax.grad(fn))
         figure[f"{name}_s"] = _median_s(lambda: grad(params), repeats)
+    return figure
+
+
+# The parts of a training step, each named by what its ops' HLO metadata (op_name: the jit and flax scopes
+# they were traced in) contains; the first match wins. An op with op_name but no match is the optimizer's
+# (the update after the gradient: Adam, clipping, the finite-step guard); one without op_name was made by
+# XLA itself ("made by XLA": layout-changing copies and transposes, convolutions it rewrote).
+PROFILE_PARTS = (("encoders", "_encoder/"), ("latent scan", "while/body"), ("decoders", "PerceptionModel.decode"),
+                 ("pose belief", "pose_belief"), ("losses", "loss_fn"))
+
+
+def _op_parts(hlo_text):
+    """{HLO instruction name: part} of a compiled program's text."""
+    parts = {}
+    for line in hlo_text.splitlines():
+        name = re.match(r"\s*(?:ROOT )?%([\w.-]+) = ", line)
+        if name:
+            op_name = re.search(r'op_name="([^"]*)"', line)
+            parts[name.group(1)] = ("made by XLA" if op_name is None else
+                                    next((part for part, scope in PROFILE_PARTS if scope in op_name.group(1)), "optimizer"))
+    return parts
+
+
+def _op_core_ns(profile):
+    """{HLO op: core-ns} of an XLA:CPU trace. An op's time is its runtime thunk's (a trace event with an
+    ``hlo_op`` stat) plus that of the thread-pool tasks it started (convolutions return before their work
+    is done): a task (a StartRegion ... StopRegion span on a pool thread) belongs to the op running where
+    its ``Record`` event (same id) was logged, followed up through tasks that started tasks. Task time
+    inside an op's own event is not counted twice; task time that leads to no op is returned as None."""
+    ops, tasks, records = collections.defaultdict(list), collections.defaultdict(list), {}
+    for plane in profile.planes:
+        for index, line in enumerate(plane.lines):
+            where, opened = (plane.name, index), None
+            for event in sorted(line.events, key=lambda e: e.start_ns):
+                stats = dict(event.stats)
+                if "hlo_op" in stats:
+                    ops[where].append((event.start_ns, event.end_ns, stats["hlo_op"]))
+                elif event.name == "ThreadpoolListener::Record":
+                    records[stats["_p"]] = (where, event.start_ns)
+                elif event.name == "ThreadpoolListener::StartRegion":
+                    opened = (event.start_ns, stats["_c"])
+                elif event.name == "ThreadpoolListener::StopRegion" and opened is not None:
+                    tasks[where].append((opened[0], event.start_ns, opened[1]))
+                    opened = None
+
+    def span_at(spans, t):
+        i = bisect.bisect_right(spans, (t, math.inf)) - 1
+        return spans[i] if i >= 0 and spans[i][0] <= t <= spans[i][1] else None
+
+    def owner(task_id, depth=0):
+        if task_id not in records or depth > 64:
+            return None
+        where, t = records[task_id]
+        op = span_at(ops.get(where, []), t)
+        if op is not None:
+            return op[2]
+        parent = span_at(tasks.get(where, []), t)
+        return None if parent is None else owner(parent[2], depth + 1)
+
+    core_ns = collections.Counter()
+    for spans in ops.values():
+        for start, end, op in spans:
+            core_ns[op] += end - start
+    for where, spans in tasks.items():
+        own = ops.get(where, [])
+        for start, end, task_id in spans:
+            i = bisect.bisect_left(own, (start, 0))
+            inside = 0
+            while i < len(own) and own[i][0] < end:
+                inside += min(own[i][1], end) - max(own[i][0], start)
+                i += 1
+            core_ns[owner(task_id)] += (end - start) - inside
+    return core_ns
+
+
+def bench_train_profile(town, repeats):
+    """Per-op profile of the training step at the first ``--train_sizes`` entry (jax.profiler): core-ms
+    per step of each op (``_op_core_ns``), summed by part (PROFILE_PARTS), and the slowest ops; beside
+    the peer's (``experiments/torch_profile.py``, torch.profiler) split into the same parts. Tracing
+    slows a step (``step_s_traced``), so compare shares, and ``train`` for the step's time."""
+    b, t, r = _size(FLAGS.train_sizes[0])
+    cfg = _paper_config(b, t, r)
+    batch = batch_lib.make_batch(jax.random.PRNGKey(0), town, cfg)
+    mesh = train_lib.make_mesh()
+    step_fn = train_lib.make_train_step(cfg, mesh)
+    state, batch, key = train_lib.init_state(cfg), train_lib.shard_batch(batch, mesh), jax.random.PRNGKey(0)
+    compiled = step_fn.lower(state, batch, key).compile()
+    parts = _op_parts(compiled.as_text())
+    state, _ = jax.block_until_ready(compiled(state, batch, key))  # warm-up
+    with tempfile.TemporaryDirectory() as trace_dir:
+        jax.profiler.start_trace(trace_dir)
+        start = time.perf_counter()
+        for _ in range(repeats):
+            state, _ = jax.block_until_ready(compiled(state, batch, key))
+        step_s = (time.perf_counter() - start) / repeats
+        jax.profiler.stop_trace()
+        trace, = glob.glob(os.path.join(trace_dir, "**", "*.xplane.pb"), recursive=True)
+        core_ns = _op_core_ns(jax.profiler.ProfileData.from_file(trace))
+    part_ns, kind_ns = collections.Counter(), collections.Counter()
+    for op, ns in core_ns.items():
+        part = parts.get(op, "pool tasks of no op")
+        part_ns[part] += ns
+        kind_ns[(part, re.sub(r"\.\d+$", "", op or ""))] += ns  # fusion.12 and fusion.31 are one kind
+    ms = lambda ns: ns / 1e6 / repeats
+    figure = {"batch": b, "seq_len": t, "image_size": r, "step_s_traced": step_s,
+              "part_core_ms": {part: ms(ns) for part, ns in part_ns.most_common()},
+              "top_op_kinds": [[part, kind, ms(ns)] for (part, kind), ns in kind_ns.most_common(25)]}
+    peer = _run_peer(os.path.join(_REPO, "experiments", "torch_profile.py"), "--peer", PEER_SCRIPT,
+                     "--batch", b, "--seq-len", t, "--image-size", r, "--steps", repeats)
+    if peer is not None:
+        figure.update(peer_step_s_traced=peer["step_s_median"], peer_part_ms=peer["part_ms"], peer_top_ops=peer["top_ops"])
     return figure
 
 
@@ -405,6 +533,8 @@ def main(argv):
         sys.exit(f"error: --what={','.join(FLAGS.what)}: unknown {unknown}; choose from {BENCHMARKS}")
     if FLAGS.repeats < 1:
         sys.exit(f"error: --repeats={FLAGS.repeats}: must be >= 1")
+    if FLAGS.peer_rounds < 1:
+        sys.exit(f"error: --peer_rounds={FLAGS.peer_rounds}: must be >= 1")
     if FLAGS.batches_per_drive is not None and FLAGS.batches_per_drive < 1:
         sys.exit(f"error: --batches_per_drive={FLAGS.batches_per_drive}: must be >= 1")
     try:
@@ -415,9 +545,11 @@ def main(argv):
     os.makedirs(FLAGS.out_dir, exist_ok=True)
     if FLAGS.keep_freed_buffers:
         allocator.keep_freed_buffers()
-    town = build_town(config_lib.DEFAULT_TOWN_SEED)
+    if FLAGS.eigen_convolutions:
+        xla_cpu.prefer_eigen_convolutions()
     context = {"jax": jax.__version__, "backend": jax.default_backend(), "devices": jax.device_count(),
-               "cpu_count": os.cpu_count()}
+               "cpu_count": os.cpu_count(), "convolution_path": xla_cpu.convolution_path()}
+    town = build_town(config_lib.DEFAULT_TOWN_SEED)
     results = {}
     for name in FLAGS.what:
         figure = {"benchmark": name, **globals()[f"bench_{name}"](town, FLAGS.repeats), **context}

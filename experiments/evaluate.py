@@ -15,7 +15,7 @@ import sys
 
 from absl import app, flags
 
-from e2e_percep_jax import allocator, checkpoint, detection, report, world
+from e2e_percep_jax import allocator, checkpoint, detection, report, world, xla_cpu
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import evaluate as eval_lib
 
@@ -37,6 +37,7 @@ INFERENCE_FIELDS = ("model.pose_filter",)  # model fields that change no paramet
 
 def main(argv):
     allocator.keep_freed_buffers()
+    xla_cpu.prefer_eigen_convolutions()
     try:
         config_lib.check_launch(argv)
         if FLAGS["config"].present:

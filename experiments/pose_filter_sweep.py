@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from absl import app, flags
 
-from e2e_percep_jax import allocator
+from e2e_percep_jax import allocator, xla_cpu
 from e2e_percep_jax import batch as batch_lib
 from e2e_percep_jax import checkpoint, metrics, pose_belief, rollout
 from e2e_percep_jax import config as config_lib
@@ -42,6 +42,7 @@ FLAGS = flags.FLAGS
 
 def main(argv):
     allocator.keep_freed_buffers()
+    xla_cpu.prefer_eigen_convolutions()
     try:
         config_lib.check_launch(argv)
         settings = [tuple(map(float, s)) for s in itertools.product(FLAGS.floors, FLAGS.powers, FLAGS.speed_gains,

@@ -13,7 +13,7 @@ import sys
 import jax
 from absl import app, flags
 
-from e2e_percep_jax import allocator
+from e2e_percep_jax import allocator, xla_cpu
 from e2e_percep_jax import config as config_lib
 
 config_lib.define_flags()
@@ -26,6 +26,7 @@ FLAGS = flags.FLAGS
 
 def main(argv):
     allocator.keep_freed_buffers()
+    xla_cpu.prefer_eigen_convolutions()
     try:
         config_lib.check_launch(argv)
         cfg = config_lib.from_flags()

@@ -1,8 +1,12 @@
 """Fixtures for every test module. Plain helpers that test modules import are in helpers.py."""
 import pytest
 
-from e2e_percep_jax import config
+from e2e_percep_jax import config, xla_cpu
 from e2e_percep_jax import town as town_lib
+
+# The convolution path the launchers and e2e.load choose, set before any test computes (process-wide;
+# the launchers that tests start inherit it).
+xla_cpu.prefer_eigen_convolutions()
 
 
 @pytest.fixture(scope="module", autouse=True)

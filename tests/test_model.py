@@ -169,6 +169,27 @@ def test_subpixel_deconv_equals_flax_conv_transpose(kernel, features):
         np.testing.assert_allclose(g, want, rtol=1e-4, atol=1e-4)
 
 
+@pytest.mark.parametrize("kernel", [2, 4])
+def test_whole_map_layers_equal_flax_conv_and_conv_transpose(kernel):
+    """The encoder's last layer and the trunks' first, as matmuls, against flax's layers with the same
+    parameters, values and gradients."""
+    pairs = ((model.WholeMapConv(5), nn.Conv(5, (kernel, kernel), padding="VALID"),
+              (3, kernel, kernel, 4), lambda y: y.reshape(3, 5)),
+             (model.WholeMapConvTranspose(5, kernel), nn.ConvTranspose(5, (kernel, kernel), padding="VALID"),
+              (3, 4), lambda y: y))
+    for ours, flax_layer, in_shape, as_ours in pairs:
+        x = jax.random.normal(jax.random.PRNGKey(0), in_shape)
+        flax_in = x if x.ndim == 4 else x[:, None, None, :]
+        params = jax.tree.map(lambda v: v + 0.1, flax_layer.init(jax.random.PRNGKey(1), flax_in))  # bias too
+        got = ours.apply(params, x)
+        np.testing.assert_allclose(got, as_ours(flax_layer.apply(params, flax_in)), rtol=1e-5, atol=1e-6)
+        cotangent = jax.random.normal(jax.random.PRNGKey(2), got.shape)
+        grad = lambda f: jax.grad(lambda p: jnp.sum(f(p) * cotangent))(params)
+        for g, want in zip(jax.tree.leaves(grad(lambda p: ours.apply(p, x))),
+                           jax.tree.leaves(grad(lambda p: as_ours(flax_layer.apply(p, flax_in))))):
+            np.testing.assert_allclose(g, want, rtol=1e-5, atol=1e-5)
+
+
 @pytest.mark.slow
 def test_layers_match_numpy_torch_semantics():
     """Paddings (torch's k // 2, output_padding 1), leaky slope 0.2 after every conv / deconv incl. the
