@@ -1,7 +1,7 @@
 """Run XLA:CPU's single convolutions on its Eigen path instead of its YNN fusion: faster for this model.
 
-XLA:CPU (jaxlib 0.10 and 0.12) hands every convolution of 16 or more channels to its YNN library by
-default. For this model's convolutions (3 x 3 and 5 x 5, 32-256 channels, stride 2) Eigen's path
+XLA:CPU (jaxlib 0.10 and 0.12) hands convolutions of 16 or more channels (above a small size) to its
+YNN library by default. For this model's convolutions (3 x 3 and 5 x 5, 32-256 channels, stride 2) Eigen's path
 is faster, forward and backward: the measurements are in ``experiments/bench.py`` (``--what=train``
 with and without ``--eigen_convolutions``). Only float rounding changes (relative ~1e-6).
 
@@ -25,7 +25,8 @@ MEASURED_JAXLIB = ((0, 10), (0, 13))
 def prefer_eigen_convolutions() -> bool:
     """Adds ``FLAG=VALUE`` to ``XLA_FLAGS`` for this process and its children. Returns whether it did:
     False where ``XLA_FLAGS`` already names the flag, where ``JAX_PLATFORMS`` names no CPU, or where
-    jaxlib is outside :data:`MEASURED_JAXLIB`. Without effect once a computation has run."""
+    jaxlib is outside :data:`MEASURED_JAXLIB`. Without effect once a computation has run
+    (:func:`convolution_path` tells which path is in use)."""
     flags = os.environ.get("XLA_FLAGS", "")
     platforms = os.environ.get("JAX_PLATFORMS", "")
     if FLAG in flags or (platforms and "cpu" not in platforms.lower().split(",")):

@@ -163,7 +163,8 @@ def bench_frames_parts(town, repeats):
 
 
 def _train_step_runner(cfg, batch):
-    """(compile seconds, a function running one compiled training step, on ``batch`` unless given another)."""
+    """(compile seconds, a function running one compiled training step, on ``batch`` unless given another,
+    the compiled program's HLO text)."""
     mesh = train_lib.make_mesh()
     step_fn = train_lib.make_train_step(cfg, mesh)
     holder = {"state": train_lib.init_state(cfg)}
@@ -177,7 +178,7 @@ def _train_step_runner(cfg, batch):
         holder["state"], metrics = compiled(holder["state"], step_batch, key)  # the state is donated
         return metrics["total"]
 
-    return compile_s, run
+    return compile_s, run, compiled.as_text()
 
 
 def _cpu_stream_config():
@@ -193,7 +194,7 @@ def bench_batch(town, repeats):
     per_drive = cfg.data.batches_per_drive
     key = jax.random.PRNGKey(0)
     fresh_batch_s = _median_s(lambda: batch_lib.make_batch(key, town, cfg), repeats)
-    _, run = _train_step_runner(cfg, batch_lib.make_batch(key, town, cfg))
+    _, run, _ = _train_step_runner(cfg, batch_lib.make_batch(key, town, cfg))
     step_s = _median_s(run, repeats)
     # The stream's first K batches are K warm-ups: time a whole cycle (K^2 batches: K drives, each its
     # warm-up and K segments, served in turn).
@@ -215,7 +216,7 @@ def bench_loop(town, repeats):
     cfg = _cpu_stream_config()
     per_drive = cfg.data.batches_per_drive
     fixed = batch_lib.make_batch(jax.random.PRNGKey(0), town, cfg)
-    _, train_step = _train_step_runner(cfg, fixed)
+    _, train_step, _ = _train_step_runner(cfg, fixed)
     steps, mesh = per_drive ** 2, train_lib.make_mesh()
 
     def run(batches):
@@ -257,7 +258,7 @@ def bench_train(town, repeats):
     for size in FLAGS.train_sizes:
         b, t, r = _size(size)
         cfg = _paper_config(b, t, r)
-        compile_s, run = _train_step_runner(cfg, batch_lib.make_batch(jax.random.PRNGKey(0), town, cfg))
+        compile_s, run, _ = _train_step_runner(cfg, batch_lib.make_batch(jax.random.PRNGKey(0), town, cfg))
         ours_s, peers = [], []
         for _ in range(FLAGS.peer_rounds):
             ours_s.append(_median_s(run, repeats))
@@ -374,30 +375,26 @@ def _op_core_ns(profile):
 
 def bench_train_profile(town, repeats):
     """Per-op profile of the training step at the first ``--train_sizes`` entry (jax.profiler): core-ms
-    per step of each op (``_op_core_ns``), summed by part (PROFILE_PARTS), and the slowest ops; beside
+    per step of each op (``_op_core_ns``), summed by part (PROFILE_PARTS), and the slowest kinds of op; beside
     the peer's (``experiments/torch_profile.py``, torch.profiler) split into the same parts. Tracing
     slows a step (``step_s_traced``), so compare shares, and ``train`` for the step's time."""
     b, t, r = _size(FLAGS.train_sizes[0])
     cfg = _paper_config(b, t, r)
-    batch = batch_lib.make_batch(jax.random.PRNGKey(0), town, cfg)
-    mesh = train_lib.make_mesh()
-    step_fn = train_lib.make_train_step(cfg, mesh)
-    state, batch, key = train_lib.init_state(cfg), train_lib.shard_batch(batch, mesh), jax.random.PRNGKey(0)
-    compiled = step_fn.lower(state, batch, key).compile()
-    parts = _op_parts(compiled.as_text())
-    state, _ = jax.block_until_ready(compiled(state, batch, key))  # warm-up
+    _, run, hlo_text = _train_step_runner(cfg, batch_lib.make_batch(jax.random.PRNGKey(0), town, cfg))
+    parts = _op_parts(hlo_text)
+    jax.block_until_ready(run())  # warm-up
     with tempfile.TemporaryDirectory() as trace_dir:
         jax.profiler.start_trace(trace_dir)
         start = time.perf_counter()
         for _ in range(repeats):
-            state, _ = jax.block_until_ready(compiled(state, batch, key))
+            jax.block_until_ready(run())
         step_s = (time.perf_counter() - start) / repeats
         jax.profiler.stop_trace()
         trace, = glob.glob(os.path.join(trace_dir, "**", "*.xplane.pb"), recursive=True)
         core_ns = _op_core_ns(jax.profiler.ProfileData.from_file(trace))
     part_ns, kind_ns = collections.Counter(), collections.Counter()
     for op, ns in core_ns.items():
-        part = parts.get(op, "pool tasks of no op")
+        part = "pool tasks of no op" if op is None else parts.get(op, "other programs")
         part_ns[part] += ns
         kind_ns[(part, re.sub(r"\.\d+$", "", op or ""))] += ns  # fusion.12 and fusion.31 are one kind
     ms = lambda ns: ns / 1e6 / repeats
