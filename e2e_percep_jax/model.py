@@ -10,8 +10,9 @@ Layers match the torch peer (``shared/peer/torch_peer_bench.py``) layer for laye
 counts are equal: torch's stride-2 ``Conv2d(k, 2, k // 2)`` is a flax ``Conv`` with explicit padding,
 its ``ConvTranspose2d(k, 2, k // 2, output_padding=1)`` is :class:`Deconv2x` (a stride-2 layer halves /
 doubles the size exactly), and the encoder's last ``Conv2d(4)`` (4 x 4 -> 1 x 1) and the trunks' first
-``ConvTranspose2d(4)`` (1 x 1 -> 4 x 4) are matmuls (:class:`WholeMapConv`, :class:`WholeMapConvTranspose`). Leaky-ReLU with slope 0.2 follows every layer except the Gaussian outputs
-of the latent MLPs, the pose head's output and the PIXOR class logit (a sigmoid).
+``ConvTranspose2d(4)`` (1 x 1 -> 4 x 4) are matmuls (:class:`WholeMapConv`, :class:`WholeMapConvTranspose`).
+Leaky-ReLU with slope 0.2 follows every layer except the Gaussian outputs of the latent MLPs, the pose
+head's output and the PIXOR class logit (a sigmoid).
 
 Public API (``cfg`` is the full :class:`~e2e_percep_jax.config.Config`; params are a plain pytree):
 

@@ -1,9 +1,10 @@
 """Run XLA:CPU's single convolutions on its Eigen path instead of its YNN fusion: faster for this model.
 
 XLA:CPU (jaxlib 0.10 and 0.12) hands convolutions of 16 or more channels (above a small size) to its
-YNN library by default. For this model's convolutions (3 x 3 and 5 x 5, 32-256 channels, stride 2) Eigen's path
-is faster, forward and backward: the measurements are in ``experiments/bench.py`` (``--what=train``
-with and without ``--eigen_convolutions``). Only float rounding changes (relative ~1e-6).
+YNN library by default. For this model's convolutions (3 x 3 and 5 x 5, 32-256 channels, stride 2)
+Eigen's path is faster, forward and backward: the measurements are in ``experiments/bench.py``
+(``--what=train`` with and without ``--eigen_convolutions``). Only float rounding changes (relative
+~1e-6).
 
 XLA reads ``XLA_FLAGS`` once, when its backend starts (the first computation), so
 :func:`prefer_eigen_convolutions` must run before that: the launchers in ``experiments/`` and
@@ -22,6 +23,14 @@ VALUE = "-individual_convolution"  # remove single convolutions from the YNN fus
 MEASURED_JAXLIB = ((0, 10), (0, 13))
 
 
+def jaxlib_measured() -> bool:
+    """Whether the installed jaxlib is in :data:`MEASURED_JAXLIB` (reads a version string only:
+    importing ``jaxlib.version`` starts no backend)."""
+    from jaxlib import version
+    first, past_last = MEASURED_JAXLIB
+    return first <= tuple(version.__version_info__[:2]) < past_last
+
+
 def prefer_eigen_convolutions() -> bool:
     """Adds ``FLAG=VALUE`` to ``XLA_FLAGS`` for this process and its children. Returns whether it did:
     False where ``XLA_FLAGS`` already names the flag, where ``JAX_PLATFORMS`` names no CPU, or where
@@ -29,11 +38,7 @@ def prefer_eigen_convolutions() -> bool:
     (:func:`convolution_path` tells which path is in use)."""
     flags = os.environ.get("XLA_FLAGS", "")
     platforms = os.environ.get("JAX_PLATFORMS", "")
-    if FLAG in flags or (platforms and "cpu" not in platforms.lower().split(",")):
-        return False
-    from jaxlib import version  # a version string only: importing it starts no backend
-    first, past_last = MEASURED_JAXLIB
-    if not first <= tuple(version.__version_info__[:2]) < past_last:
+    if FLAG in flags or (platforms and "cpu" not in platforms.lower().split(",")) or not jaxlib_measured():
         return False
     os.environ["XLA_FLAGS"] = f"{flags} {FLAG}={VALUE}".strip()
     return True

@@ -164,7 +164,7 @@ def bench_frames_parts(town, repeats):
 
 def _train_step_runner(cfg, batch):
     """(compile seconds, a function running one compiled training step, on ``batch`` unless given another,
-    the compiled program's HLO text)."""
+    the compiled program)."""
     mesh = train_lib.make_mesh()
     step_fn = train_lib.make_train_step(cfg, mesh)
     holder = {"state": train_lib.init_state(cfg)}
@@ -178,7 +178,7 @@ def _train_step_runner(cfg, batch):
         holder["state"], metrics = compiled(holder["state"], step_batch, key)  # the state is donated
         return metrics["total"]
 
-    return compile_s, run, compiled.as_text()
+    return compile_s, run, compiled
 
 
 def _cpu_stream_config():
@@ -380,8 +380,8 @@ def bench_train_profile(town, repeats):
     slows a step (``step_s_traced``), so compare shares, and ``train`` for the step's time."""
     b, t, r = _size(FLAGS.train_sizes[0])
     cfg = _paper_config(b, t, r)
-    _, run, hlo_text = _train_step_runner(cfg, batch_lib.make_batch(jax.random.PRNGKey(0), town, cfg))
-    parts = _op_parts(hlo_text)
+    _, run, compiled = _train_step_runner(cfg, batch_lib.make_batch(jax.random.PRNGKey(0), town, cfg))
+    parts = _op_parts(compiled.as_text())
     jax.block_until_ready(run())  # warm-up
     with tempfile.TemporaryDirectory() as trace_dir:
         jax.profiler.start_trace(trace_dir)

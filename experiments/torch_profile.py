@@ -49,15 +49,25 @@ def _in_range(part, fn, *args):
         return fn(*args)
 
 
+def part_of(event, forward_part=None):
+    """The part of the innermost range around ``event`` (itself included): a part's own range, or, given
+    ``forward_part``, a backward node's, which is the part of the forward op it differentiates."""
+    while event is not None:
+        if event.name.startswith("part:"):
+            return event.name[len("part:"):]
+        if forward_part is not None and event.name.startswith("autograd::engine::evaluate_function"):
+            return forward_part.get(event.sequence_nr)
+        event = event.cpu_parent
+    return None
+
+
 def part_of_forward_ops(events):
     """{autograd sequence number: part} of the forward ops run inside a part's range."""
     parts = {}
     for event in events:
-        parent = event.cpu_parent
-        while parent is not None and not parent.name.startswith("part:"):
-            parent = parent.cpu_parent
-        if parent is not None and event.sequence_nr >= 0:
-            parts.setdefault(event.sequence_nr, parent.name[len("part:"):])
+        part = part_of(event.cpu_parent)
+        if part is not None and event.sequence_nr >= 0:
+            parts.setdefault(event.sequence_nr, part)
     return parts
 
 
@@ -99,15 +109,7 @@ def main():
     forward_part = part_of_forward_ops(events)
     part_us, op_us = collections.Counter(), collections.Counter()
     for event in events:  # self times: each microsecond is counted once, in the innermost op running
-        parent, part = event, None
-        while parent is not None and part is None:
-            if parent.name.startswith("part:"):
-                part = parent.name[len("part:"):]
-            elif parent.name.startswith("autograd::engine::evaluate_function"):
-                part = forward_part.get(parent.sequence_nr)
-                break
-            parent = parent.cpu_parent
-        part = part or "losses"
+        part = part_of(event, forward_part) or "losses"
         part_us[part] += event.self_cpu_time_total
         op_us[(part, event.name)] += event.self_cpu_time_total
     per_step_ms = lambda us: us / 1e3 / a.steps

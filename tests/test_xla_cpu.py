@@ -30,13 +30,7 @@ def _run(mode, out_path):
     return out, np.load(out_path)
 
 
-def _measured_jaxlib():
-    from jaxlib import version
-    first, past_last = xla_cpu.MEASURED_JAXLIB
-    return first <= tuple(version.__version_info__[:2]) < past_last
-
-
-@pytest.mark.skipif(not _measured_jaxlib(), reason="jaxlib outside the measured range: XLA's default is kept")
+@pytest.mark.skipif(not xla_cpu.jaxlib_measured(), reason="jaxlib outside the measured range: XLA's default is kept")
 def test_convolutions_move_to_eigen_and_only_rounding_changes(tmp_path):
     (preferred, path), eigen = _run("prefer", str(tmp_path / "eigen.npz"))
     assert (preferred, path) == ("True", "eigen")
