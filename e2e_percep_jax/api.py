@@ -59,8 +59,8 @@ class Perceiver:
         """Filters one frame of B streams and decodes it.
 
         camera, lidar: uint8 [B, R, R, 3] (the frame contract's images); action: float32 [B, 2], the
-        ego action (acceleration m/s², steering rad) applied from the previous frame to this one
-        (ignored on a stream's first frame); key: a PRNG key to sample the latents, or None for the
+        ego's commands from the previous frame to this one, as the car logs them (pedal in [-1, 1],
+        steering command rad; ignored on a stream's first frame); key: a PRNG key to sample the latents, or None for the
         posterior means. Returns (state, outputs) with outputs:
         ``det_cls`` [B, R, R, 1] vehicle probability, ``det_reg`` [B, R, R, 6] PIXOR regression
         (units in :mod:`e2e_percep_jax.pixor`), ``pose`` [B, 5] (x m, y m, cos ψ, sin ψ, speed m/s,

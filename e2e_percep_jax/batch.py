@@ -46,14 +46,14 @@ def make_batch(key, town, cfg: config_lib.Config):
     return _drive_on(warm_up(key, town, cfg), town, cfg)[1]
 
 
-def _hand_over(states, drive_key, segment, cfg: config_lib.Config):
+def _hand_over(states, drive_key, segment, town, cfg: config_lib.Config):
     """Each of the B worlds hands its ego role to a random NPC, keyed by (drive, segment); with
     ``data.carry_state`` the egos keep driving (a drive's segments are then one continuous sequence)."""
     if cfg.data.carry_state:
         return states
     keys = jax.random.split(jax.random.fold_in(drive_key, segment), cfg.data.batch_size)
     vehicles = jax.vmap(lambda k: jax.random.randint(k, (), 1, cfg.world.num_vehicles + 1))(keys)
-    return jax.vmap(world.hand_over_ego)(states, vehicles)
+    return jax.vmap(world.hand_over_ego, in_axes=(0, 0, None))(states, vehicles, town)
 
 
 @functools.partial(jax.jit, static_argnames="cfg")
@@ -61,7 +61,7 @@ def start_drive(drive_key, town, cfg: config_lib.Config, segments):
     """A drive's B worlds ready for segment ``segments``: warmed up, then ``segments`` segments driven
     unobserved, each after its hand-over (``segments`` traced: one compilation for every resume)."""
     def segment(j, states):
-        states = _hand_over(states, drive_key, j, cfg)
+        states = _hand_over(states, drive_key, j, town, cfg)
         return jax.vmap(lambda s: rollout.advance(s, town, cfg.data.seq_len + 1))(states)
     return jax.lax.fori_loop(0, segments, segment, warm_up(drive_key, town, cfg))
 
@@ -69,7 +69,7 @@ def start_drive(drive_key, town, cfg: config_lib.Config, segments):
 @functools.partial(jax.jit, static_argnames="cfg")
 def drive_segment(states, drive_key, segment, town, cfg: config_lib.Config):
     """(states after, batch): segment ``segment`` of a drive, seen by the egos its hand-over picks."""
-    return _drive_on(_hand_over(states, drive_key, segment, cfg), town, cfg)
+    return _drive_on(_hand_over(states, drive_key, segment, town, cfg), town, cfg)
 
 
 def batch_key(seed: int, step: int):

@@ -35,6 +35,15 @@ DEFAULT_TOWN_SEED = 0
 class WorldConfig:
     town_seed: int = DEFAULT_TOWN_SEED  # the training town; any other seed is a held-out town
     num_vehicles: int = 100  # surrounding vehicles, the ego not counted
+    # The ego car as a plant (world.EgoPlant): its commands do not determine its motion. Magnitudes and
+    # their sources: BUILD_NOTES.md, "The ego plant". All zero gives the exact-action world, bit for bit.
+    ego_lag_s: float = 0.15  # first-order time constant of the pedal and steering actuators
+    ego_steer_offset_deg: float = 0.25  # std over drives of the road-wheel angle's offset
+    ego_steer_gain_std: float = 0.03  # std over drives of the steering gain (mean 1)
+    ego_distance_scale_std: float = 0.02  # std over drives of the wheels' distance scale (mean 1)
+    ego_understeer_deg_per_g: float = 2.0  # road-wheel angle needed per g of lateral acceleration (slip)
+    ego_accel_noise_mps2: float = 0.05  # per-step std of the acceleration's noise
+    ego_curvature_noise_1pm: float = 0.001  # per-step std of the curvature's noise (heading noise per metre)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -246,6 +255,13 @@ def validate(cfg: Config) -> Config:
     for name, value in seeds.items():
         if value < 0:
             raise ValueError(f"--{name}={value}: must be >= 0")
+    plant_limits = {"ego_lag_s": 1.0, "ego_steer_offset_deg": 5.0, "ego_steer_gain_std": 0.2,
+                    "ego_distance_scale_std": 0.2, "ego_understeer_deg_per_g": 10.0, "ego_accel_noise_mps2": 1.0,
+                    "ego_curvature_noise_1pm": 0.05}
+    for name, limit in plant_limits.items():
+        value = getattr(cfg.world, name)
+        if not 0.0 <= value <= limit:  # (a std at the limit still keeps every drawn gain and scale above 0.5)
+            raise ValueError(f"--world.{name}={value}: must lie in [0, {limit:g}] (0: off)")
     if cfg.data.warmup_steps < 0:
         raise ValueError(f"--data.warmup_steps={cfg.data.warmup_steps}: must be >= 0")
     if not cfg.train.pose_weight >= 0:

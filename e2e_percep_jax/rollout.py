@@ -29,8 +29,9 @@ class Frames(Mapping):
     camera, lidar, roadmap: uint8 [..., R, R, 3], the ego's views (R = ``data.image_size`` pixels a side);
     det_cls: float32 [..., R, R, 1], 1 on pixels inside a vehicle's box; det_reg: float32 [..., R, R, 6],
     PIXOR regression targets (units in :mod:`e2e_percep_jax.pixor`); pose: float32 [..., 5], the ego's
-    (x m, y m, cos yaw, sin yaw, speed m/s) in the town frame; action: float32 [..., 2], the ego's
-    (acceleration m/s^2, steering rad) applied from this frame to the next; boxes: float32 [..., N, 5],
+    (x m, y m, cos yaw, sin yaw, speed m/s) in the town frame; action: float32 [..., 2], the ego's commands
+    from this frame to the next, as a car logs them: (pedal in [-1, 1], steering command rad); the plant
+    that turns them into motion (``world.EgoPlant``) is not part of the contract; boxes: float32 [..., N, 5],
     the N other vehicles in the ego frame (x m, y m, yaw rad, length m, width m); boxes_valid: bool
     [..., N], inside the bird-eye view; boxes_occluded: bool [..., N], no lidar return.
     """

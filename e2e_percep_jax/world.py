@@ -17,9 +17,14 @@ Longitudinal control is IDM against the nearest of:
   circle; vehicles that diverge from the same lane skip the priority rule (the one ahead goes first).
 
 An NPC never moves into its leader's rear, across a red stop line or into a zone it yields at (its step is
-clamped), and sits on its lane's centre line. The ego runs the same autopilot, but its acceleration and
-steering are clipped to the action limits and drive a kinematic bicycle model; steering is curvature
-feed-forward plus feedback on the rear axle's lateral and heading error.
+clamped), and sits on its lane's centre line. The ego runs the same autopilot, but what it decides are
+commands, clipped to their limits: a pedal in [-1, 1] (times EGO_ACCEL_LIMIT_MPS2, the acceleration asked
+for) and a steering command (a road-wheel angle in radians; curvature feed-forward plus feedback on the
+rear axle's lateral and heading error). A plant with hidden per-drive parameters (:class:`EgoPlant`) turns
+the commands into motion: first-order actuator lag, a steering offset and gain, a distance scale (the
+wheels' true radius against the nominal), understeer (tyre slip growing with lateral acceleration), and
+per-step noise on acceleration and curvature, through a kinematic bicycle model. The commands are what a
+perceiver is given (the frame contract's ``action``); the plant's parameters never are.
 
 Shapes: N + 1 vehicles (the ego is row EGO), L = ROUTE_LEN + 1 lanes on the known path (the current
 one first), MC conflicts per lane, NL lanes.
@@ -73,9 +78,12 @@ class WorldState(NamedTuple):
     veh_speed_mps (sensors): float32 [N+1].
     veh_height_m (sensors): float32 [N+1].
     veh_color (sensors): uint8 [N+1, 3].
-    ego_action (sensors): float32 [2], (acceleration m/s^2, steering rad) applied in the step that
-        produced this state (zeros after reset). The frame contract's action at t is the
+    ego_action (sensors): float32 [2], the ego's commands (pedal in [-1, 1], steering command rad) in the
+        step that produced this state (zeros after reset). The frame contract's action at t is the
         ``ego_action`` of state t+1.
+    ego_actuator: float32 [2], the actuators' state after that step: (acceleration the pedal has reached
+        m/s^2, road-wheel angle the steering has reached rad), before the plant's gain and offset.
+    ego_plant: :class:`EgoPlant`, the ego's hidden parameters, drawn at reset.
     key: PRNG key for the world's own randomness.
     veh_lane: int32 [N+1], the lane the vehicle's centre is on.
     veh_s_m: float32 [N+1], arc position of the centre along that lane (the ego's: its projection).
@@ -91,6 +99,8 @@ class WorldState(NamedTuple):
     veh_height_m: jax.Array
     veh_color: jax.Array
     ego_action: jax.Array
+    ego_actuator: jax.Array
+    ego_plant: "EgoPlant"
     key: jax.Array
     veh_lane: jax.Array
     veh_s_m: jax.Array
@@ -100,6 +110,42 @@ class WorldState(NamedTuple):
     veh_speed_frac: jax.Array
     veh_standing_steps: jax.Array
     step: jax.Array
+
+
+class EgoPlant(NamedTuple):
+    """What turns the ego's commands into motion, per drive (float32 [] each); never shown to a perceiver.
+
+    The road-wheel angle is ``steer_gain * actuator + steer_offset_rad``; the bicycle's curvature is
+    ``tan(angle) / (WHEELBASE_M + understeer_rad_s2pm * v^2)`` (the understeer gradient: slip grows with
+    lateral acceleration v^2 kappa); the acceleration the pedal's actuator reaches moves the car
+    ``distance_scale`` times as far as the nominal wheel radius says.
+    """
+    steer_offset_rad: jax.Array
+    steer_gain: jax.Array
+    distance_scale: jax.Array
+    understeer_rad_s2pm: jax.Array  # road-wheel angle per m/s^2 of lateral acceleration
+    lag_share: jax.Array  # share of the gap to the command the actuators close in a step (1: no lag)
+    accel_noise_mps2: jax.Array  # per-step std
+    curvature_noise_1pm: jax.Array  # per-step std (a standing car does not turn)
+
+
+PLANT_TRUNCATION = 2.5  # the per-drive draws are normal, truncated at this many stds
+G_MPS2 = 9.81
+
+
+def draw_plant(key, cfg: WorldConfig) -> EgoPlant:
+    """One drive's :class:`EgoPlant`: offset, gain and distance scale drawn around (0, 1, 1) with the
+    config's stds; lag, understeer and noise as configured. All-zero fields give the exact plant."""
+    offset, gain, scale = jax.random.truncated_normal(key, -PLANT_TRUNCATION, PLANT_TRUNCATION, (3,))
+    f32 = lambda x: jnp.float32(x)
+    return EgoPlant(
+        steer_offset_rad=offset * f32(np.deg2rad(cfg.ego_steer_offset_deg)),
+        steer_gain=1.0 + gain * f32(cfg.ego_steer_gain_std),
+        distance_scale=1.0 + scale * f32(cfg.ego_distance_scale_std),
+        understeer_rad_s2pm=f32(np.deg2rad(cfg.ego_understeer_deg_per_g) / G_MPS2),
+        lag_share=f32(1.0 - np.exp(-DT_S / cfg.ego_lag_s) if cfg.ego_lag_s > 0 else 1.0),
+        accel_noise_mps2=f32(cfg.ego_accel_noise_mps2),
+        curvature_noise_1pm=f32(cfg.ego_curvature_noise_1pm))
 
 
 def lane_point(town, lane, s_m):
@@ -183,6 +229,9 @@ def reset(key, town, cfg: WorldConfig) -> WorldState:
         veh_height_m=height,
         veh_color=color,
         ego_action=jnp.zeros(2, jnp.float32),
+        ego_actuator=jnp.stack([0.0, _lane_steer(town, lane[EGO], s[EGO])]),
+        # (folded, not split: the world's other draws stay what they were before the plant existed)
+        ego_plant=draw_plant(jax.random.fold_in(key, len(keys)), cfg),
         key=keys[9],
         veh_lane=lane,
         veh_s_m=s,
@@ -388,11 +437,13 @@ def step(state: WorldState, town) -> WorldState:
     ds = jnp.minimum(0.5 * (v + v_new) * DT_S, room)
     v_new = jnp.where(0.5 * (v + v_new) * DT_S > room, jnp.minimum(v_new, room / DT_S), v_new)
 
-    # The ego: clipped action through a kinematic bicycle model.
+    # The ego: clipped commands through the plant.
     ego_limit = jnp.where(s[EGO] + v[EGO] * DT_S + 0.5 > length[EGO, 0], limit[EGO, :2].min(), limit[EGO, 0])
     ego_accel = jnp.clip(jnp.minimum(accel[EGO], (ego_limit - v[EGO]) / DT_S), -EGO_ACCEL_LIMIT_MPS2, EGO_ACCEL_LIMIT_MPS2)
     ego_accel = jnp.maximum(ego_accel, -v[EGO] / DT_S)  # stop, do not reverse
-    ego_steer, ego_xy, ego_yaw, ego_ds, ego_v = _drive_ego(state, town, ego_accel)
+    # (A key folded from the route key, as the re-routing's: the world's other draws stay as they were.)
+    ego_command, ego_actuator, ego_xy, ego_yaw, ego_ds, ego_v = _drive_ego(
+        state, town, ego_accel, jax.random.fold_in(route_key, 2))
     ds = ds.at[EGO].set(ego_ds)
     v_new = v_new.at[EGO].set(ego_v)
 
@@ -413,7 +464,8 @@ def step(state: WorldState, town) -> WorldState:
     return state._replace(
         veh_box=jnp.concatenate([xy, yaw[:, None], state.veh_box[:, 3:]], 1),
         veh_speed_mps=v_new,
-        ego_action=jnp.stack([ego_accel, ego_steer]),
+        ego_action=ego_command,
+        ego_actuator=ego_actuator,
         key=key,
         veh_lane=new_lane,
         veh_s_m=s_new,
@@ -424,16 +476,18 @@ def step(state: WorldState, town) -> WorldState:
     )
 
 
-def hand_over_ego(state: WorldState, vehicle) -> WorldState:
+def hand_over_ego(state: WorldState, vehicle, town) -> WorldState:
     """The ego role passes to NPC row ``vehicle`` (int in [1, N]): rows EGO and ``vehicle`` swap their place
     on the road (centre, yaw, speed, lane, arc, previous lane, route, standing time) and their driver traits, while each row
-    keeps its body (length, width, height, paint), so the ego is still the EGO_SIZE_M car. The traffic goes
+    keeps its body (length, width, height, paint), so the ego is still the EGO_SIZE_M car, with its plant.
+    Its actuators take up the NPC's motion (no acceleration, the lane's steering). The traffic goes
     on as it was; only whose sensors see it changes (a fresh viewpoint without a fresh warm-up). Bodies swap
     lengths by at most 0.9 m, i.e. 0.45 m per end, within LEADER_CLEARANCE_M: no overlap (tested).
     """
     order = jnp.arange(state.veh_s_m.shape[0]).at[EGO].set(vehicle).at[vehicle].set(EGO)
     swap = lambda a: a[order]
     return state._replace(
+        ego_actuator=jnp.stack([0.0, _lane_steer(town, state.veh_lane[vehicle], state.veh_s_m[vehicle])]),
         veh_box=jnp.concatenate([state.veh_box[order, :3], state.veh_box[:, 3:]], 1),
         veh_speed_mps=swap(state.veh_speed_mps), veh_lane=swap(state.veh_lane), veh_s_m=swap(state.veh_s_m),
         veh_prev_lane=swap(state.veh_prev_lane), veh_route=swap(state.veh_route),
@@ -441,12 +495,21 @@ def hand_over_ego(state: WorldState, vehicle) -> WorldState:
         veh_max_accel_mps2=swap(state.veh_max_accel_mps2), veh_speed_frac=swap(state.veh_speed_frac))
 
 
-def _drive_ego(state, town, accel):
-    """Steers the ego along its lane and moves it by the bicycle model under ``accel``.
+def _lane_steer(town, lane, s_m):
+    """The road-wheel angle (rad) that holds a car's rear axle on lane ``lane`` at its centre's arc ``s_m``."""
+    return jnp.arctan(WHEELBASE_M * lane_point(town, lane, s_m - 0.5 * WHEELBASE_M)[2])
 
-    Returns (steering rad, new centre xy [2], new yaw, arc advance along its lane m, new speed).
-    The rear axle tracks the lane (the centre, half a wheelbase ahead, then sits on it to within a few cm).
+
+def _drive_ego(state, town, accel, noise_key):
+    """Steers the ego along its lane and moves it through its plant, asking for acceleration ``accel``.
+
+    Returns (commands [2]: pedal, steering command rad; actuators' state [2]; new centre xy [2]; new yaw;
+    arc advance along its lane m; new speed). With the exact plant (no lag, offset, gain or scale error,
+    understeer or noise) this is the kinematic bicycle driven by the commands, bit for bit.
+    The rear axle tracks the lane (the centre, half a wheelbase ahead, then sits on it to within a few cm;
+    with a plant, within the feedback's error).
     """
+    plant = state.ego_plant
     box, v, s, lane = state.veh_box[EGO], state.veh_speed_mps[EGO], state.veh_s_m[EGO], state.veh_lane[EGO]
     heading = jnp.stack([jnp.cos(box[2]), jnp.sin(box[2])])
     rear_axle = box[:2] - 0.5 * WHEELBASE_M * heading
@@ -455,14 +518,27 @@ def _drive_ego(state, town, accel):
     lateral_m = jnp.cos(ref_yaw) * offset[1] - jnp.sin(ref_yaw) * offset[0]  # > 0: left of the lane
     curvature = (ref_curv - STEER_GAIN_LATERAL * lateral_m
                  - STEER_GAIN_HEADING * jnp.sin(wrap_angle(box[2] - ref_yaw)))
-    steer = jnp.clip(jnp.arctan(WHEELBASE_M * curvature), -EGO_STEER_LIMIT_RAD, EGO_STEER_LIMIT_RAD)
-    v_new = jnp.maximum(v + accel * DT_S, 0.0)  # accel >= -v / DT_S: only rounding is clipped here
+    steer_command = jnp.clip(jnp.arctan(WHEELBASE_M * curvature), -EGO_STEER_LIMIT_RAD, EGO_STEER_LIMIT_RAD)
+    command = jnp.stack([accel, steer_command])
+    # (where, not the lag formula at share 1: the exact plant takes the commands bit for bit)
+    actuator = jnp.where(plant.lag_share == 1.0, command,
+                         state.ego_actuator + plant.lag_share * (command - state.ego_actuator))
+    steer = jnp.clip(plant.steer_gain * actuator[1] + plant.steer_offset_rad, -EGO_STEER_LIMIT_RAD, EGO_STEER_LIMIT_RAD)
+    noise = jax.random.normal(noise_key, (2,)) * jnp.stack([plant.accel_noise_mps2, plant.curvature_noise_1pm])
+    # accel >= -v / DT_S: without lag or noise only rounding is clipped here
+    v_new = jnp.maximum(v + (plant.distance_scale * actuator[0] + noise[0]) * DT_S, 0.0)
     ds = 0.5 * (v + v_new) * DT_S
-    yaw_new = box[2] + ds * jnp.tan(steer) / WHEELBASE_M
+    # Understeer: the curvature is tan(steer) / (wheelbase + K v^2), not tan(steer) / wheelbase. (where: XLA
+    # divides by a traced value otherwise than by the constant, so K = 0 takes the constant's quotient.)
+    dyaw = ds * jnp.tan(steer) / WHEELBASE_M
+    dyaw = jnp.where(plant.understeer_rad_s2pm == 0.0, dyaw,
+                     dyaw / (1.0 + plant.understeer_rad_s2pm * (0.5 * (v + v_new)) ** 2 / WHEELBASE_M))
+    yaw_new = box[2] + dyaw + noise[1] * ds
     mid = 0.5 * (box[2] + yaw_new)
     rear_new = rear_axle + ds * jnp.stack([jnp.cos(mid), jnp.sin(mid)])
     xy_new = rear_new + 0.5 * WHEELBASE_M * jnp.stack([jnp.cos(yaw_new), jnp.sin(yaw_new)])
     # Arc position: one Newton step of projecting the new centre onto the lane.
     guess_xy, guess_yaw, _ = lane_point(town, lane, s + ds)
     advance = ds + jnp.dot(xy_new - guess_xy, jnp.stack([jnp.cos(guess_yaw), jnp.sin(guess_yaw)]))
-    return steer, xy_new, wrap_angle(yaw_new), advance, v_new
+    pedal = accel / EGO_ACCEL_LIMIT_MPS2
+    return jnp.stack([pedal, steer_command]), actuator, xy_new, wrap_angle(yaw_new), advance, v_new

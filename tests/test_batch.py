@@ -126,7 +126,7 @@ def test_batches_per_drive_interleave_drives_hand_over_the_ego_and_resume_mid_dr
             vehicles = [int(jax.random.randint(k, (), 1, n + 1)) for k in keys]
             place = lambda s, rows: np.asarray(s.veh_box)[np.arange(b)[:, None], rows, :2]
             before = states
-            states = jax.vmap(world.hand_over_ego)(states, np.array(vehicles))
+            states = jax.vmap(world.hand_over_ego, in_axes=(0, 0, None))(states, np.array(vehicles), town)
             # the new ego stands where its NPC stood, the old ego's place is now that row's; bodies stay
             np.testing.assert_array_equal(place(states, [[world.EGO]] * b), place(before, np.array(vehicles)[:, None]))
             np.testing.assert_array_equal(place(states, np.array(vehicles)[:, None]), place(before, [[world.EGO]] * b))
