@@ -22,6 +22,7 @@ import numpy as np
 from e2e_percep_jax import checkpoint, detection, pose_belief, xla_cpu
 from e2e_percep_jax import model as model_lib
 from e2e_percep_jax.config import Config
+from e2e_percep_jax.motion import MotionModel
 
 
 def _check(name, x, shape, dtype):
@@ -33,8 +34,12 @@ def _check(name, x, shape, dtype):
 
 @dataclasses.dataclass(frozen=True)
 class Perceiver:
-    """The perception model of ``cfg`` as pure functions of (params, filter state, inputs)."""
+    """The perception model of ``cfg`` as pure functions of (params, filter state, inputs). ``motion_model``:
+    the run's calibrated motion model (``motion_model.json``, :mod:`e2e_percep_jax.motion`), through which
+    the pose belief follows the commands; the default, the exact bicycle without lag or noise, is right
+    only in a world whose plant has all its fields at zero."""
     cfg: Config
+    motion_model: MotionModel = MotionModel()
 
     @property
     def belief(self) -> bool:
@@ -55,7 +60,7 @@ class Perceiver:
             state["pose"] = pose_belief.init_state(batch_size, pose_belief.grid_of(self.cfg.model))
         return state
 
-    def step(self, params, state: dict, camera, lidar, action, key=None, start_pose=None):
+    def step(self, params, state: dict, camera, lidar, action, key=None, start_pose=None, measure: bool = True):
         """Filters one frame of B streams and decodes it.
 
         camera, lidar: uint8 [B, R, R, 3] (the frame contract's images); action: float32 [B, 2], the
@@ -70,9 +75,11 @@ class Perceiver:
         [0, 1]), and with the belief head ``pose_place`` [B, n, n], the belief's probability of each cell
         (row i along y, column j along x, ``pose_belief.Grid.cell_centres``).
 
-        ``start_pose`` [B, 5] (belief head only): the known-start protocol, an odometry for towns the model
-        has not seen. Streams starting a drive start their belief at this pose, and the belief then
-        follows the recorded actions through the world's bicycle model alone (no place measurement).
+        ``start_pose`` [B, 5] (belief head only): the known-start protocol. Streams starting a drive start
+        their belief at this pose; it then follows the commands through the motion model and, with
+        ``measure`` (the town the model was trained on), the place measurements as in the global protocol.
+        ``measure=False`` (a town the model has not seen) is an odometry: the commands alone, through the
+        motion model, with the head's speed.
         """
         camera, lidar, action = jnp.asarray(camera), jnp.asarray(lidar), jnp.asarray(action)
         first = state.get("first") if isinstance(state, dict) else None
@@ -94,7 +101,8 @@ class Perceiver:
         head, grid = model_lib.pose_belief_head(params, latent, self.cfg), pose_belief.grid_of(self.cfg.model)
         if self.cfg.model.pose_filter == "histogram":
             pose_state, outputs["pose"] = pose_belief.filter_step(state["pose"], head, action, state["first"], grid,
-                                                                  start_pose=start_pose)
+                                                                  self.motion_model, start_pose=start_pose,
+                                                                  measure=measure)
         else:  # the frame's head alone: its own distribution is the belief
             pose_state, outputs["pose"] = pose_belief.head_state(head, grid), pose_belief.decode(head, grid)
         outputs["pose_place"] = pose_belief.place_marginal(pose_state["belief"])
@@ -106,6 +114,13 @@ class Perceiver:
         if not self.belief:
             return jnp.full(pose.shape[:1], jnp.nan)
         return pose_belief.negative_log_likelihood(state["pose"], pose, pose_belief.grid_of(self.cfg.model))
+
+    def pose_coverage(self, state: dict, pose):
+        """Whether the true poses [B, 5] lie in the pose belief's 95 % region: bool [B, 2], for the place
+        and for the place with heading (:func:`pose_belief.in_region`); False without the belief head."""
+        if not self.belief:
+            return jnp.zeros(pose.shape[:1] + (2,), bool)
+        return pose_belief.in_region(state["pose"], pose, pose_belief.grid_of(self.cfg.model))
 
     def _check_state(self, state, batch_size: int):
         """Trace-time check of a filter state against :meth:`init`'s for ``batch_size`` streams."""
@@ -127,10 +142,17 @@ class Perceiver:
 
 
 def load(workdir: str, step: int | None = None):
-    """(Perceiver, params) of the training run in ``workdir`` at checkpoint ``step`` (default: latest).
+    """(Perceiver, params) of the training run in ``workdir`` at checkpoint ``step`` (default: latest), with
+    the run's calibrated motion model (``motion_model.json``) for the belief pose head.
 
     Called before this process's first computation, it also routes XLA:CPU's convolutions as the
     launchers do (:func:`e2e_percep_jax.xla_cpu.prefer_eigen_convolutions`, process-wide)."""
     xla_cpu.prefer_eigen_convolutions()
     cfg, params, _ = checkpoint.restore_params(workdir, step=step)
-    return Perceiver(cfg), params
+    return run_perceiver(cfg, workdir), params
+
+
+def run_perceiver(cfg: Config, workdir: str) -> Perceiver:
+    """The perceiver of run ``workdir`` under ``cfg``: with its motion model when it has the belief head
+    (ValueError naming the file if the model is missing)."""
+    return Perceiver(cfg, MotionModel.load(workdir) if cfg.model.pose_head == "belief" else MotionModel())

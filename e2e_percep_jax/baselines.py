@@ -11,9 +11,12 @@ Baselines (``BASELINES``), each run in ``<workdir>/<baseline>/``:
   Track scores (last detection score, decayed while coasting) are what AP ranks; coasting tracks are
   scored like any box.
 - ``pose``: the same encoders and the pose head (``model.MLP``), one frame, on :func:`loss.pose_term`.
-- ``dead_reckoning``: no network; ``tracking.DeadReckoner`` from each drive's true first pose,
-  integrating noisy speed and yaw rate (``tracking.noisy_odometry`` of consecutive true poses), scored
-  by the same pose errors (:func:`dead_reckoning_host`). Privileged: it is given the start pose.
+- ``dead_reckoning``: no network, on the same information as the pose belief's motion: from each drive's
+  true first pose and speed, the logged commands through the same calibrated motion model
+  (:class:`CommandOdometry`, :mod:`e2e_percep_jax.motion`). Evaluated under the known-start protocol.
+- ``wheel_odometry``: no network; ``tracking.DeadReckoner`` from each drive's true first pose, integrating
+  wheel-speed and yaw-rate sensors: the true speed and yaw rate with a per-drive wheel-radius error and
+  gyro bias, and per-sample noise (:func:`wheel_odometry_host`). Evaluated under the known-start protocol.
 
 Training is ``train.train`` with :data:`OBJECTIVES` (same batches, optimiser, steps, checkpoints); the
 evaluation is ``evaluate.evaluate`` with a :class:`SingleFramePerceiver` (the inference API's protocol)
@@ -29,17 +32,25 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from e2e_percep_jax import checkpoint
+from e2e_percep_jax import calibration, checkpoint
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import evaluate as eval_lib
 from e2e_percep_jax import loss as loss_lib
 from e2e_percep_jax import model as model_lib
 from e2e_percep_jax import report, tracking
 from e2e_percep_jax import train as train_lib
+from e2e_percep_jax import motion as motion_lib
 from e2e_percep_jax.config import Config, ModelConfig
+from e2e_percep_jax.geometry import pose_yaw
 
 HEADS = ("detection", "pose")
-BASELINES = ("detector", "tracker", "pose", "dead_reckoning")
+BASELINES = ("detector", "tracker", "pose", "dead_reckoning", "wheel_odometry")
+ODOMETRY = ("dead_reckoning", "wheel_odometry")  # no network; evaluated from the true start
+# Wheel odometry's sensors: a wheel radius off by 2 % (std over drives: wear and pressure, as the world's
+# distance scale), a yaw-rate gyro biased by 0.1 deg/s (std over drives; an automotive MEMS gyro's
+# run-to-run bias), and per-sample noise of 0.05 m/s and 0.2 deg/s. See BUILD_NOTES.md, "The ego plant".
+WHEEL_SCALE_STD, GYRO_BIAS_STD_RPS = 0.02, float(np.deg2rad(0.1))
+SPEED_NOISE_STD_MPS, YAW_RATE_NOISE_STD_RPS = 0.05, float(np.deg2rad(0.2))
 TRAINED_RUN = {"detector": "detector", "tracker": "detector", "pose": "pose"}  # baseline -> its trained run
 RUN_HEAD = {"detector": "detection", "pose": "pose"}  # trained run -> its head
 LABELS = {"detector": "single-frame detector", "tracker": "single-frame detector + Kalman tracker",
@@ -128,9 +139,9 @@ class SingleFramePerceiver:
     def init(self, batch_size: int) -> dict:
         return {}
 
-    def step(self, params, state, camera, lidar, action, key=None, start_pose=None):
+    def step(self, params, state, camera, lidar, action, key=None, start_pose=None, measure=True):
         """(state, outputs): det_cls [B, R, R, 1], det_reg [B, R, R, 6], pose [B, 5] (metres); ``action``,
-        ``key`` and ``start_pose`` are unused."""
+        ``key``, ``start_pose`` and ``measure`` are unused."""
         out = {} if self.head is None else predict(params, camera, lidar, self.cfg, self.head)
         if "pose_normalised" in out:
             out = {"pose": model_lib.pose_to_metres(out["pose_normalised"])}
@@ -158,13 +169,48 @@ def tracker_host(tracker_cfg=None):
     return per_drive
 
 
-def dead_reckoning_host(speed_noise_std_mps: float, yaw_rate_noise_std_rps: float, seed: int):
+@dataclasses.dataclass(frozen=True)
+class CommandOdometry:
+    """Dead reckoning on the logged commands, as the inference API's ``init`` / ``step``: each stream
+    starts at ``start_pose`` (its true first pose and speed) and then moves by the commands through
+    ``motion_model`` alone (no sensor). No boxes."""
+    cfg: Config
+    motion_model: motion_lib.MotionModel
+
+    def init(self, batch_size: int) -> dict:
+        return {"pose": jnp.zeros((batch_size, 5)), "actuator": jnp.zeros((batch_size, 2)),
+                "started": jnp.zeros((batch_size,), bool)}
+
+    def step(self, params, state, camera, lidar, action, key=None, start_pose=None, measure=True):
+        if start_pose is None:
+            raise ValueError("dead reckoning starts from the true pose: evaluate it with --eval.known_start")
+        # (the first commands of a drive set the actuators, as in the pose belief's filter)
+        actuator = jnp.where(state["started"][:, None], state["actuator"], action)
+        pose = state["pose"]
+        actuator, v_new, _, move, dyaw = motion_lib.step(self.motion_model, actuator, action, pose[:, 4],
+                                                         pose_yaw(pose)[:, None])
+        yaw = pose_yaw(pose) + dyaw
+        moved = jnp.concatenate([pose[:, :2] + move[:, 0], jnp.stack([jnp.cos(yaw), jnp.sin(yaw), v_new], -1)], -1)
+        first = ~state["started"]
+        pose = jnp.where(first[:, None], start_pose, moved)
+        b, r = camera.shape[0], self.cfg.data.image_size
+        return ({"pose": pose, "actuator": jnp.where(first[:, None], 0.0, actuator), "started": jnp.ones_like(first)},
+                {"det_cls": jnp.zeros((b, r, r, 1)), "det_reg": jnp.zeros((b, r, r, 6)), "pose": pose})
+
+
+def wheel_odometry_host(seed: int, wheel_scale_std: float = WHEEL_SCALE_STD,
+                        gyro_bias_std_rps: float = GYRO_BIAS_STD_RPS,
+                        speed_noise_std_mps: float = SPEED_NOISE_STD_MPS,
+                        yaw_rate_noise_std_rps: float = YAW_RATE_NOISE_STD_RPS):
     """``evaluate``'s ``host_fn``: per drive, a ``tracking.DeadReckoner`` started at the drive's true first
-    pose and stepped with ``tracking.noisy_odometry`` of consecutive true poses (noise from
-    ``default_rng([seed, world])``); its pose replaces the predicted one."""
+    pose and stepped with wheel-speed and yaw-rate readings: ``tracking.noisy_odometry`` of consecutive
+    true poses, the speed scaled by a per-drive wheel-radius error and the yaw rate offset by a per-drive
+    gyro bias (all drawn from ``default_rng([seed, world])``); its pose replaces the predicted one."""
 
     def per_drive(world_index):
         rng = np.random.default_rng([seed, world_index])
+        scale = 1.0 + wheel_scale_std * rng.standard_normal()
+        bias_rps = gyro_bias_std_rps * rng.standard_normal()
         drive = {}  # the reckoner and the previous true pose, from the drive's first frame on
 
         def post(boxes, scores, pose_pred, pose):
@@ -174,7 +220,7 @@ def dead_reckoning_host(speed_noise_std_mps: float, yaw_rate_noise_std_rps: floa
             speed, yaw_rate = tracking.noisy_odometry(np.stack([drive["previous"], pose]), speed_noise_std_mps,
                                                       yaw_rate_noise_std_rps, rng)
             drive["previous"] = pose
-            return boxes, scores, drive["reckoner"].step(speed[0], yaw_rate[0])
+            return boxes, scores, drive["reckoner"].step(scale * speed[0], yaw_rate[0] + bias_rps)
 
         return post
 
@@ -205,17 +251,40 @@ def trained_params(cfg: Config, workdir: str, run: str, log=print):
     return params, step
 
 
-def run(baseline: str, cfg: Config, workdir: str, *, video_frames: int = 300, speed_noise_std_mps: float = 0.1,
-        yaw_rate_noise_std_rps: float = 0.01, log=print) -> dict:
+def odometry_model(cfg: Config, workdir: str) -> motion_lib.MotionModel:
+    """The calibrated motion model of ``cfg``'s world in ``<workdir>/dead_reckoning`` (fitted once, as a
+    training run fits its own: the same drives, so the same model)."""
+    path = os.path.join(workdir, "dead_reckoning")
+    os.makedirs(path, exist_ok=True)
+    try:
+        return motion_lib.MotionModel.load(path)
+    except ValueError:
+        model = calibration.calibrate(cfg)
+        model.save(path)
+        return model
+
+
+def eval_config(baseline: str, cfg: Config) -> Config:
+    """The config ``baseline`` is evaluated under: the odometry baselines' under the known-start protocol."""
+    return config_lib.replace(cfg, eval=dict(known_start=True)) if baseline in ODOMETRY else cfg
+
+
+def run(baseline: str, cfg: Config, workdir: str, *, video_frames: int = 300, log=print) -> dict:
     """Trains ``baseline`` if it needs it (the tracker reuses the detector's run) and evaluates it into
     ``report.eval_dir`` of ``<workdir>/<baseline>``, unless that already holds this evaluation (same
-    label, checkpoint and config). Returns the evaluation's metrics."""
-    if baseline == "dead_reckoning":
-        label = (f"dead reckoning (odometry noise {speed_noise_std_mps:g} m/s, "
-                 f"{yaw_rate_noise_std_rps:g} rad/s)")
+    label, checkpoint and config). The odometry baselines are evaluated under the known-start protocol.
+    Returns the evaluation's metrics."""
+    cfg = eval_config(baseline, cfg)
+    if baseline in ODOMETRY:
         params, step, model_dir = {}, None, None
-        hooks = dict(perceiver=SingleFramePerceiver(cfg, None),
-                     host_fn=dead_reckoning_host(speed_noise_std_mps, yaw_rate_noise_std_rps, cfg.eval.seed))
+    if baseline == "dead_reckoning":
+        label = "dead reckoning (commands through the calibrated motion model)"
+        hooks = dict(perceiver=CommandOdometry(cfg, odometry_model(cfg, workdir)))
+    elif baseline == "wheel_odometry":
+        label = (f"wheel odometry (wheel radius {100 * WHEEL_SCALE_STD:g} %, gyro bias "
+                 f"{np.rad2deg(GYRO_BIAS_STD_RPS):g} deg/s, noise {SPEED_NOISE_STD_MPS:g} m/s, "
+                 f"{np.rad2deg(YAW_RATE_NOISE_STD_RPS):g} deg/s)")
+        hooks = dict(perceiver=SingleFramePerceiver(cfg, None), host_fn=wheel_odometry_host(cfg.eval.seed))
     else:
         label, model_dir = LABELS[baseline], os.path.abspath(os.path.join(workdir, TRAINED_RUN[baseline]))
         params, step = trained_params(cfg, workdir, TRAINED_RUN[baseline], log)

@@ -31,6 +31,11 @@ POSE_FILTERS = ("histogram", "none")
 DEFAULT_TOWN_SEED = 0
 
 
+# The ego plant's fields of WorldConfig (world.EgoPlant): all zero is the exact-action world.
+PLANT_FIELDS = ("ego_lag_s", "ego_steer_offset_deg", "ego_steer_gain_std", "ego_distance_scale_std",
+                "ego_understeer_deg_per_g", "ego_accel_noise_mps2", "ego_curvature_noise_1pm")
+
+
 @dataclasses.dataclass(frozen=True)
 class WorldConfig:
     town_seed: int = DEFAULT_TOWN_SEED  # the training town; any other seed is a held-out town
@@ -255,9 +260,7 @@ def validate(cfg: Config) -> Config:
     for name, value in seeds.items():
         if value < 0:
             raise ValueError(f"--{name}={value}: must be >= 0")
-    plant_limits = {"ego_lag_s": 1.0, "ego_steer_offset_deg": 5.0, "ego_steer_gain_std": 0.2,
-                    "ego_distance_scale_std": 0.2, "ego_understeer_deg_per_g": 10.0, "ego_accel_noise_mps2": 1.0,
-                    "ego_curvature_noise_1pm": 0.05}
+    plant_limits = dict(zip(PLANT_FIELDS, (1.0, 5.0, 0.2, 0.2, 10.0, 1.0, 0.05)))
     for name, limit in plant_limits.items():
         value = getattr(cfg.world, name)
         if not 0.0 <= value <= limit:  # (a std at the limit still keeps every drawn gain and scale above 0.5)

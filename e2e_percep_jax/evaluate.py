@@ -48,7 +48,7 @@ from e2e_percep_jax import detection
 from e2e_percep_jax import metrics as metrics_lib
 from e2e_percep_jax import report, rollout, summary, world
 from e2e_percep_jax import town as town_lib
-from e2e_percep_jax.api import Perceiver
+from e2e_percep_jax.api import Perceiver, run_perceiver
 from e2e_percep_jax.config import Config, WorldConfig
 
 IOU_THRESHOLDS = (0.1, 0.3, 0.5, 0.7)
@@ -94,21 +94,27 @@ def make_chunk_fn(cfg: Config, town, perceiver, sample: bool, detect: detection.
     """
     pose_nll = getattr(perceiver, "pose_nll", None)
 
+    pose_coverage = getattr(perceiver, "pose_coverage", None)
+
     def perceive(params, pstate, frame, prev_action, key):
-        start = frame["pose"] if cfg.eval.known_start else None
+        # Known start measures places only in the town the model was trained on (it cannot name others').
+        known = ({"start_pose": frame["pose"], "measure": cfg.eval.town_seed == cfg.world.town_seed}
+                 if cfg.eval.known_start else {})
         pstate, outputs = perceiver.step(params, pstate, frame["camera"], frame["lidar"], prev_action,
-                                         key if sample else None, start_pose=start)
+                                         key if sample else None, **known)
         if heads is not None:
             outputs = heads(outputs, frame)
         cand_boxes, cand_scores, saturated = detection.candidates(outputs["det_cls"], outputs["det_reg"], detect.top_k,
                                                                 detect.score_floor)
         nll = jnp.full(frame["pose"].shape[:1], jnp.nan) if pose_nll is None else pose_nll(pstate, frame["pose"])
+        cover = (jnp.zeros(frame["pose"].shape[:1] + (2,), bool) if pose_coverage is None
+                 else pose_coverage(pstate, frame["pose"]))
         # World 0 for the video; the most crowded world (first on ties) for the examples.
         pictured = jnp.stack([0, jnp.argmax(jnp.sum(frame["boxes_valid"], -1))]).astype(jnp.int32)
         out = {"cand_boxes": cand_boxes, "cand_scores": cand_scores, "saturated": saturated,
                "boxes": frame["boxes"], "boxes_valid": frame["boxes_valid"],
                "boxes_occluded": frame["boxes_occluded"], "pose": frame["pose"], "pose_pred": outputs["pose"],
-               "pose_nll": nll, "pictured": pictured}
+               "pose_nll": nll, "pose_cover": cover, "pictured": pictured}
         out.update({k: frame[k][pictured] for k in ("camera", "lidar", "roadmap")})
         out.update({f"recon_{k}": _to_uint8(outputs[k][pictured]) for k in ("camera", "lidar", "roadmap") if k in outputs})
         if "pose_place" in outputs:
@@ -135,7 +141,9 @@ def evaluate(cfg: Config, params, out_dir: str, *, perceiver=None, sample: bool 
     ``perceiver``: anything with the inference API's ``init(batch_size)`` and ``step(params, state, camera,
     lidar, action, key=None, start_pose=None) -> (state, outputs)`` (outputs: det_cls, det_reg, pose in
     metres; optionally the reconstructions and ``pose_place``), and optionally ``pose_nll(state, pose)``
-    (default: ``api.Perceiver(cfg)``, the filtered model). ``video_frames``: frames of world 0 in
+    and ``pose_coverage(state, pose)``
+    (default: the filtered model, with the motion model of the run in ``workdir``, or the exact bicycle
+    without one: :func:`api.run_perceiver`). ``video_frames``: frames of world 0 in
     drive.mp4 (0: no video); ``num_examples``: frames in examples.png; ``detect``: the candidates, score
     floor and NMS (:class:`detection.Settings`). ``heads``: see
     :func:`make_chunk_fn`. ``host_fn(w)``, called once per world w before its drive, returns a function
@@ -156,9 +164,13 @@ def evaluate(cfg: Config, params, out_dir: str, *, perceiver=None, sample: bool 
     params = jax.device_put(params)
     t0 = time.perf_counter()
     wstate = start_worlds(start_keys(cfg), town, cfg.world)
-    # The default perceiver is keyed as None: it depends on cfg.model and the image size alone, which the
-    # key holds, so evaluations that differ only in frames, seeds or thresholds share one program.
-    key_perceiver, perceiver = perceiver, Perceiver(cfg) if perceiver is None else perceiver
+    # The default perceiver is keyed by its motion model: it depends on that, cfg.model and the image size
+    # alone, which the key holds, so evaluations that differ only in frames, seeds or thresholds share one program.
+    if perceiver is None:
+        perceiver = run_perceiver(cfg, workdir) if workdir else Perceiver(cfg)
+        key_perceiver = perceiver.motion_model
+    else:
+        key_perceiver = perceiver
     pstate = perceiver.init(e)
     sample_root = jax.random.fold_in(jax.random.PRNGKey(ev.seed), SAMPLE_STREAM)
     cache_key = (cfg.world, cfg.data.image_size, cfg.model, ev.chunk_steps, e, ev.town_seed, ev.known_start, sample,
@@ -175,7 +187,7 @@ def evaluate(cfg: Config, params, out_dir: str, *, perceiver=None, sample: bool 
     hosts = None if host_fn is None else [host_fn(w) for w in range(e)]
     det_acc = metrics_lib.DetectionAccumulator(IOU_THRESHOLDS)
     pose_acc = metrics_lib.PoseErrorAccumulator()
-    true_poses, nll, saturated, done = [], [], 0, 0
+    true_poses, nll, cover, saturated, done = [], [], [], 0, 0
     # Per world and frame: true and estimated poses, copied out of the chunks' buffers (flat memory).
     drives_true, drives_pred = np.zeros((e, per_world.max(), 5)), np.zeros((e, per_world.max(), 5))
     pictures = report.Pictures(town, out_dir, drives_true, drives_pred, video_frames=video_frames,
@@ -213,6 +225,7 @@ def evaluate(cfg: Config, params, out_dir: str, *, perceiver=None, sample: bool 
             pose_acc.add(metrics_lib.pose_errors(pose_pred[t][valid], out["pose"][t][valid]), frame_index)
             true_poses.append(out["pose"][t][valid])
             nll.append(out["pose_nll"][t][valid])
+            cover.append(out["pose_cover"][t][valid])
         if done == 0:
             log(f"eval: warming up the traffic, step {min((i + 1) * c, warmup)}/{warmup}")
             tick = time.perf_counter()  # frames/s counts driven frames only
@@ -252,6 +265,10 @@ def evaluate(cfg: Config, params, out_dir: str, *, perceiver=None, sample: bool 
         "pose": dict(metrics_lib.pose_summary(pose_acc), **metrics_lib.drive_pose_summary(
                          [d[:n] for d, n in zip(drives_true, per_world)], [d[:n] for d, n in zip(drives_pred, per_world)]),
                      nll_mean=summary.defined(float(np.mean(np.concatenate(nll), dtype=np.float64))),
+                     # the share of frames whose true cell (place) and (heading bin, cell) (place_heading)
+                     # lie in the belief's 95 % region: about 0.95 for a calibrated belief
+                     coverage95=dict(zip(("place", "place_heading"), np.concatenate(cover).mean(0).tolist()))
+                     if getattr(perceiver, "pose_coverage", None) else None,
                      known_start=ev.known_start, pose_filter=cfg.model.pose_filter),
         "examples": examples,
         "baseline": {"description": "constant pose = mean of the drive's true poses (circular mean heading); no boxes",

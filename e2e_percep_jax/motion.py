@@ -1,5 +1,97 @@
-"""The constants of the vehicles' motion, shared by the world that moves them and the estimators that
-follow them (the pose belief's filter, dead reckoning) without needing the world or the town."""
+"""The ego's motion as the estimators see it: the world's time step and wheelbase, and the motion model that
+the pose filter and dead reckoning use, whose parameters are fitted on training drives
+(:mod:`e2e_percep_jax.calibration`), never taken from the world's plant (which a car does not know).
+
+The model, per step, from the logged commands (pedal, steering command):
+
+- actuators: ``actuator += lag_share * (command - actuator)``, the commands seen through a first-order lag;
+- speed: ``v' = max(v + (accel_per_pedal_mps2 * pedal + accel_bias_mps2) * DT_S, 0)``, distance
+  ``ds = (v + v') / 2 * DT_S``;
+- curvature: ``(steer_gain * tan(steer) + steer_bias + understeer_s2pm2 * tan(steer) * v_mid^2) / WHEELBASE_M``
+  (a bicycle with a fitted gain and bias, and slip growing with lateral acceleration);
+- process noise: per step, heading variance ``heading_noise_rad2pm * ds`` and position variance
+  ``position_noise_m2pm * ds`` per axis, fitted so that the errors of the model over horizons up to
+  ``CALIBRATION_HORIZONS`` steps are covered (the per-drive parts of the plant, which no fit on other drives
+  can know, included).
+
+Importing this module imports no world or town: ``e2e.load`` reads a run's model from its JSON file.
+"""
+import dataclasses
+import json
+import os
+
+import jax.numpy as jnp
 
 DT_S = 0.1  # the world's time step (s): one frame
 WHEELBASE_M = 2.7  # the kinematic bicycle model's wheelbase
+FILE_NAME = "motion_model.json"  # in a run directory
+
+
+@dataclasses.dataclass(frozen=True)
+class MotionModel:
+    """Fitted parameters of the ego's motion (module docstring). The defaults are the exact bicycle with
+    no lag and no process noise: the world's plant with all its fields at zero."""
+    lag_share: float = 1.0
+    accel_per_pedal_mps2: float = 3.0  # world.EGO_ACCEL_LIMIT_MPS2: the pedal's full scale
+    accel_bias_mps2: float = 0.0
+    steer_gain: float = 1.0
+    steer_bias: float = 0.0  # (WHEELBASE_M x curvature at zero steering)
+    understeer_s2pm2: float = 0.0
+    heading_noise_rad2pm: float = 0.0
+    position_noise_m2pm: float = 0.0
+
+    def save(self, workdir: str) -> str:
+        path = os.path.join(workdir, FILE_NAME)
+        with open(path + ".tmp", "w") as f:
+            json.dump(dataclasses.asdict(self), f, indent=2)
+        os.replace(path + ".tmp", path)  # a kill mid-write leaves the old file or none, never half of one
+        return path
+
+    @classmethod
+    def load(cls, workdir: str) -> "MotionModel":
+        """The model saved in run ``workdir``; ValueError naming the file if it is missing or unreadable."""
+        path = os.path.join(workdir, FILE_NAME)
+        if not os.path.exists(path):
+            raise ValueError(f"{path}: missing; fit it with `python experiments/calibrate.py --workdir={workdir}`")
+        try:
+            with open(path) as f:
+                return cls(**json.load(f))
+        except (ValueError, TypeError) as e:
+            raise ValueError(f"{path}: not a motion model ({type(e).__name__}: {e})") from None
+
+
+def actuate(model: MotionModel, actuator, command):
+    """The actuators' state [..., 2] (pedal, steering rad) after one step towards ``command`` [..., 2]."""
+    return actuator + model.lag_share * (command - actuator)
+
+
+def speed_and_distance(model: MotionModel, actuator, speed_mps):
+    """(speed after the step [...], distance driven [...] m) from the actuators [..., 2] and the speed before."""
+    accel = model.accel_per_pedal_mps2 * actuator[..., 0] + model.accel_bias_mps2
+    v_new = jnp.maximum(speed_mps + accel * DT_S, 0.0)
+    return v_new, 0.5 * (speed_mps + v_new) * DT_S
+
+
+def curvature(model: MotionModel, steer_rad, mid_speed_mps):
+    """Curvature (1/m) of the path under road-wheel command ``steer_rad`` at speed ``mid_speed_mps``."""
+    tan = jnp.tan(steer_rad)
+    return (model.steer_gain * tan + model.steer_bias + model.understeer_s2pm2 * tan * mid_speed_mps ** 2) / WHEELBASE_M
+
+
+def centre_move(ds_m, dyaw_rad, yaw_rad):
+    """Displacement [..., K, 2] of the car's centre for K headings ``yaw_rad`` [..., K], given the distance
+    ``ds_m`` [...] its rear axle drives and its yaw change ``dyaw_rad`` [...]: the rear axle moves along the
+    mid-step heading, the centre sits half a wheelbase ahead of it (the world's kinematic bicycle)."""
+    unit = lambda a: jnp.stack([jnp.cos(a), jnp.sin(a)], -1)
+    mid = yaw_rad + 0.5 * dyaw_rad[..., None]
+    return (ds_m[..., None, None] * unit(mid)
+            + 0.5 * WHEELBASE_M * (unit(yaw_rad + dyaw_rad[..., None]) - unit(yaw_rad)))
+
+
+def step(model: MotionModel, actuator, command, speed_mps, yaw_rad):
+    """One step of the motion model for K headings: (actuators after [..., 2], speed after [...], distance
+    [...] m, centre displacement [..., K, 2] m, yaw change [...] rad)."""
+    actuator = actuate(model, actuator, command)
+    v_new, ds = speed_and_distance(model, actuator, speed_mps)
+    dyaw = ds * curvature(model, actuator[..., 1], 0.5 * (speed_mps + v_new))
+    return actuator, v_new, ds, centre_move(ds, dyaw, yaw_rad), dyaw

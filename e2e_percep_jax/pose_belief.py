@@ -17,11 +17,14 @@ on the offsets of the true cell and bin, smooth-L1 on the speed. Read alone (:fu
 the mode cell refined by its offset.
 
 The histogram filter (:func:`init_state`, :func:`filter_step`) keeps a belief [B, H, n, n] (probabilities),
-a speed track [B] and a heading offset [B] shared by all bins. Motion: the world's bicycle model driven by
-the recorded action (acceleration, steering), each heading bin's mass moved by its own displacement (a
-bilinear split over the neighbouring cells, which keeps the mass's mean exact) and the common yaw change
-added to the offset, whole bins rolling the heading axis. Measurement: the head's place and heading
-probabilities, floored and tempered, multiplied in (Bayes' rule). The point estimate (:func:`estimate`):
+a speed track [B], a heading offset [B] shared by all bins and the actuators' state [B, 2]. Motion: the
+run's calibrated motion model (:mod:`e2e_percep_jax.motion`, fitted on training drives, not the world's
+plant) driven by the logged commands, each heading bin's mass moved by its own displacement (a bilinear
+split over the neighbouring cells, which keeps the mass's mean exact) and the common yaw change added to
+the offset, whole bins rolling the heading axis; then the model's process noise: heading mass diffused to
+the neighbouring bins, and position mass to the neighbouring cells where the split's own spread falls
+short of it. Measurement: the head's place and heading probabilities, floored and tempered, multiplied in
+(Bayes' rule). The point estimate (:func:`estimate`):
 the belief's mode, its position the belief's mean over the 3 x 3 cells around the mode cell, its heading
 the mode bin refined by the head's offset. Pure JAX; it runs inside a ``lax.scan``.
 """
@@ -33,8 +36,9 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from e2e_percep_jax import motion as motion_lib
 from e2e_percep_jax.geometry import pose_yaw, wrap_angle
-from e2e_percep_jax.motion import DT_S, WHEELBASE_M
+from e2e_percep_jax.motion import MotionModel
 
 # Every town's lanes lie in [-7, 427] m; the margin keeps a vehicle's belief off the grid's edge, where the
 # filter's motion would push mass off the grid.
@@ -164,36 +168,16 @@ def decode(head: dict, grid: Grid):
 
 
 def init_state(batch_size: int, grid: Grid) -> dict:
-    """Before a drive's first frame: a uniform belief [B, H, n, n], a zero speed track [B] (m/s) and a zero
-    heading offset [B] (rad: bin k of the belief stands for heading ``bin_centres[k] + yaw_offset_rad``)."""
+    """Before a drive's first frame: a uniform belief [B, H, n, n], a zero speed track [B] (m/s), a zero
+    heading offset [B] (rad: bin k of the belief stands for heading ``bin_centres[k] + yaw_offset_rad``)
+    and the actuators [B, 2] (pedal, steering rad: the commands seen through the model's lag), with whether
+    they have been set [B] (from a drive's first logged commands)."""
     shape = (batch_size, grid.heading_bins, grid.n, grid.n)
     return {"belief": jnp.full(shape, 1.0 / math.prod(shape[1:]), jnp.float32),
             "speed_mps": jnp.zeros((batch_size,), jnp.float32),
-            "yaw_offset_rad": jnp.zeros((batch_size,), jnp.float32)}
-
-
-def bicycle(action, speed_mps, yaw):
-    """The world's bicycle model (``world._drive_ego``) for one step.
-
-    action [..., 2] (acceleration m/s², steering rad), speed_mps [...] before the step, yaw [..., K]
-    radians: K headings the vehicle may have. Returns (speed after [...], centre displacement [..., K, 2] metres for
-    each heading, yaw change [...]).
-    """
-    v_new = jnp.maximum(speed_mps + action[..., 0] * DT_S, 0.0)
-    ds = 0.5 * (speed_mps + v_new) * DT_S
-    dyaw = ds * jnp.tan(action[..., 1]) / WHEELBASE_M
-    unit = lambda a: jnp.stack([jnp.cos(a), jnp.sin(a)], -1)
-    # The rear axle moves ds along the mid-step heading; the centre sits half a wheelbase ahead of it.
-    mid = yaw + 0.5 * dyaw[..., None]
-    move = (ds[..., None, None] * unit(mid)
-            + 0.5 * WHEELBASE_M * (unit(yaw + dyaw[..., None]) - unit(yaw)))
-    return v_new, move, dyaw
-
-
-def motion(action, speed_mps, yaw_offset_rad, grid: Grid):
-    """:func:`bicycle` for every heading bin (its centre plus the offset ``yaw_offset_rad`` [...]):
-    (speed after [...], displacement [..., H, 2], yaw change [...])."""
-    return bicycle(action, speed_mps, jnp.asarray(grid.bin_centres()) + yaw_offset_rad[..., None])
+            "yaw_offset_rad": jnp.zeros((batch_size,), jnp.float32),
+            "actuator": jnp.zeros((batch_size, 2), jnp.float32),
+            "actuator_set": jnp.zeros((batch_size,), bool)}
 
 
 def _shift(x, axis: int, direction: int):
@@ -212,13 +196,31 @@ def _split(x, shift_cells, axis: int):
             + w(jnp.maximum(-shift_cells, 0.0)) * _shift(x, axis, -1))
 
 
-def predict(belief, move_m, yaw_offset_rad, grid: Grid):
+def _diffuse(x, share, axis: int, wrap: bool):
+    """x with ``share`` (broadcast against x) of its mass moved to each neighbour along ``axis`` (a variance
+    of 2 share cells^2); around the axis if ``wrap``, else what leaves the grid is lost."""
+    if wrap:
+        neighbours = jnp.roll(x, 1, axis) + jnp.roll(x, -1, axis)
+    else:
+        neighbours = _shift(x, axis, 1) + _shift(x, axis, -1)
+    return (1.0 - 2.0 * share) * x + share * neighbours
+
+
+def predict(belief, move_m, yaw_offset_rad, ds_m, model: MotionModel, grid: Grid):
     """One stream's belief [H, n, n] moved: bin k's mass by ``move_m[k]`` [H, 2] metres (at most one cell
     per step), then the heading by the common yaw change already added to ``yaw_offset_rad`` []: whole
-    bins roll the heading axis and the rest stays in the offset, so heading never diffuses (a diffused
-    heading would shorten the mean path). Returns (belief, offset within half a bin)."""
+    bins roll the heading axis and the rest stays in the offset (moving the offset does not spread the
+    mass), then the process noise of a step of ``ds_m`` [] metres: heading mass diffused to the
+    neighbouring bins with the model's variance, position mass to the neighbouring cells with whatever
+    of the model's variance the bilinear split (a variance of |shift| (1 - |shift|) cells^2) has not
+    already spread. Returns (belief, offset within half a bin)."""
     shift = jnp.clip(move_m / grid.cell_m, -1.0, 1.0)
     belief = _split(_split(belief, shift[:, 0], 2), shift[:, 1], 1)
+    position_var = model.position_noise_m2pm * ds_m / grid.cell_m ** 2  # cells^2 per axis
+    for axis, column in ((2, 0), (1, 1)):
+        missing = jnp.maximum(position_var - jnp.abs(shift[:, column]) * (1.0 - jnp.abs(shift[:, column])), 0.0)
+        belief = _diffuse(belief, jnp.minimum(0.5 * missing, 0.25)[:, None, None], axis, wrap=False)
+    belief = _diffuse(belief, jnp.minimum(0.5 * model.heading_noise_rad2pm * ds_m / grid.bin_rad ** 2, 0.25), 0, wrap=True)
     whole = jnp.round(yaw_offset_rad / grid.bin_rad)
     return jnp.roll(belief, whole.astype(jnp.int32), 0), yaw_offset_rad - whole * grid.bin_rad
 
@@ -236,38 +238,51 @@ def _normalised(belief):
     return belief / jnp.sum(belief, axis=(-3, -2, -1), keepdims=True)
 
 
-def filter_step(state: dict, head: dict, prev_action, first, grid: Grid, *, start_pose=None,
-                floor: float = MEASUREMENT_FLOOR, power: float = MEASUREMENT_POWER, speed_gain: float = SPEED_GAIN,
-                relocation: float = RELOCATION_SHARE, position: str = "local_mean"):
-    """One frame for B streams: motion by ``prev_action`` [B, 2] (the action from the last frame to this one),
-    then ``relocation`` of each cell's mass spread over all headings, then Bayes' rule with this frame's
-    ``head`` outputs. Rows
-    with ``first`` [B] set start from the measurement alone (uniform prior, the head's speed). Returns (state, pose [B, 5] at the belief's mode,
+def filter_step(state: dict, head: dict, prev_action, first, grid: Grid, model: MotionModel, *, start_pose=None,
+                measure: bool = True, floor: float = MEASUREMENT_FLOOR, power: float = MEASUREMENT_POWER,
+                speed_gain: float = SPEED_GAIN, relocation: float = RELOCATION_SHARE, position: str = "local_mean"):
+    """One frame for B streams: motion through ``model`` by ``prev_action`` [B, 2] (the commands from the
+    last frame to this one) with its process noise (:func:`predict`), then ``relocation`` of each cell's
+    mass spread over all headings, then Bayes' rule with this frame's ``head`` outputs. Rows with ``first``
+    [B] set start a drive: from a uniform prior and the head's speed, or, given ``start_pose`` [B, 5] (the
+    known-start protocol), from that pose and speed. Returns (state, pose [B, 5] at the belief's mode,
     :func:`estimate`).
 
-    ``start_pose`` [B, 5] (the known-start protocol, an odometry): rows with ``first`` set start at that pose
-    and speed, no measurement is taken, and the belief stays a point (:func:`start_at`) that the filter's
-    motion model moves by the recorded actions; the pose is that point. (A point, not a spreading histogram:
-    over thousands of steps the bilinear splits would spread it across the town and its edges.)
+    ``measure=False`` (known start only: an odometry for a town the head does not know) takes no
+    measurement; the belief is then kept a point (:func:`start_at`) that the motion model moves, and the
+    pose is that point (a histogram without measurements spreads over the town, and its mode says little).
+    A stream's actuators start at its first logged commands (the car is taken to be in steady state).
     """
+    if start_pose is None and not measure:
+        raise ValueError("measure=False: only the known-start protocol (a start_pose) goes without measurements")
     rows = lambda x: first.reshape(first.shape + (1,) * (x.ndim - 1))
-    if start_pose is not None:
+    actuator = jnp.where(state["actuator_set"][:, None], state["actuator"], prev_action)
+    started = {"actuator": jnp.where(rows(prev_action), 0.0, motion_lib.actuate(model, actuator, prev_action)),
+               "actuator_set": ~first}
+    if start_pose is not None and not measure:
         point = mean_pose(state, grid)
         yaw = pose_yaw(point)
-        v_new, move, dyaw = bicycle(prev_action, point[:, 4], yaw[:, None])
+        _, v_new, _, move, dyaw = motion_lib.step(model, actuator, prev_action, point[:, 4], yaw[:, None])
         yaw = yaw + dyaw
         moved = jnp.concatenate([point[:, :2] + move[:, 0], jnp.stack([jnp.cos(yaw), jnp.sin(yaw), v_new], -1)], -1)
         pose = jnp.where(rows(moved), start_pose, moved)
         belief, offset = start_at(pose, grid)
-        return {"belief": belief, "speed_mps": pose[:, 4], "yaw_offset_rad": offset}, pose
-    v_new, move, dyaw = motion(prev_action, state["speed_mps"], state["yaw_offset_rad"], grid)
-    moved, offset = jax.vmap(lambda b, m, o: predict(b, m, o, grid))(state["belief"], move,
-                                                                     state["yaw_offset_rad"] + dyaw)
-    head_speed = head["speed"] * SPEED_SCALE_MPS
+        return dict(started, belief=belief, speed_mps=pose[:, 4], yaw_offset_rad=offset), pose
+    yaw = jnp.asarray(grid.bin_centres()) + state["yaw_offset_rad"][:, None]
+    _, v_new, ds, move, dyaw = motion_lib.step(model, actuator, prev_action, state["speed_mps"], yaw)
+    moved, offset = jax.vmap(lambda b, m, o, d: predict(b, m, o, d, model, grid))(
+        state["belief"], move, state["yaw_offset_rad"] + dyaw, ds)
     prior = (1.0 - relocation) * moved + relocation * jnp.mean(moved, axis=-3, keepdims=True)
-    new = {"belief": _normalised(jnp.where(rows(moved), 1.0, prior) * likelihood(head, grid, floor, power)),
-           "speed_mps": jnp.where(first, head_speed, v_new + speed_gain * (head_speed - v_new)),
-           "yaw_offset_rad": jnp.where(first, 0.0, offset)}
+    head_speed = head["speed"] * SPEED_SCALE_MPS
+    if start_pose is None:
+        first_belief, first_speed, first_offset = 1.0, head_speed, 0.0
+    else:
+        first_belief, first_offset = start_at(start_pose, grid)
+        first_speed = start_pose[:, 4]
+    measured = likelihood(head, grid, floor, power) if measure else 1.0
+    new = dict(started, belief=_normalised(jnp.where(rows(moved), first_belief, prior) * measured),
+               speed_mps=jnp.where(first, first_speed, v_new + speed_gain * (head_speed - v_new)),
+               yaw_offset_rad=jnp.where(first, first_offset, offset))
     return new, estimate(new["belief"], head, new["speed_mps"], grid, position)
 
 
@@ -275,7 +290,8 @@ def head_state(head: dict, grid: Grid) -> dict:
     """The filter state [B] that is the head's own distribution (place x heading, no filtering), its speed
     and no heading offset: the belief of ``--model.pose_filter=none``."""
     return {"belief": _normalised(likelihood(head, grid, floor=0.0, power=1.0)),
-            "speed_mps": head["speed"] * SPEED_SCALE_MPS, "yaw_offset_rad": jnp.zeros_like(head["speed"])}
+            "speed_mps": head["speed"] * SPEED_SCALE_MPS, "yaw_offset_rad": jnp.zeros_like(head["speed"]),
+            "actuator": jnp.zeros(head["speed"].shape + (2,)), "actuator_set": jnp.zeros(head["speed"].shape, bool)}
 
 
 POSITIONS = ("local_mean", "head_offset")
@@ -346,3 +362,18 @@ def negative_log_likelihood(state: dict, pose, grid: Grid):
     k, _ = true_bin(pose_yaw(pose) - state["yaw_offset_rad"], grid)
     p = belief.reshape(belief.shape[0], grid.heading_bins, -1)[jnp.arange(belief.shape[0]), k, cell]
     return -jnp.log(jnp.maximum(p, 1e-30)) + math.log(grid.cell_m ** 2 * grid.bin_rad)
+
+
+def in_region(state: dict, pose, grid: Grid, mass: float = 0.95):
+    """Whether true poses [B, 5] lie in the belief's highest-probability region holding ``mass``, at the
+    grid's resolution: bool [B, 2], for the place (the cell, under the place marginal) and for the place
+    with heading (the (heading bin, cell) pair, under the whole belief). A cell is in the region when the
+    cells more probable than it hold less than ``mass``."""
+    belief = state["belief"].reshape(state["belief"].shape[0], grid.heading_bins, -1)
+    cell, _ = true_cell(pose[:, :2], grid)
+    k, _ = true_bin(pose_yaw(pose) - state["yaw_offset_rad"], grid)
+    inside = lambda p, p_true: jnp.sum(jnp.where(p > p_true[:, None], p, 0.0), -1) < mass * jnp.sum(p, -1)
+    place = jnp.sum(belief, 1)
+    flat = belief.reshape(belief.shape[0], -1)
+    b = jnp.arange(belief.shape[0])
+    return jnp.stack([inside(place, place[b, cell]), inside(flat, belief[b, k, cell])], -1)

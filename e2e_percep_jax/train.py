@@ -19,7 +19,8 @@ Carried state (``--data.carry_state``, the learned pose route): the train state 
 slot of the stream, where the latent filter left that drive's last segment, and step s's batch continues
 from it (:class:`CarriedTrainState`): truncated backpropagation through time over a drive's K segments.
 
-Outputs in ``workdir``: ``config.json`` (the resolved config), ``metrics.jsonl`` (one record per
+Outputs in ``workdir``: ``config.json`` (the resolved config), ``motion_model.json`` (the belief pose
+head's calibrated motion model, :func:`ensure_motion_model`), ``metrics.jsonl`` (one record per
 ``log_every`` steps: mean of each loss term over those steps, gradient norm, steps/s, non-finite
 counters), ``checkpoints/<step>`` (orbax; every ``checkpoint_every`` steps and at exit).
 """
@@ -43,11 +44,12 @@ from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from e2e_percep_jax import batch as batch_lib
-from e2e_percep_jax import checkpoint
+from e2e_percep_jax import calibration, checkpoint
 from e2e_percep_jax import loss as loss_lib
 from e2e_percep_jax import town as town_lib
 from e2e_percep_jax import world
 from e2e_percep_jax.config import Config, TrainConfig, validate
+from e2e_percep_jax.motion import MotionModel
 from e2e_percep_jax.train_state import (PERCEPTION, CarriedTrainState, Objective, TrainState, init_state, model_keys,
                                         optimizer)
 
@@ -246,6 +248,18 @@ class _StopSignals:
             signal.signal(s, handler)
 
 
+def ensure_motion_model(cfg: Config, workdir: str) -> MotionModel:
+    """The run's calibrated motion model (``motion_model.json``), fitted on training drives of its world
+    (:mod:`e2e_percep_jax.calibration`, about half a minute) unless the run already has one."""
+    try:
+        return MotionModel.load(workdir)
+    except ValueError:
+        print("fitting the motion model on training drives", flush=True)
+        model = calibration.calibrate(cfg)
+        model.save(workdir)
+        return model
+
+
 def train(cfg: Config, workdir: str, batches: Batches | None = None,
           objective: Objective = PERCEPTION) -> TrainState:
     """Trains ``objective`` (default: the perception model) under ``cfg`` in ``workdir`` up to
@@ -264,6 +278,8 @@ def train(cfg: Config, workdir: str, batches: Batches | None = None,
     if main_process:
         with open(config_path, "w") as f:
             f.write(cfg.to_json())
+        if batches is None and objective is PERCEPTION and cfg.model.pose_head == "belief":
+            ensure_motion_model(cfg, workdir)
 
     mesh = make_mesh()
     state = jax.device_put(init_state(cfg, objective), NamedSharding(mesh, PartitionSpec()))

@@ -32,7 +32,8 @@ flags.DEFINE_integer("top_k", None, "detection candidates per frame kept on the 
 flags.DEFINE_float("score_floor", None, "lowest detection score accumulated into the PR curves")
 flags.DEFINE_float("nms_iou", None, "rotated-IoU threshold of the greedy NMS")
 FLAGS = flags.FLAGS
-INFERENCE_FIELDS = ("model.pose_filter",)  # model fields that change no parameter
+# Fields that change no parameter: the pose filter, and the world's plant (the same network in another car)
+INFERENCE_FIELDS = ("model.pose_filter",) + tuple(f"world.{name}" for name in config_lib.PLANT_FIELDS)
 
 
 def main(argv):

@@ -26,6 +26,7 @@ from e2e_percep_jax import checkpoint, metrics, pose_belief, rollout
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import model as model_lib
 from e2e_percep_jax import town as town_lib
+from e2e_percep_jax.motion import MotionModel
 
 flags.DEFINE_string("workdir", None, "a training run with the belief pose head")
 flags.DEFINE_integer("step", None, "checkpoint (default: the latest)")
@@ -53,6 +54,7 @@ def main(argv):
         cfg, params, step = checkpoint.restore_params(FLAGS.workdir, step=FLAGS.step)
         if cfg.model.pose_head != "belief":
             raise ValueError(f"--workdir={FLAGS.workdir}: its pose head is {cfg.model.pose_head!r}, not the belief")
+        motion_model = MotionModel.load(FLAGS.workdir)
     except (ValueError, FileNotFoundError) as e:
         sys.exit(f"error: {e}")
     grid = pose_belief.grid_of(cfg.model)
@@ -79,7 +81,8 @@ def main(argv):
     def track(floor, power, gain, relocation, position):
         def body(state, xs):
             h, action, is_first = xs
-            return pose_belief.filter_step(state, h, action, jnp.full(FLAGS.worlds, is_first), grid, floor=floor,
+            return pose_belief.filter_step(state, h, action, jnp.full(FLAGS.worlds, is_first), grid, motion_model,
+                                           floor=floor,
                                            power=power, speed_gain=gain, relocation=relocation, position=position)
         return jax.lax.scan(body, pose_belief.init_state(FLAGS.worlds, grid), (head, time_major(prev_action), first))[1]
 

@@ -20,6 +20,7 @@ from e2e_percep_jax import config, loss
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # the repository
 TINY = config.get_config("tiny")
+EXACT_PLANT = {name: 0.0 for name in config.PLANT_FIELDS}  # the world's ego plant off: the exact-action world
 
 
 @functools.cache

@@ -14,6 +14,7 @@ from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import model as model_lib
 from e2e_percep_jax import pixor, pose_belief
 from e2e_percep_jax import train as train_lib
+from e2e_percep_jax.motion import MotionModel
 
 CFG = config_lib.get_config("tiny")
 R = CFG.data.image_size
@@ -87,29 +88,59 @@ def test_step_inside_a_users_jit_and_scan(params):
     assert poses.shape == (2, 3, 5)
 
 
+# A motion model unlike the exact bicycle in every part (lag, pedal gain and bias, steering gain and bias,
+# understeer), so that a test of the odometry fails if any of them is ignored.
+MODEL = MotionModel(lag_share=0.6, accel_per_pedal_mps2=2.5, accel_bias_mps2=0.1, steer_gain=1.1, steer_bias=0.02,
+                    understeer_s2pm2=-0.002, heading_noise_rad2pm=1e-4, position_noise_m2pm=1e-3)
+
+
+def _odometry(start, commands):
+    """Poses [T, 5] of MODEL's equations written out here in NumPy float64: from ``start`` [5], the actuators
+    set by the first commands, then each frame's commands [T, 2] (frame 0's unused)."""
+    x, y, yaw, v = start[0], start[1], np.arctan2(start[3], start[2]), start[4]
+    actuator, poses = np.asarray(commands[min(1, len(commands) - 1)], np.float64), [np.array(start, np.float64)]
+    for command in commands[1:]:
+        actuator = actuator + MODEL.lag_share * (command - actuator)
+        v_new = max(v + (MODEL.accel_per_pedal_mps2 * actuator[0] + MODEL.accel_bias_mps2) * 0.1, 0.0)
+        ds, v_mid = 0.5 * (v + v_new) * 0.1, 0.5 * (v + v_new)
+        tan = np.tan(actuator[1])
+        dyaw = ds * (MODEL.steer_gain * tan + MODEL.steer_bias + MODEL.understeer_s2pm2 * tan * v_mid ** 2) / 2.7
+        rear = np.array([x, y]) - 1.35 * np.array([np.cos(yaw), np.sin(yaw)])
+        rear = rear + ds * np.array([np.cos(yaw + dyaw / 2), np.sin(yaw + dyaw / 2)])
+        yaw, v = yaw + dyaw, v_new
+        x, y = rear + 1.35 * np.array([np.cos(yaw), np.sin(yaw)])
+        poses.append(np.array([x, y, np.cos(yaw), np.sin(yaw), v]))
+    return np.stack(poses)
+
+
 @pytest.mark.slow
 def test_pose_belief_through_the_api_known_start_and_global(params):
-    """The belief head's outputs: ``pose_place`` is a distribution over the cells; with ``start_pose`` the
-    pose is the known start on a stream's first frame, then that start moved by the actions alone (the
-    filter's bicycle model, the same as ``pose_belief``'s), whatever the images."""
-    perceiver = e2e.Perceiver(CFG)
-    camera, lidar, action = _inputs(2, 4, seed=4)
+    """The belief head's outputs: ``pose_place`` is a distribution over the cells. With ``start_pose`` and
+    ``measure=False`` the pose is the known start on a stream's first frame, then that start moved by the
+    commands through the perceiver's motion model alone (an independent NumPy integration), whatever the
+    images; with the measurement, the first frame's belief lies on the cells around the start."""
+    perceiver = e2e.Perceiver(CFG, MODEL)
+    camera, lidar, action = _inputs(2, 6, seed=4)
+    action = action * jnp.asarray([1.0, 0.3])  # steering commands within the world's limits
     start = jnp.asarray([[100.0, 200.0, 1.0, 0.0, 5.0], [300.0, 50.0, 0.0, 1.0, 8.0]], jnp.float32)
-    step = jax.jit(perceiver.step)
-    state, global_state = perceiver.init(2), perceiver.init(2)
+    step = jax.jit(perceiver.step, static_argnames="measure")
     grid = pose_belief.grid_of(CFG.model)
-    track = pose_belief.init_state(2, grid)
-    for t in range(4):
-        state, out = step(params, state, camera[:, t], lidar[:, t], action[:, t], start_pose=start)
-        track, want = pose_belief.filter_step(track, None, action[:, t], jnp.asarray([t == 0] * 2), grid,
-                                              start_pose=start)
-        np.testing.assert_allclose(out["pose"], want, rtol=1e-6, atol=1e-4)
+    odometry, measured, global_state = perceiver.init(2), perceiver.init(2), perceiver.init(2)
+    for t in range(6):
+        odometry, out = step(params, odometry, camera[:, t], lidar[:, t], action[:, t], start_pose=start, measure=False)
+        want = np.stack([_odometry(np.asarray(start[b]), np.asarray(action[b, :t + 1]))[-1] for b in range(2)])
+        np.testing.assert_allclose(out["pose"], want, rtol=1e-5, atol=2e-4)
+        measured, m_out = step(params, measured, camera[:, t], lidar[:, t], action[:, t], start_pose=start)
         if t == 0:
-            np.testing.assert_allclose(out["pose"], start, atol=1e-4)
+            cell = np.floor((np.asarray(start[:, :2]) - pose_belief.AREA_ORIGIN_M) / grid.cell_m).astype(int)
+            for b in range(2):  # the start's bilinear cells only: the measurement cannot add mass elsewhere
+                place = np.asarray(m_out["pose_place"][b])
+                near = place[max(cell[b, 1] - 1, 0):cell[b, 1] + 2, max(cell[b, 0] - 1, 0):cell[b, 0] + 2]
+                np.testing.assert_allclose(near.sum(), 1.0, rtol=1e-5)
         global_state, global_out = step(params, global_state, camera[:, t], lidar[:, t], action[:, t])
         np.testing.assert_allclose(jnp.sum(global_out["pose_place"], (1, 2)), 1.0, rtol=1e-5)
         assert global_out["pose_place"].shape == (2, grid.n, grid.n)
-    assert not np.allclose(out["pose"][:, :2], start[:, :2])  # it moved
+    assert np.linalg.norm(np.asarray(out["pose"][:, :2] - start[:, :2]), axis=-1).min() > 1.0  # it moved
 
 
 @pytest.mark.slow
@@ -144,6 +175,9 @@ def test_load_returns_the_trained_params_and_boxes_decode(trained_run):
     tmp_path, cfg, trained = trained_run
     perceiver, params = e2e.load(str(tmp_path))
     assert perceiver.cfg == cfg
+    # the run's motion model, fitted when training started: not the exact bicycle of a world without a plant
+    assert perceiver.motion_model == MotionModel.load(str(tmp_path)) != MotionModel()
+    assert 0.2 < perceiver.motion_model.lag_share < 0.8 and perceiver.motion_model.heading_noise_rad2pm > 0
     jax.tree.map(lambda a, b: np.testing.assert_array_equal(np.asarray(a), np.asarray(b)),
                  params, jax.device_get(trained.params))
     camera, lidar, action = _inputs(2, 1, seed=3)

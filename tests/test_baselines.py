@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import ROOT, TINY, np_focal, np_smooth_l1, synthetic_batch
+from helpers import EXACT_PLANT, ROOT, TINY, np_focal, np_smooth_l1, synthetic_batch
 
 from e2e_percep_jax import baselines, config, model, tracking
 from e2e_percep_jax import evaluate as eval_lib
@@ -135,16 +135,33 @@ def test_tracker_on_oracle_detections_keeps_their_ap(oracle_eval):
 
 
 @pytest.mark.slow
-def test_dead_reckoning_without_noise_follows_the_true_path(oracle_eval):
-    """Zero odometry noise: the reckoned pose is the true one up to float32 rounding of ~400 m
-    coordinates; with noise the error is positive and grows with time since the start."""
-    exact = oracle_eval(baselines.dead_reckoning_host(0.0, 0.0, seed=0), "exact")["pose"]
+def test_wheel_odometry_without_noise_or_bias_follows_the_true_path(oracle_eval):
+    """Exact sensors: the reckoned pose is the true one up to float32 rounding of ~400 m coordinates; with
+    a wheel-radius error, a gyro bias and noise the error is positive and grows with time since the start."""
+    exact = oracle_eval(baselines.wheel_odometry_host(0, 0.0, 0.0, 0.0, 0.0), "exact")["pose"]
     assert sum(exact["location_m_by_step"]["count"]) == 160
     assert exact["location_m"]["mean"] < 1e-3 and exact["heading_rad"]["mean"] < 1e-4, exact
     assert exact["speed_mps"]["mean"] < 1e-6
-    noisy = oracle_eval(baselines.dead_reckoning_host(0.5, 0.05, seed=0), "noisy")["pose"]
+    noisy = oracle_eval(baselines.wheel_odometry_host(0, 0.05, 0.01, 0.5, 0.05), "noisy")["pose"]
     by_step = [m for m, n in zip(noisy["location_m_by_step"]["mean"], noisy["location_m_by_step"]["count"]) if n]
     assert noisy["location_m"]["mean"] > 1e-2 and by_step[-1] > by_step[0], noisy
+    assert noisy["speed_mps"]["mean"] > 0.01  # the wheel-radius error scales the reported speed
+
+
+
+
+@pytest.mark.slow
+def test_dead_reckoning_on_the_commands_is_exact_in_the_exact_world_and_drifts_under_the_plant(tmp_path):
+    """The commands through the exact bicycle (``MotionModel()``) from the true start: the true path (to
+    float32 rounding) where the world's plant is exact; metres off where it is not."""
+    def run(world, name):
+        cfg = config.replace(ORACLE_CFG, world=world, eval=dict(known_start=True, num_frames=400))
+        return eval_lib.evaluate(cfg, {}, str(tmp_path / name), video_frames=0, num_examples=0,
+                                 perceiver=baselines.CommandOdometry(cfg, baselines.motion_lib.MotionModel()),
+                                 log=lambda _: None)["pose"]
+    exact, plant = run(EXACT_PLANT, "exact"), run({}, "plant")
+    assert exact["location_m"]["mean"] < 0.02 and exact["heading_rad"]["mean"] < 1e-3, exact
+    assert plant["location_m"]["mean"] > 0.5, plant
 
 
 # ----------------------------------------------------------------------------- launcher
@@ -155,11 +172,11 @@ def test_cli_trains_evaluates_and_resumes(cli_run):
     r = cli_run()
     workdir = r["workdir"]
     metrics = {}
-    for name in ("tracker", "dead_reckoning"):
-        with open(os.path.join(workdir, name, "eval", "metrics.json")) as f:
+    for name, eval_dir in (("tracker", "eval"), ("dead_reckoning", "eval_known_start")):
+        with open(os.path.join(workdir, name, eval_dir, "metrics.json")) as f:
             metrics[name] = json.load(f)
         assert metrics[name]["num_frames"] == 20
-        with open(os.path.join(workdir, name, "eval", "report.md")) as f:
+        with open(os.path.join(workdir, name, eval_dir, "report.md")) as f:
             report = f.read()
         assert f"baseline `{metrics[name]['label']}`" in report and "same variant" not in report
     # The tracker evaluates the detector's run, trained on the detection terms; it trains nothing itself.
@@ -173,8 +190,10 @@ def test_cli_trains_evaluates_and_resumes(cli_run):
     assert not os.path.exists(os.path.join(workdir, "tracker", "checkpoints"))
     assert not np.isfinite(metrics["tracker"]["pose"]["location_m"]["mean"])  # no pose head: n/a
     assert metrics["dead_reckoning"]["detection"]["ap"]["0.5"]["all"] == 0.0  # no detection: no boxes
-    # 10 frames from the true start pose at 0.1 m/s, 0.01 rad/s noise: centimetres.
+    # 10 frames from the true start pose through the fitted motion model: centimetres
     assert 0.0 < metrics["dead_reckoning"]["pose"]["location_m"]["mean"] < 0.5
+    assert metrics["dead_reckoning"]["pose"]["known_start"]
+    assert os.path.exists(os.path.join(workdir, "dead_reckoning", "motion_model.json"))
     assert r["again"].count("nothing to do") == 2 and "training" not in r["again"], r["again"]
 
 
@@ -182,7 +201,7 @@ def test_cli_trains_evaluates_and_resumes(cli_run):
 def test_bad_flags_fail_in_one_line_before_any_compile(tmp_path):
     """JAX_LOG_COMPILES=1 logs every compilation to stderr: a one-line stderr means nothing compiled."""
     cases = [(["--baseline=detector,kalman"], "--baseline=detector,kalman"),
-             (["--odometry_speed_std_mps=-1"], "--odometry_speed_std_mps=-1"),
+             (["--world.ego_lag_s=-0.1"], "--world.ego_lag_s=-0.1"),
              (["--data.image_size=48"], "--data.image_size=48")]
     procs = [subprocess.Popen(LAUNCHER + flags + [f"--workdir={tmp_path / str(i)}"], stdout=subprocess.PIPE,
                               stderr=subprocess.PIPE, text=True, env=dict(os.environ, JAX_LOG_COMPILES="1"))

@@ -3,6 +3,8 @@
 Cost: two programs are compiled, one in a subprocess (flat memory + end-to-end report, started first
 so it overlaps) and one in this process (oracle), ~1-2 min in all on 2 CPU cores.
 """
+import dataclasses
+import functools
 import json
 import os
 import subprocess
@@ -14,13 +16,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import EXACT_PLANT
 
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import detection
 from e2e_percep_jax import evaluate as eval_lib
 from e2e_percep_jax import model as model_lib
 from e2e_percep_jax import report
-from e2e_percep_jax import sensors, world
+from e2e_percep_jax import rollout, sensors, world
 from e2e_percep_jax import town as town_lib
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -33,9 +36,11 @@ _MEMORY_SCRIPT = textwrap.dedent("""
     import json, os, resource, sys
     import orbax.checkpoint as ocp
     from e2e_percep_jax import checkpoint, config as C, evaluate as ev, train as T
+    from e2e_percep_jax.motion import MotionModel
     run = sys.argv[1]
     cfg = C.replace(C.get_config("tiny"), eval=dict(num_frames=200, num_worlds=4, chunk_steps=25))
     os.makedirs(run)
+    MotionModel().save(run)
     with open(os.path.join(run, "config.json"), "w") as f:
         f.write(cfg.to_json())
     with checkpoint.manager(run) as manager:
@@ -95,19 +100,64 @@ def vehicles_in_view(cfg, frames: int):
     return np.stack(counts)
 
 
-def test_known_start_protocol_follows_the_drive_from_its_first_pose(tmp_path):
-    """Under ``--eval.known_start`` the belief starts at each drive's true first pose and then follows the
-    recorded actions alone; the world moves its ego by the same bicycle model, so an untrained model's
-    odometry stays on the true path (float32 rounding), every drive counts as converged from frame 0, and
-    the drift per 100 m is ~0."""
-    cfg = config_lib.replace(config_lib.get_config("tiny"), eval=dict(num_frames=200, num_worlds=2, chunk_steps=20,
-                                                                      known_start=True))
+
+
+def test_known_start_odometry_follows_the_drive_in_the_exact_world_and_drifts_under_the_plant(tmp_path):
+    """Under ``--eval.known_start`` on a town the model was not trained on, the belief starts at each drive's
+    true first pose and then follows the commands through the motion model alone. Where the world's plant
+    is the exact bicycle (all its fields zero) and so is the motion model, an untrained model's odometry
+    stays on the true path (float32 rounding), every drive counts as converged from frame 0, and the drift
+    per 100 m is ~0; with the plant on, the same model drifts."""
+    cfg = config_lib.replace(config_lib.get_config("tiny"), world=EXACT_PLANT,
+                             eval=dict(num_frames=200, num_worlds=2, chunk_steps=20, known_start=True, town_seed=1))
     params = model_lib.init_params(jax.random.PRNGKey(0), cfg)
     pose = eval_lib.evaluate(cfg, params, str(tmp_path), video_frames=0, num_examples=0, log=lambda _: None)["pose"]
     assert pose["known_start"] and pose["location_m"]["p90"] < 0.02 and pose["heading_rad"]["p90"] < 1e-4
     assert pose["converged_frame"]["per_drive"] == [0, 0]
     assert pose["drift_per_100m"] < 0.05
     assert "known start" in open(os.path.join(tmp_path, "report.md")).read()
+    plant = dataclasses.replace(cfg, world=config_lib.get_config("tiny").world)
+    drifted = eval_lib.evaluate(plant, params, str(tmp_path / "plant"), video_frames=0, num_examples=0,
+                                log=lambda _: None)["pose"]
+    assert drifted["drift_per_100m"] > 0.3, drifted["drift_per_100m"]
+
+
+class RecordingPerceiver:
+    """A perceiver that records, frame by frame, everything an evaluation hands it (through a host
+    callback), and outputs nothing useful."""
+
+    def __init__(self, cfg):
+        self.cfg, self.seen = cfg, {}
+
+    def init(self, batch_size):
+        return {"frame": jnp.zeros((), jnp.int32)}
+
+    def step(self, params, state, camera, lidar, action, key=None, **kwargs):
+        record = lambda t, a, names: self.seen.setdefault(int(t), (np.asarray(a), names))
+        jax.debug.callback(functools.partial(record, names=tuple(sorted(kwargs))), state["frame"], action)
+        b, r = camera.shape[0], self.cfg.data.image_size
+        return ({"frame": state["frame"] + 1},
+                {"det_cls": jnp.zeros((b, r, r, 1)), "det_reg": jnp.zeros((b, r, r, 6)), "pose": jnp.zeros((b, 5))})
+
+
+def test_evaluation_hands_a_perceiver_the_logged_commands_and_never_the_plant(tmp_path):
+    """A perceiver that records what it receives: each frame's ``action`` is the commands of the frame
+    contract (the previous frame's ``action`` of the same worlds driven here by ``rollout.drive``), pedal
+    and steering within their limits, and nothing else is handed over (no keyword beyond the protocol's)."""
+    cfg = config_lib.replace(config_lib.get_config("tiny"), eval=dict(num_frames=60, num_worlds=2, chunk_steps=20))
+    perceiver = RecordingPerceiver(cfg)
+    eval_lib.evaluate(cfg, {}, str(tmp_path), perceiver=perceiver, video_frames=0, num_examples=0, log=lambda _: None)
+    town = town_lib.build_town(cfg.eval.town_seed)
+    state = eval_lib.start_worlds(eval_lib.start_keys(cfg), town, cfg.world)
+    state = jax.vmap(lambda s: rollout.advance(s, town, cfg.data.warmup_steps))(state)
+    _, frames = jax.vmap(lambda s: rollout.drive(s, town, 30, cfg.data.image_size))(state)
+    commands = np.asarray(frames["action"])  # [E, 30, 2]: frame t's commands, applied from t to t + 1
+    assert set(range(30)) <= set(perceiver.seen)  # (and the rest of the last chunk, past the scored frames)
+    for t in range(1, 30):
+        action, names = perceiver.seen[t]
+        assert names == ()  # the global protocol: no start pose, nothing else
+        np.testing.assert_allclose(action, commands[:, t - 1], atol=1e-6)
+        assert (np.abs(action[:, 0]) <= 1.0).all() and (np.abs(action[:, 1]) <= world.EGO_STEER_LIMIT_RAD).all()
 
 
 @pytest.mark.slow

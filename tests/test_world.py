@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import EXACT_PLANT
 
 from e2e_percep_jax import town as town_lib
 from e2e_percep_jax import world
@@ -19,8 +20,6 @@ HELD_OUT_SEED = 1
 NUM_STEPS = 2000
 NUM_WORLDS = 3
 CFG = WorldConfig()
-EXACT_PLANT = {name: 0.0 for name in ("ego_lag_s", "ego_steer_offset_deg", "ego_steer_gain_std", "ego_distance_scale_std",
-                                      "ego_understeer_deg_per_g", "ego_accel_noise_mps2", "ego_curvature_noise_1pm")}
 DRIVABLE = [town_lib.SEM_ROAD, town_lib.SEM_LANE_WHITE, town_lib.SEM_CENTRE_YELLOW, town_lib.SEM_STOP_LINE]
 MAX_LIMIT_MPS = town_lib.ARTERIAL_SPEED_MPS
 
