@@ -123,7 +123,9 @@ def markdown(m: dict) -> str:
     loc, head = pose["location_m"], pose["heading_rad"]
     share = lambda d, bound: fmt(d.get("within", {}).get(bound), True)
     conv = pose.get("converged_frame", {})
-    lines += ["", f"Pose protocol: {'known start (odometry: the belief starts at the true first pose and follows the actions)' if pose.get('known_start') else 'global (no start pose given)'}"
+    known = ("known start (the belief starts at the true first pose, then follows the commands through the "
+             "calibrated motion model, measuring places in the training town only)")
+    lines += ["", f"Pose protocol: {known if pose.get('known_start') else 'global (no start pose given)'}"
               f"{'; the belief head read frame by frame (no filter)' if pose.get('pose_filter') == 'none' else ''}.",
               "", "| location p90 (m) | within 5 / 10 / 50 m | heading p90 (rad) | within 0.1 rad | "
               f"drives converged (< {conv['within_m']:g} m to the end), median frame | "
@@ -133,6 +135,10 @@ def markdown(m: dict) -> str:
               f"{fmt(head.get('p90'), digits=3)} | {share(head, '0.1')} | {fmt(conv.get('share'), True)}, "
               f"{fmt(conv.get('median'), digits=0)} | {fmt(pose.get('nll_mean'), digits=2)} | "
               f"{fmt(pose.get('drift_per_100m'), digits=2)} |"]
+    cover = pose.get("coverage95")
+    if cover:
+        lines += ["", f"The belief's 95 % region holds the true cell in {fmt(cover['place'], True)} of frames and the "
+                  f"true (heading bin, cell) in {fmt(cover['place_heading'], True)} (about 95 % when calibrated)."]
     by = pose["location_m_by_step"]
     edges = by["bin_edges"] + [None]
     lines += ["", "Baseline: always the mean of this drive's true poses (x, y, speed averaged; heading the "

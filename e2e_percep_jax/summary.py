@@ -27,6 +27,8 @@ def summary_metrics(metrics: dict) -> dict:
         for bound, share in pose[f"{name}_{unit}"].get("within", {}).items():
             row[f"{name} within {bound} {unit} (%)"] = None if defined(share) is None else 100.0 * share
     row["drift per 100 m (m)"] = defined(pose.get("drift_per_100m"))
+    for region, share in (pose.get("coverage95") or {}).items():  # evaluations saved before it: absent
+        row[f"truth in the 95 % region, {region.replace('_', ' + ')} (%)"] = 100.0 * share
     return row
 
 
@@ -34,6 +36,6 @@ def mean_std(rows: list) -> dict:
     """{metric: (mean, std, n)} over runs, ignoring runs where the metric is undefined (None)."""
     out = {}
     for key in rows[0]:
-        values = np.array([r[key] for r in rows if r[key] is not None], np.float64)
+        values = np.array([r[key] for r in rows if r.get(key) is not None], np.float64)
         out[key] = (float(values.mean()), float(values.std()), len(values)) if len(values) else (None, None, 0)
     return out

@@ -22,7 +22,9 @@ from it (:class:`CarriedTrainState`): truncated backpropagation through time ove
 Outputs in ``workdir``: ``config.json`` (the resolved config), ``motion_model.json`` (the belief pose
 head's calibrated motion model, :func:`ensure_motion_model`), ``metrics.jsonl`` (one record per
 ``log_every`` steps: mean of each loss term over those steps, gradient norm, steps/s, non-finite
-counters), ``checkpoints/<step>`` (orbax; every ``checkpoint_every`` steps and at exit).
+counters), ``checkpoints/<step>`` (orbax; every ``checkpoint_every`` steps and at exit), and with
+tensorboardX installed TensorBoard event files of the same records and of reconstructions and the pose
+belief at every checkpoint (:mod:`e2e_percep_jax.board`).
 """
 import contextlib
 import dataclasses
@@ -44,6 +46,7 @@ from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from e2e_percep_jax import batch as batch_lib
+from e2e_percep_jax import board as board_lib
 from e2e_percep_jax import calibration, checkpoint
 from e2e_percep_jax import loss as loss_lib
 from e2e_percep_jax import town as town_lib
@@ -290,6 +293,7 @@ def train(cfg: Config, workdir: str, batches: Batches | None = None,
     if main_process:
         _truncate_metrics(metrics_path, start)
     step_fn = make_train_step(cfg, mesh, objective)
+    board = board_lib.Board(workdir if main_process else None, start)
     noise_root = model_keys(t.seed)[1]
     stream = (batches or world_batches(cfg))(start)
     compiled, pending, tick = None, [], time.perf_counter()
@@ -328,6 +332,7 @@ def train(cfg: Config, workdir: str, batches: Batches | None = None,
                 record = {"step": done, **{k: float(np.mean([r[k] for r in records])) for k in records[0]},
                           "nonfinite_in_a_row": int(records[-1]["nonfinite_in_a_row"]),
                           "nonfinite_total": int(records[-1]["nonfinite_total"]), "steps_per_s": steps_per_s}
+                board.scalars(record, t.learning_rate)
                 if main_process:
                     with open(metrics_path, "a") as f:
                         f.write(json.dumps(record) + "\n")
@@ -338,9 +343,13 @@ def train(cfg: Config, workdir: str, batches: Batches | None = None,
             if done % t.checkpoint_every == 0:
                 check_finite(done)
                 save(done)
+                if board.writer is not None and objective is PERCEPTION:
+                    board.images(done, jax.device_get(board_lib.preview(
+                        state.params, *(batch[k] for k in ("camera", "lidar", "roadmap", "action", "pose")), cfg)))
         final_step = int(_host(state.step))
         check_finite(final_step)
         save(final_step)
+        board.close()
         signum = stop.agreed()
         if signum is not None:
             raise TrainingInterrupted(signum, final_step)

@@ -1,5 +1,6 @@
-"""The issue-8 comparison table from hand-built metrics.json files: cells are the runs' own numbers (mean
-over seeds), towns come training town first, and evaluations under different protocols are refused."""
+"""The table of the end-to-end variants against the modular pipeline, from hand-built metrics.json files:
+cells are the runs' own numbers (mean over seeds), towns come training town first, and evaluations under
+different protocols are refused."""
 import json
 import os
 import subprocess

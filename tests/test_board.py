@@ -1,0 +1,82 @@
+"""TensorBoard events of a training run (e2e_percep_jax/board.py), read back with a TFRecord reader written
+here: the scalars are metrics.jsonl's records, the images are the inputs beside their reconstructions and
+the pose belief; without tensorboardX the run trains as before."""
+import glob
+import struct
+import sys
+
+import cv2
+import numpy as np
+import pytest
+from helpers import TINY, read_jsonl, synthetic_batch, tiny
+
+from e2e_percep_jax import pose_belief, train
+
+pytest.importorskip("tensorboardX")
+from tensorboardX.proto import event_pb2  # noqa: E402 (after the skip)
+
+CFG = tiny(num_steps=4, checkpoint_every=2, log_every=1)
+
+
+def batches(start, stop=CFG.train.num_steps):
+    for step in range(start, stop):
+        yield step, synthetic_batch(step, TINY)
+
+
+def read_events(workdir):
+    """Every event in the run's event files: the TFRecord framing (length, its CRC, data, its CRC) taken
+    apart by hand, each record an Event protocol buffer."""
+    events = []
+    for path in sorted(glob.glob(f"{workdir}/events.out.tfevents.*")):
+        data = open(path, "rb").read()
+        at = 0
+        while at < len(data):
+            (length,) = struct.unpack("<Q", data[at:at + 8])
+            events.append(event_pb2.Event.FromString(data[at + 12:at + 12 + length]))
+            at += 12 + length + 4
+    return events
+
+
+def test_events_hold_the_metrics_records_the_learning_rate_and_the_pictures_across_a_resume(tmp_path):
+    """Trained to step 2 (the data ends there), then resumed to 4: the second run marks its start for
+    TensorBoard to drop anything the first wrote past its checkpoint."""
+    train.train(CFG, str(tmp_path), batches=lambda start: batches(start, stop=2))
+    train.train(CFG, str(tmp_path), batches=batches)
+    scalars, images, starts = {}, {}, []
+    for event in read_events(tmp_path):
+        if event.HasField("session_log"):
+            starts.append(event.step)
+        for value in event.summary.value:
+            if value.HasField("image"):
+                images[(value.tag, event.step)] = cv2.imdecode(np.frombuffer(value.image.encoded_image_string, np.uint8),
+                                                               cv2.IMREAD_COLOR)
+            else:
+                scalars.setdefault(value.tag, {})[event.step] = value.simple_value
+    records = read_jsonl(tmp_path / "metrics.jsonl")
+    assert [r["step"] for r in records] == [1, 2, 3, 4] and starts == [2]
+    for record in records:
+        for name, value in record.items():
+            if name != "step":
+                tag = name if name in ("grad_norm", "steps_per_s", "nonfinite_in_a_row", "nonfinite_total") else f"loss/{name}"
+                assert scalars[tag][record["step"]] == pytest.approx(value, rel=1e-6), tag
+        assert scalars["learning_rate"][record["step"]] == pytest.approx(CFG.train.learning_rate)
+    r, n = CFG.data.image_size, pose_belief.grid_of(CFG.model).n
+    assert sorted(images) == sorted((tag, step) for step in (2, 4) for tag in
+                                    ("reconstruction/camera", "reconstruction/lidar", "reconstruction/roadmap", "pose_belief"))
+    camera = images[("reconstruction/camera", 4)][..., ::-1]  # (cv2 decodes BGR)
+    assert camera.shape == (r, 2 * r, 3)
+    np.testing.assert_array_equal(camera[:, :r], synthetic_batch(3, TINY)["camera"][0, -1])  # the input, left
+    belief = images[("pose_belief", 4)][..., ::-1]
+    assert belief.shape == (n, n, 3)
+    green = np.argwhere((belief[..., 1] == 255) & (belief[..., 0] == 0))
+    pose = synthetic_batch(3, TINY)["pose"][0, -1]
+    col, row = np.clip(np.floor((pose[:2] - pose_belief.AREA_ORIGIN_M) / pose_belief.grid_of(CFG.model).cell_m), 0, n - 1)
+    assert green.tolist() == [[n - 1 - int(row), int(col)]]  # the true cell, north up
+
+
+def test_without_tensorboardx_training_runs_and_says_so(tmp_path, monkeypatch, capsys):
+    monkeypatch.setitem(sys.modules, "tensorboardX", None)  # import tensorboardX now raises ImportError
+    state = train.train(tiny(num_steps=2, checkpoint_every=2, log_every=1), str(tmp_path), batches=batches)
+    assert int(state.step) == 2 and [r["step"] for r in read_jsonl(tmp_path / "metrics.jsonl")] == [1, 2]
+    assert "tensorboardX is not installed" in capsys.readouterr().out
+    assert not glob.glob(f"{tmp_path}/events.out.tfevents.*")
