@@ -41,7 +41,6 @@ from e2e_percep_jax import report, tracking
 from e2e_percep_jax import train as train_lib
 from e2e_percep_jax import motion as motion_lib
 from e2e_percep_jax.config import Config, ModelConfig
-from e2e_percep_jax.geometry import pose_yaw
 
 HEADS = ("detection", "pose")
 BASELINES = ("detector", "tracker", "pose", "dead_reckoning", "wheel_odometry")
@@ -186,11 +185,7 @@ class CommandOdometry:
             raise ValueError("dead reckoning starts from the true pose: evaluate it with --eval.known_start")
         # (the first commands of a drive set the actuators, as in the pose belief's filter)
         actuator = jnp.where(state["started"][:, None], state["actuator"], action)
-        pose = state["pose"]
-        actuator, v_new, _, move, dyaw = motion_lib.step(self.motion_model, actuator, action, pose[:, 4],
-                                                         pose_yaw(pose)[:, None])
-        yaw = pose_yaw(pose) + dyaw
-        moved = jnp.concatenate([pose[:, :2] + move[:, 0], jnp.stack([jnp.cos(yaw), jnp.sin(yaw), v_new], -1)], -1)
+        actuator, moved = motion_lib.advance_pose(self.motion_model, actuator, action, state["pose"])
         first = ~state["started"]
         pose = jnp.where(first[:, None], start_pose, moved)
         b, r = camera.shape[0], self.cfg.data.image_size

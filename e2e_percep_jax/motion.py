@@ -22,6 +22,8 @@ import os
 
 import jax.numpy as jnp
 
+from e2e_percep_jax.geometry import pose_yaw
+
 DT_S = 0.1  # the world's time step (s): one frame
 WHEELBASE_M = 2.7  # the kinematic bicycle model's wheelbase
 FILE_NAME = "motion_model.json"  # in a run directory
@@ -95,3 +97,12 @@ def step(model: MotionModel, actuator, command, speed_mps, yaw_rad):
     v_new, ds = speed_and_distance(model, actuator, speed_mps)
     dyaw = ds * curvature(model, actuator[..., 1], 0.5 * (speed_mps + v_new))
     return actuator, v_new, ds, centre_move(ds, dyaw, yaw_rad), dyaw
+
+
+def advance_pose(model: MotionModel, actuator, command, pose):
+    """Poses [B, 5] (x m, y m, cos, sin, speed m/s) one step on by ``command`` [B, 2] from actuators
+    [B, 2]: (actuators after, poses after). An odometry's step (dead reckoning on the commands)."""
+    yaw = pose_yaw(pose)
+    actuator, v_new, _, move, dyaw = step(model, actuator, command, pose[:, 4], yaw[:, None])
+    yaw = yaw + dyaw
+    return actuator, jnp.concatenate([pose[:, :2] + move[:, 0], jnp.stack([jnp.cos(yaw), jnp.sin(yaw), v_new], -1)], -1)

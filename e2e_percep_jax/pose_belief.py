@@ -260,11 +260,7 @@ def filter_step(state: dict, head: dict, prev_action, first, grid: Grid, model: 
     started = {"actuator": jnp.where(rows(prev_action), 0.0, motion_lib.actuate(model, actuator, prev_action)),
                "actuator_set": ~first}
     if start_pose is not None and not measure:
-        point = mean_pose(state, grid)
-        yaw = pose_yaw(point)
-        _, v_new, _, move, dyaw = motion_lib.step(model, actuator, prev_action, point[:, 4], yaw[:, None])
-        yaw = yaw + dyaw
-        moved = jnp.concatenate([point[:, :2] + move[:, 0], jnp.stack([jnp.cos(yaw), jnp.sin(yaw), v_new], -1)], -1)
+        _, moved = motion_lib.advance_pose(model, actuator, prev_action, mean_pose(state, grid))
         pose = jnp.where(rows(moved), start_pose, moved)
         belief, offset = start_at(pose, grid)
         return dict(started, belief=belief, speed_mps=pose[:, 4], yaw_offset_rad=offset), pose
