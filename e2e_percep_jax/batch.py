@@ -19,9 +19,12 @@ observing.
 import functools
 
 import jax
+import jax.numpy as jnp
 
 from e2e_percep_jax import config as config_lib
-from e2e_percep_jax import rollout, world
+from e2e_percep_jax import rollout, sensors, world
+
+PLACE_STREAM = 2 ** 20  # fold_in data of the place frames' key: above every segment index
 
 
 def warm_up(key, town, cfg: config_lib.Config):
@@ -36,14 +39,45 @@ def _drive_on(states, town, cfg: config_lib.Config):
     return jax.vmap(lambda s: rollout.drive(s, town, cfg.data.seq_len + 1, cfg.data.image_size))(states)
 
 
+def place_points(key, town, num: int):
+    """``num`` points drawn uniformly over the town's lanes: (lane [num] int32, chosen with probability
+    proportional to its length; arc [num] m, uniform along it; speed [num] m/s, uniform up to its limit)."""
+    k_lane, k_arc, k_speed = jax.random.split(key, 3)
+    length = town.lane_length_m
+    lane = jax.random.choice(k_lane, length.shape[0], (num,), p=length / jnp.sum(length))
+    return (lane, jax.random.uniform(k_arc, (num,)) * length[lane],
+            jax.random.uniform(k_speed, (num,)) * town.lane_speed_limit_mps[lane])
+
+
+def place_frames(states, key, town, cfg: config_lib.Config) -> dict:
+    """The place stream: P = ``cfg.data.place_frames`` single frames (``sensors.observe``'s dict, [P, ...]),
+    each seen from a :func:`place_points` point, heading along its lane, in the traffic of one of the B
+    worlds ``states`` drawn uniformly (``world.place_ego``)."""
+    k_world, k_points = jax.random.split(key)
+    p = cfg.data.place_frames
+    lane, arc, speed = place_points(k_points, town, p)
+    chosen = jax.tree.map(lambda x: x[jax.random.randint(k_world, (p,), 0, cfg.data.batch_size)], states)
+    placed = jax.vmap(world.place_ego, in_axes=(0, None, 0, 0, 0))(chosen, town, lane, arc, speed)
+    return jax.vmap(lambda st: sensors.observe(st, town, cfg.data.image_size))(placed)
+
+
+def _with_places(frames, states, key, town, cfg: config_lib.Config):
+    """``frames``, with the place stream (``place_<field>`` [P, ...]) when the config has one."""
+    if not cfg.data.place_frames:
+        return frames
+    return dict(frames, **{f"place_{k}": v for k, v in place_frames(states, key, town, cfg).items()})
+
+
 @functools.partial(jax.jit, static_argnames="cfg")
 def make_batch(key, town, cfg: config_lib.Config):
-    """A batch (:class:`~e2e_percep_jax.rollout.Frames` [B, T+1, ...]) from ``key`` alone.
+    """A batch (:class:`~e2e_percep_jax.rollout.Frames` [B, T+1, ...]) from ``key`` alone; with the place
+    stream, a dict of its fields and the place frames (:func:`place_frames`, from the worlds after the drive).
 
     ``cfg`` is static (hashable frozen dataclasses); the same key, town and config give a bit-identical
     batch.
     """
-    return _drive_on(warm_up(key, town, cfg), town, cfg)[1]
+    states, frames = _drive_on(warm_up(key, town, cfg), town, cfg)
+    return _with_places(frames, states, jax.random.fold_in(key, PLACE_STREAM), town, cfg)
 
 
 def _hand_over(states, drive_key, segment, town, cfg: config_lib.Config):
@@ -68,8 +102,10 @@ def start_drive(drive_key, town, cfg: config_lib.Config, segments):
 
 @functools.partial(jax.jit, static_argnames="cfg")
 def drive_segment(states, drive_key, segment, town, cfg: config_lib.Config):
-    """(states after, batch): segment ``segment`` of a drive, seen by the egos its hand-over picks."""
-    return _drive_on(_hand_over(states, drive_key, segment, town, cfg), town, cfg)
+    """(states after, batch): segment ``segment`` of a drive, seen by the egos its hand-over picks (with the
+    place stream, its place frames from the worlds after the segment)."""
+    states, frames = _drive_on(_hand_over(states, drive_key, segment, town, cfg), town, cfg)
+    return states, _with_places(frames, states, jax.random.fold_in(drive_key, PLACE_STREAM + segment), town, cfg)
 
 
 def batch_key(seed: int, step: int):

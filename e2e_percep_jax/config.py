@@ -62,6 +62,10 @@ class DataConfig:
     # from different worlds; 1 = every batch from fresh worlds (batch.py). The training presets use
     # _BATCHES_PER_DRIVE; 1 here is what configs saved before the field existed ran with.
     batches_per_drive: int = 1
+    # The place stream: P extra single frames a step, each at a uniformly random point of the town's lanes
+    # (batch.place_frames), that train the belief pose head and the encoders through it: many more places
+    # a step than the B sequences' few. 0 = none.
+    place_frames: int = 0
     # Carried state (needs K > 1): no hand-over inside a drive, and the latent filter state at the end of
     # one segment starts the drive's next, gradients cut between them (truncated BPTT over K segments).
     carry_state: bool = False
@@ -273,6 +277,11 @@ def validate(cfg: Config) -> Config:
         raise ValueError(f"--train.max_grad_norm={cfg.train.max_grad_norm}: must be >= 0 (0: no clipping)")
     if cfg.model.pose_filter not in POSE_FILTERS:
         raise ValueError(f"--model.pose_filter={cfg.model.pose_filter!r}: choose one of {POSE_FILTERS}")
+    if cfg.data.place_frames < 0:
+        raise ValueError(f"--data.place_frames={cfg.data.place_frames}: must be >= 0 (0: no place stream)")
+    if cfg.data.place_frames and cfg.model.pose_head != "belief":
+        raise ValueError(f"--data.place_frames={cfg.data.place_frames}: trains the belief pose head; "
+                         f"--model.pose_head={cfg.model.pose_head!r} has none")
     if cfg.data.carry_state and cfg.data.batches_per_drive < 2:
         raise ValueError(f"--data.carry_state: needs segments to carry across, --data.batches_per_drive >= 2 "
                          f"(got {cfg.data.batches_per_drive})")

@@ -41,6 +41,7 @@ FOCAL_ALPHA, FOCAL_GAMMA = 0.25, 2.0
 DET_REG_WEIGHT = 0.1
 REFERENCE_POSE_WEIGHT = 10.0
 BATCH_KEYS = ("camera", "lidar", "roadmap", "det_cls", "det_reg", "pose", "action")  # what the loss reads
+PLACE_KEYS = ("place_camera", "place_lidar", "place_pose")  # and of the place stream, when a batch has it
 
 
 def focal_loss(logit, target):
@@ -99,6 +100,19 @@ def pose_terms(params, filtered: dict, pred: dict, pose, cfg: Config) -> dict:
     return {"pose": pose_term(pred["pose_normalised"], pose, weight)}
 
 
+def place_terms(params, batch, cfg: Config) -> dict:
+    """The belief head's terms on the place stream's single frames (``place_*`` [P, ...], when the batch
+    has them; else none): each frame filtered as a sequence's first (no past, posterior means), its terms
+    summed over the P frames and divided by the batch's B sequences, weighted as the sequences' own pose
+    terms, so a place frame counts as much as a sequence frame. Named ``place_<term>``."""
+    if "place_camera" not in batch:
+        return {}
+    camera, lidar, pose = (batch[k][:, None] for k in PLACE_KEYS)  # [P, 1, ...]: sequences of one frame
+    out = model_lib.filter_sequence(params, camera, lidar, jnp.zeros(pose.shape[:2] + (2,)), None, cfg)
+    parts = pose_belief.loss_terms(model_lib.pose_belief_head(params, out, cfg), pose, pose_belief.grid_of(cfg.model))
+    return {f"place_{k}": pose_weight(cfg) * per_sequence(v, batch["camera"].shape[0]) for k, v in parts.items()}
+
+
 def pose_weight(cfg: Config) -> float:
     """The pose term's whole weight: ``train.perception_weight * train.pose_weight``."""
     return cfg.train.perception_weight * cfg.train.pose_weight
@@ -139,5 +153,6 @@ def sequence_loss(params, batch, key, cfg: Config, start=None):
     metrics["kl"] = cfg.train.kl_weight * per_sequence(kl, b)
     metrics.update(detection_terms(pred, batch, cfg.train.perception_weight))
     metrics.update(pose_terms(params, out, pred, batch["pose"], cfg))
+    metrics.update(place_terms(params, batch, cfg))
     total, metrics = with_total(metrics)
     return total, (metrics, model_lib.end_state(out, batch["action"]))

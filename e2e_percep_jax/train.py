@@ -142,7 +142,7 @@ def shard_batch(batch: dict, mesh: Mesh) -> dict:
     contributes the rows of its own devices.
     """
     sharding = NamedSharding(mesh, PartitionSpec("data"))
-    batch = {k: batch[k] for k in loss_lib.BATCH_KEYS}
+    batch = {k: batch[k] for k in loss_lib.BATCH_KEYS + loss_lib.PLACE_KEYS if k in batch}
     if jax.process_count() == 1:
         return jax.device_put(batch, sharding)
     host = jax.tree.map(np.asarray, batch)
@@ -197,6 +197,9 @@ def check_run(cfg: Config, workdir: str, objective: Objective = PERCEPTION) -> i
     n_devices = jax.device_count()
     if cfg.data.batch_size % n_devices:
         raise ValueError(f"--data.batch_size={cfg.data.batch_size} must be a multiple of the number of "
+                         f"devices ({n_devices})")
+    if cfg.data.place_frames % n_devices:
+        raise ValueError(f"--data.place_frames={cfg.data.place_frames} must be a multiple of the number of "
                          f"devices ({n_devices})")
     return checkpoint.check_resumable(cfg, workdir)
 

@@ -495,6 +495,21 @@ def hand_over_ego(state: WorldState, vehicle, town) -> WorldState:
         veh_max_accel_mps2=swap(state.veh_max_accel_mps2), veh_speed_frac=swap(state.veh_speed_frac))
 
 
+PLACE_CLEAR_M = 8.0  # place_ego moves every NPC whose centre is nearer than this off the map
+
+
+def place_ego(state: WorldState, town, lane, s_m, speed_mps) -> WorldState:
+    """The ego put on lane ``lane`` at arc ``s_m`` (its centre on the centre line, heading along it) at
+    ``speed_mps``, to be observed, not driven on: every NPC whose centre lies within PLACE_CLEAR_M of it
+    is moved far off the map (bodies never overlap the ego's), the rest of the traffic stays where it is."""
+    xy, yaw, _ = lane_point(town, lane, s_m)
+    near = jnp.linalg.norm(state.veh_box[:, :2] - xy, axis=-1) < PLACE_CLEAR_M
+    far = jnp.where(near[:, None], jnp.float32(-1e4), state.veh_box[:, :2])
+    box = jnp.concatenate([far, state.veh_box[:, 2:]], 1).at[EGO, :3].set(jnp.concatenate([xy, yaw[None]]))
+    return state._replace(veh_box=box, veh_speed_mps=state.veh_speed_mps.at[EGO].set(speed_mps),
+                          veh_lane=state.veh_lane.at[EGO].set(lane), veh_s_m=state.veh_s_m.at[EGO].set(s_m))
+
+
 def _lane_steer(town, lane, s_m):
     """The road-wheel angle (rad) that holds a car's rear axle on lane ``lane`` at its centre's arc ``s_m``."""
     return jnp.arctan(WHEELBASE_M * lane_point(town, lane, s_m - 0.5 * WHEELBASE_M)[2])
