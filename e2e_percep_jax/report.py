@@ -96,7 +96,7 @@ def markdown(m: dict) -> str:
     lines.append("| this run, occluded GT | " + " | ".join(fmt(ap[t]["occluded"], True) for t in thr) + " |")
     lines.append("| baseline: no boxes | " + " | ".join("0.0%" for _ in thr) + " |")
     for row, vals in PAPER_AP.items():
-        mark = " (same variant)" if is_variant and PAPER_VARIANT_ROW[variant] == row else ""
+        mark = " (same variant)" if is_variant and PAPER_VARIANT_ROW.get(variant) == row else ""
         lines.append(f"| paper: {row}{mark} | " + " | ".join(f"{v:.1f}%" for v in vals) + " |")
     lines += ["", f"Ground truths: {det['num_gt']['all']} ({det['num_gt']['visible']} visible, "
               f"{det['num_gt']['occluded']} occluded: no lidar return). Detections: PIXOR class map -> "
@@ -118,7 +118,7 @@ def markdown(m: dict) -> str:
               f"| baseline: constant mean pose, mean | {fmt(base['pose']['location_m']['mean'], digits=2)} | "
               f"{fmt(base['pose']['heading_rad']['mean'], digits=3)} | {fmt(base['pose']['speed_mps']['mean'], digits=2)} |"]
     for row, (loc, head) in PAPER_POSE.items():
-        mark = " (same variant)" if is_variant and PAPER_VARIANT_ROW[variant] == row else ""
+        mark = " (same variant)" if is_variant and PAPER_VARIANT_ROW.get(variant) == row else ""
         lines.append(f"| paper: {row}{mark} | {loc} | {head} | - |")
     loc, head = pose["location_m"], pose["heading_rad"]
     share = lambda d, bound: fmt(d.get("within", {}).get(bound), True)

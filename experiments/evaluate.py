@@ -49,8 +49,8 @@ def main(argv):
             if not FLAGS[flag].present:
                 continue
             if section != "eval" and flag not in INFERENCE_FIELDS:
-                raise ValueError(f"--{flag}: only --eval.* and --{' --'.join(INFERENCE_FIELDS)} may "
-                                 f"change at evaluation (the model is trained)")
+                raise ValueError(f"--{flag}: only --eval.*, --model.pose_filter and the plant's --world.ego_* "
+                                 f"may change at evaluation (the model is trained)")
             overrides.setdefault(section, {})[name] = FLAGS[flag].value
         cfg = config_lib.validate(config_lib.replace(config_lib.run_config(FLAGS.workdir), **overrides))
         if FLAGS.video_frames < 0 or FLAGS.num_examples < 0:

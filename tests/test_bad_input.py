@@ -30,6 +30,7 @@ import e2e_percep_jax as e2e
 from e2e_percep_jax import checkpoint
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import train as train_lib
+from e2e_percep_jax.motion import MotionModel
 
 CFG = config_lib.replace(TINY, train=dict(num_steps=2, checkpoint_every=1, log_every=1))  # the run's config
 R, Z1, Z2 = TINY.data.image_size, TINY.model.z1_dim, TINY.model.z2_dim
@@ -134,7 +135,8 @@ CASES = {
     "evaluate negative step": Case("evaluate", ["--step=-2"], "--step=-2: "),
     "evaluate step not saved": Case("evaluate", ["--step=999"], "--step=999: "),
     "evaluate a trained-model field": Case("evaluate", ["--model.z1_dim=4"],
-                                           "--model.z1_dim: only --eval.* and --model.pose_filter may change"),
+                                           "--model.z1_dim: only --eval.*, --model.pose_filter and the plant's "
+                                           "--world.ego_* may change"),
     "evaluate a preset": Case("evaluate", ["--config=tiny"], "--config: the run's config.json is the config"),
     "evaluate negative town seed": Case("evaluate", ["--eval.town_seed=-1"], "--eval.town_seed=-1: must be >= 0"),
     "evaluate no workdir": Case("evaluate", ["--workdir="], "--workdir is required"),
@@ -279,6 +281,7 @@ def run(tmp_path_factory):
     of FOREIGN)."""
     path = str(tmp_path_factory.mktemp("run"))
     train_lib.train(CFG, path, batches=synthetic_batches)
+    MotionModel().save(path)  # (trained on synthetic batches, so no motion model was fitted on the world)
     assert checkpoint.saved_steps(path) == [1, 2]
     foreign = str(tmp_path_factory.mktemp("foreign"))
     with checkpoint.manager(foreign) as manager:
