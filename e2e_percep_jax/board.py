@@ -8,7 +8,8 @@ without TensorFlow or PyTorch. Images are PNG-encoded by OpenCV here (tensorboar
 would pull Pillow). Without tensorboardX training runs as before and says once that it writes no events.
 
 :class:`Board` writes every ``metrics.jsonl`` record as scalars (each loss term, the gradient norm,
-steps/s, the non-finite counters) plus the learning rate, and at every checkpoint :func:`preview` images
+steps/s, the non-finite counters) plus the learning rate, and at every checkpoint of a single-process run
+:func:`preview` images
 of one training sequence's last frame: each input beside its reconstruction, and the pose belief's place
 probabilities with the true cell marked. A resumed run purges the events past its checkpoint, as
 ``metrics.jsonl`` is truncated there.

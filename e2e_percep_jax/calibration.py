@@ -48,9 +48,11 @@ def training_drives(cfg: Config, num_worlds: int = 8, num_steps: int = 1500) -> 
     """``num_worlds`` drives of ``num_steps`` steps in the training town after the traffic's warm-up, reset
     from ``PRNGKey(CALIBRATION_SEED)``. NumPy arrays [W, T]: ``pose`` [W, T, 3] (x m, y m, yaw rad),
     ``speed_mps``, ``command`` [W, T, 2] (the commands applied from step t to t + 1)."""
-    key = jax.random.PRNGKey(CALIBRATION_SEED)
-    town = town_lib.build_town(cfg.world.town_seed)
-    pose, speed, command = jax.tree.map(np.asarray, _drive(key, town, cfg, num_worlds, num_steps))
+    # (on this process's own device: in a multi-process run the first device is another host's)
+    with jax.default_device(jax.local_devices()[0]):
+        key = jax.random.PRNGKey(CALIBRATION_SEED)
+        town = town_lib.build_town(cfg.world.town_seed)
+        pose, speed, command = jax.tree.map(np.asarray, _drive(key, town, cfg, num_worlds, num_steps))
     return {"pose": pose.astype(np.float64), "speed_mps": speed.astype(np.float64),
             "command": command.astype(np.float64)}
 

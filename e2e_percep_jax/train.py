@@ -346,7 +346,8 @@ def train(cfg: Config, workdir: str, batches: Batches | None = None,
             if done % t.checkpoint_every == 0:
                 check_finite(done)
                 save(done)
-                if board.writer is not None and objective is PERCEPTION:
+                # (single-process runs only: the preview is a computation every process would have to run)
+                if board.writer is not None and objective is PERCEPTION and jax.process_count() == 1:
                     board.images(done, jax.device_get(board_lib.preview(
                         state.params, *(batch[k] for k in ("camera", "lidar", "roadmap", "action", "pose")), cfg)))
         final_step = int(_host(state.step))
