@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from e2e_percep_jax import calibration, checkpoint
+from e2e_percep_jax import checkpoint
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import evaluate as eval_lib
 from e2e_percep_jax import loss as loss_lib
@@ -251,12 +251,7 @@ def odometry_model(cfg: Config, workdir: str) -> motion_lib.MotionModel:
     training run fits its own: the same drives, so the same model)."""
     path = os.path.join(workdir, "dead_reckoning")
     os.makedirs(path, exist_ok=True)
-    try:
-        return motion_lib.MotionModel.load(path)
-    except ValueError:
-        model = calibration.calibrate(cfg)
-        model.save(path)
-        return model
+    return train_lib.ensure_motion_model(cfg, path)
 
 
 def eval_config(baseline: str, cfg: Config) -> Config:
