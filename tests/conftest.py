@@ -1,8 +1,21 @@
 """Fixtures for every test module. Plain helpers that test modules import are in helpers.py."""
-import pytest
+import atexit
+import os
+import shutil
+import tempfile
 
-from e2e_percep_jax import config, xla_cpu
-from e2e_percep_jax import town as town_lib
+# One persistent compilation cache for the whole suite, this process and the launchers it starts (they inherit
+# the environment): most launcher tests compile the same `tiny` programs (the calibration's drive, the train
+# step, the evaluation), and a cache hit loads them instead of compiling again. Set before jax is imported,
+# which reads it then; a cache the caller names is kept.
+if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = tempfile.mkdtemp(prefix="e2e-percep-jax-cache-")
+    atexit.register(shutil.rmtree, os.environ["JAX_COMPILATION_CACHE_DIR"], True)
+
+import pytest  # noqa: E402
+
+from e2e_percep_jax import config, xla_cpu  # noqa: E402
+from e2e_percep_jax import town as town_lib  # noqa: E402
 
 # The convolution path the launchers and e2e.load choose, set before any test computes (process-wide;
 # the launchers that tests start inherit it).
