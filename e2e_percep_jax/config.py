@@ -309,6 +309,17 @@ def flag_value(value) -> str:
     return ",".join(map(str, value)) if isinstance(value, (tuple, list)) else str(value)
 
 
+def as_flags(cfg: Config) -> list[str]:
+    """The shortest command line for ``cfg``: ``--config=<the preset it differs least from>`` and a
+    ``--<section>.<field>`` flag per field that differs (the inverse of :func:`from_flags`)."""
+    def overrides(preset):
+        return [f"--{section}.{name}={flag_value(getattr(getattr(cfg, section), name))}"
+                for section, name, _ in fields()
+                if getattr(getattr(cfg, section), name) != getattr(getattr(PRESETS[preset], section), name)]
+    preset = min(PRESETS, key=lambda name: len(overrides(name)))
+    return [f"--config={preset}", *overrides(preset)]
+
+
 def define_flags(flag_values=None) -> None:
     """Defines ``--config`` and one ``--<section>.<field>`` absl flag per config field (default: unset)."""
     from absl import flags

@@ -42,7 +42,7 @@ from e2e_percep_jax import pixor, rollout, sensors, world
 from e2e_percep_jax import train as train_lib
 from e2e_percep_jax.town import build_town
 
-BENCHMARKS = ("world", "frames", "frames_parts", "batch", "loop", "train", "train_parts", "train_profile", "deconv", "infer", "compile", "eval", "memory")
+BENCHMARKS = ("world", "frames", "frames_parts", "batch", "loop", "train", "place", "train_parts", "train_profile", "deconv", "infer", "compile", "eval", "memory")
 _REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PEER_SCRIPT = os.path.join(_REPO, "..", "shared", "peer", "torch_peer_bench.py")
 
@@ -58,6 +58,7 @@ flags.DEFINE_integer("frames_image_size", 128, "R of the frames benchmark")
 flags.DEFINE_list("compile_seq_lens", ["10", "50"], "T values of the paper-config compile-time figure")
 flags.DEFINE_integer("infer_batch", 64, "batch of the inference throughput figure (latency is at batch 1)")
 flags.DEFINE_integer("batches_per_drive", None, "K of the batch figure's stream (drives feed K batches each); default: the cpu preset's")
+flags.DEFINE_list("place_frames", ["32"], "place: P of the place stream's figures, beside P = 0")
 flags.DEFINE_integer("memory_steps", 300, "training steps of the cpu-config run whose resident memory is sampled")
 flags.DEFINE_boolean("keep_freed_buffers", True, "reuse freed buffers as the launchers do (allocator.py), "
                      "here and in the peer; --nokeep_freed_buffers measures glibc's default")
@@ -275,6 +276,44 @@ def bench_train(town, repeats):
                           ratio_vs_peer_rounds=[p / o for p, o in zip(peer_s, ours_s)])
         figures.append(figure)
     return {"sizes": figures}
+
+
+def bench_place(town, repeats):
+    """The place stream's cost: seconds per training step of the ``cpu`` preset (batch, sharding and step,
+    as ``train.train`` dispatches them, over the preset's stream) without it and with each
+    ``--place_frames`` P, alternated with the eager PyTorch peer at the same (B, T, R) for
+    ``--peer_rounds`` rounds, so each ratio is taken in one window of this shared VM."""
+    base, mesh = _cpu_stream_config(), train_lib.make_mesh()
+    cfgs = {p: config_lib.replace(base, data=dict(place_frames=p)) for p in [0, *map(int, FLAGS.place_frames)]}
+    runners = {}
+    for p, cfg in cfgs.items():
+        stream = batch_lib.batch_stream(town, cfg, seed=0)
+        _, step, _ = _train_step_runner(cfg, next(stream)[1])
+        runners[p] = (step, stream)
+
+    def run(p):
+        step, stream = runners[p]
+        return _median_s(lambda: step(train_lib.shard_batch(next(stream)[1], mesh)), repeats)
+
+    rounds = {p: [] for p in cfgs}
+    peers = []
+    for _ in range(FLAGS.peer_rounds):
+        for p in cfgs:
+            rounds[p].append(run(p))
+        peers.append(_peer(base.data.batch_size, base.data.seq_len, base.data.image_size, repeats))
+    figure = {"config": "cpu", "batch": base.data.batch_size, "seq_len": base.data.seq_len,
+              "image_size": base.data.image_size}
+    for p, times in rounds.items():
+        figure[f"step_s_place{p}"] = statistics.median(times)
+        figure[f"step_s_place{p}_rounds"] = times
+        if p:
+            figure[f"place{p}_over_no_place"] = statistics.median([t / t0 for t, t0 in zip(times, rounds[0])])
+    if peers[0] is not None:
+        figure["peer_step_s_median"] = statistics.median(peer["step_s_median"] for peer in peers)
+        for p, times in rounds.items():
+            figure[f"ratio_vs_peer_place{p}"] = statistics.median(
+                [peer["step_s_median"] / t for peer, t in zip(peers, times)])
+    return figure
 
 
 def bench_train_parts(town, repeats):
@@ -537,6 +576,8 @@ def main(argv):
     try:
         for spec in FLAGS.train_sizes:
             _size(spec)
+        if not all(p.isdigit() and int(p) > 0 for p in FLAGS.place_frames):
+            raise ValueError(f"--place_frames={','.join(FLAGS.place_frames)}: expected positive integers")
     except ValueError as e:
         sys.exit(f"error: {e}")
     os.makedirs(FLAGS.out_dir, exist_ok=True)

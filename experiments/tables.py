@@ -1,0 +1,253 @@
+"""The README's result tables, rendered from the runs' evaluations, never typed.
+
+    # keep the evaluations a table reads: every eval*/metrics.json of the runs, without its PR curves
+    python experiments/tables.py --collect=place32=runs/place_s0,runs/place_s1 --collect=dead_reckoning=runs/baselines/dead_reckoning
+    # write the tables into README.md between its <!-- table:<name>:begin/end --> markers
+    python experiments/tables.py --readme=README.md
+    # exit 1 if README.md's tables differ from what the kept evaluations render (tests/test_tables.py)
+    python experiments/tables.py --readme=README.md --check
+
+The kept evaluations live in ``--results`` (default ``experiments/results/``) as
+``<method>/<run>/<evaluation>.json``: a method is a recipe (a row), a run one seed of it, an evaluation one
+of the run's ``eval*`` directories (``eval``: the training town's global protocol; ``eval_town7``:
+a held-out town; ``_known_start``: the belief starts at the true pose). Each cell is the mean ± std over a
+method's runs; each method's row names the command that trained it.
+"""
+import glob
+import json
+import os
+import re
+import sys
+
+from absl import app, flags
+
+from e2e_percep_jax import config as config_lib
+from e2e_percep_jax.summary import mean_std, summary_metrics
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+DROPPED = {"detection": ("pr_curves", "at_threshold"), "": ("examples", "sample")}  # large, no table reads them
+HELD_OUT_TOWNS = (7, 8)
+
+flags.DEFINE_multi_string("collect", [], "METHOD=RUN_DIR[,RUN_DIR...]: keep these runs' evaluations as METHOD")
+flags.DEFINE_string("results", os.path.join(HERE, "results"), "directory of the kept evaluations")
+flags.DEFINE_string("readme", None, "markdown file whose table markers to fill (default: print the tables)")
+flags.DEFINE_boolean("check", False, "with --readme: exit 1 if its tables differ from the rendered ones")
+FLAGS = flags.FLAGS
+
+
+# ----------------------------------------------------------------------------- the kept evaluations
+
+
+def collect(method: str, run_dirs: list[str], results_dir: str) -> list[str]:
+    """Copies each run's ``eval*/metrics.json`` (without the large fields) into
+    ``results_dir/method/<run name>/<evaluation>.json``; returns the paths written."""
+    if not re.fullmatch(r"[A-Za-z0-9_.-]+", method):
+        raise ValueError(f"--collect={method}=...: a method name is letters, digits, '_', '.' or '-'")
+    written = []
+    for run in run_dirs:
+        evaluations = sorted(glob.glob(os.path.join(run, "eval*", "metrics.json")))
+        if not evaluations:
+            raise ValueError(f"--collect={method}={run}: no eval*/metrics.json in {run}")
+        for path in evaluations:
+            with open(path) as f:
+                metrics = json.load(f)
+            for section, keys in DROPPED.items():
+                for key in keys:
+                    (metrics[section] if section else metrics).pop(key, None)
+            out = os.path.join(results_dir, method, os.path.basename(os.path.normpath(run)),
+                               os.path.basename(os.path.dirname(path)) + ".json")
+            os.makedirs(os.path.dirname(out), exist_ok=True)
+            with open(out, "w") as f:
+                json.dump(metrics, f, indent=1, sort_keys=True)
+            written.append(out)
+    return written
+
+
+def load(results_dir: str) -> dict:
+    """{method: {evaluation: [metrics per run]}}, runs in name order."""
+    found = {}
+    for path in sorted(glob.glob(os.path.join(results_dir, "*", "*", "*.json"))):
+        method = os.path.basename(os.path.dirname(os.path.dirname(path)))
+        with open(path) as f:
+            found.setdefault(method, {}).setdefault(os.path.basename(path)[:-5], []).append(json.load(f))
+    return found
+
+
+def command(evaluations: dict) -> str:
+    """The training command of a method's runs (``{0,1}`` where the seeds differ; the evaluation's own
+    flags left out)."""
+    runs = next(iter(evaluations.values()))
+
+    def trained(m):  # the learning rate is constant, so a run's checkpoint is a run of that many steps
+        cfg = config_lib.Config.from_dict(m["config"])
+        if m.get("checkpoint_step") is not None:
+            cfg = config_lib.replace(cfg, train=dict(num_steps=m["checkpoint_step"]))
+        return cfg
+    lines = {" ".join(f for f in config_lib.as_flags(trained(m)) if not f.startswith("--eval.")) for m in runs}
+    seeds = sorted({m["config"]["train"]["seed"] for m in runs})
+    if len(seeds) > 1:
+        lines = {re.sub(r" --train\.seed=\d+", "", line) + f" --train.seed={{{','.join(map(str, seeds))}}}"
+                 for line in lines}
+    if len(lines) != 1:
+        raise ValueError(f"a method's runs differ in more than their seed: {sorted(lines)}")
+    if runs[0]["label"] in config_lib.VARIANTS:
+        return f"python experiments/main.py {lines.pop()}"
+    return f"python experiments/baselines.py --baseline={runs[0]['label']} {lines.pop()}"
+
+
+# ----------------------------------------------------------------------------- cells
+
+
+def _cell(evaluations: list[dict] | None, row: str, scale: float = 1.0, digits: int = 1) -> str:
+    """Mean ± std over the runs of one summary row, or "" where no run has it."""
+    if not evaluations:
+        return ""
+    mean, std, n = mean_std([summary_metrics(m) for m in evaluations])[row]
+    if mean is None:
+        return ""
+    text = f"{scale * mean:.{digits}f}"
+    return text + (f" ± {scale * std:.{digits}f}" if n > 1 else "")
+
+
+def _error_by_frames(metrics: dict, lo: int, hi: int) -> float | None:
+    """The mean location error (m) over frames [lo, hi) of each drive, from the evaluation's bins."""
+    by_step = metrics["pose"]["location_m_by_step"]
+    edges, total, count = by_step["bin_edges"], 0.0, 0
+    for a, b, mean, n in zip(edges[:-1], edges[1:], by_step["mean"], by_step["count"]):
+        if lo <= a and b <= hi and n:
+            total, count = total + mean * n, count + n
+    return total / count if count else None
+
+
+def _frames_cell(evaluations: list[dict] | None, lo: int, hi: int) -> str:
+    values = [v for v in (_error_by_frames(m, lo, hi) for m in evaluations or []) if v is not None]
+    if not values:
+        return ""
+    mean = sum(values) / len(values)
+    std = (sum((v - mean) ** 2 for v in values) / len(values)) ** 0.5
+    return f"{mean:.1f}" + (f" ± {std:.1f}" if len(values) > 1 else "")
+
+
+def _markdown(header: list[str], rows: list[list[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    return "\n".join(lines + ["| " + " | ".join(row) + " |" for row in rows])
+
+
+def _order(found: dict) -> list[str]:
+    """End-to-end methods first (by name), then the baselines."""
+    baseline = lambda method: next(iter(found[method].values()))[0]["label"] not in config_lib.VARIANTS
+    return sorted(found, key=lambda method: (baseline(method), method))
+
+
+def _runs_note(found: dict, methods: list[str]) -> str:
+    """A line per method: its runs and the command that trained them."""
+    runs = {m: len(next(iter(found[m].values()))) for m in methods}
+    return "\n".join(f"- `{m}` ({runs[m]} run{'s' if runs[m] > 1 else ''}): `{command(found[m])}`" for m in methods)
+
+
+# ----------------------------------------------------------------------------- the tables
+
+
+def localisation(found: dict) -> str:
+    """Town 0 under the global protocol; the known-start protocol's error and drift on towns 0, 7 and 8."""
+    header = ["method", "location mean / p90 (m)", "heading (rad)", "within 10 m (%)", "truth in 95 % region: place / + heading (%)",
+              "known start: error at frames 100-999 / 1,000+ (m)",
+              "known-start drift per 100 m: town 0 / " + " / ".join(map(str, HELD_OUT_TOWNS)) + " (m)"]
+    methods, rows, constant, paper = _order(found), [], None, {}
+    for method in methods:
+        ev = found[method]
+        known = ev.get("eval_known_start")
+        drift = [_cell(ev.get(name), "drift per 100 m (m)", digits=2)
+                 for name in ("eval_known_start", *(f"eval_town{t}_known_start" for t in HELD_OUT_TOWNS))]
+        glob_ = ev.get("eval")
+        rows.append([f"`{method}`",
+                     " / ".join(filter(None, [_cell(glob_, "location mean (m)"), _cell(glob_, "location p90 (m)")])),
+                     _cell(glob_, "heading mean (rad)", digits=3),
+                     _cell(glob_, "location within 10 m (%)"),
+                     " / ".join(filter(None, [_cell(glob_, "truth in the 95 % region, place (%)"),
+                                              _cell(glob_, "truth in the 95 % region, place + heading (%)")])),
+                     " / ".join(filter(None, [_frames_cell(known, 100, 1000), _frames_cell(known, 1000, 10**9)])),
+                     " / ".join(d or "-" for d in drift) if any(drift) else ""])
+        if glob_ and constant is None:
+            constant = glob_[0]["baseline"]["pose"]
+            paper = glob_[0]["paper"]["pose"]
+    if constant is not None:
+        rows.append(["constant pose (the drive's mean pose)", f"{constant['location_m']['mean']:.1f} / "
+                     f"{constant['location_m']['p90']:.1f}", f"{constant['heading_rad']['mean']:.3f}", "", "", "", ""])
+        rows += [[f"paper: {name}", f"{p['location_m']}", f"{p['heading_rad']}", "", "", "", ""]
+                 for name, p in paper.items()]
+    return _markdown(header, rows) + "\n\n" + _runs_note(found, methods) + "\n"
+
+
+def detection(found: dict) -> str:
+    """AP on town 0 at every IoU, occluded AP@0.1, and AP@0.5 on the held-out towns."""
+    header = ["method", "AP@0.1 (%)", "AP@0.3 (%)", "AP@0.5 (%)", "AP@0.7 (%)", "occluded AP@0.1 (%)",
+              "AP@0.5 town " + " / ".join(map(str, HELD_OUT_TOWNS)) + " (%)"]
+    methods, rows, paper = [], [], {}
+    for method in _order(found):
+        ev = found[method]
+        town0 = ev.get("eval") or ev.get("eval_known_start")
+        if town0 is None or not mean_std([summary_metrics(m) for m in town0])["AP@0.5 all (%)"][0]:
+            continue  # a method without boxes (an odometry, the pose regressor)
+        held_out = [_cell(ev.get(f"eval_town{t}") or ev.get(f"eval_town{t}_known_start"), "AP@0.5 all (%)")
+                    for t in HELD_OUT_TOWNS]
+        methods.append(method)
+        rows.append([f"`{method}`", *(_cell(town0, f"AP@{iou} all (%)") for iou in ("0.1", "0.3", "0.5", "0.7")),
+                     _cell(town0, "AP@0.1 occluded (%)"), " / ".join(h or "-" for h in held_out)])
+        paper = paper or town0[0]["paper"]["ap_percent"]
+    rows += [[f"paper: {name}", *(f"{ap[iou]}" for iou in ("0.1", "0.3", "0.5", "0.7")), "", ""]
+             for name, ap in paper.items()]
+    return _markdown(header, rows) + "\n\n" + _runs_note(found, methods) + "\n"
+
+
+TABLES = {"localisation": localisation, "detection": detection}
+
+
+def render(results_dir: str) -> dict:
+    """{table name: markdown} of the kept evaluations."""
+    found = load(results_dir)
+    if not found:
+        raise ValueError(f"--results={results_dir}: no kept evaluations (<method>/<run>/<evaluation>.json)")
+    return {name: make(found) for name, make in TABLES.items()}
+
+
+def fill(text: str, tables: dict) -> str:
+    """``text`` with each ``<!-- table:<name>:begin -->`` ... ``end`` block holding its table."""
+    for name, table in tables.items():
+        begin, end = f"<!-- table:{name}:begin -->", f"<!-- table:{name}:end -->"
+        if text.count(begin) != 1 or text.count(end) != 1:
+            raise ValueError(f"--readme: expected one {begin} ... {end} block")
+        head, rest = text.split(begin)
+        text = head + begin + "\n" + table + rest[rest.index(end):]
+    return text
+
+
+def main(argv):
+    try:
+        if len(argv) > 1:
+            raise ValueError(f"unexpected arguments {argv[1:]}")
+        for spec in FLAGS.collect:
+            method, _, runs = spec.partition("=")
+            if not runs:
+                raise ValueError(f"--collect={spec}: expected METHOD=RUN_DIR[,RUN_DIR...]")
+            for path in collect(method, runs.split(","), FLAGS.results):
+                print(f"kept {path}")
+        tables = render(FLAGS.results)
+        if FLAGS.readme is None:
+            print("\n\n".join(tables.values()))
+            return
+        with open(FLAGS.readme) as f:
+            text = f.read()
+        filled = fill(text, tables)
+    except (ValueError, OSError) as e:
+        sys.exit(f"error: {e}")
+    if FLAGS.check:
+        sys.exit(0 if filled == text else f"{FLAGS.readme}: its tables differ from those of {FLAGS.results}; "
+                 f"run python experiments/tables.py --readme={FLAGS.readme}")
+    with open(FLAGS.readme, "w") as f:
+        f.write(filled)
+    print(f"wrote {len(tables)} tables into {FLAGS.readme}")
+
+
+if __name__ == "__main__":
+    app.run(main)

@@ -1,0 +1,113 @@
+"""The tables launcher: its cells against means and standard deviations worked out by hand, the kept
+evaluations without their curves, the README's blocks filled, and the README's tables equal to what the
+kept evaluations render (so the README cannot drift from the runs)."""
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from e2e_percep_jax import config
+from helpers import load_experiment
+
+tables = load_experiment("tables")
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+PAPER = {"ap_percent": {"full": {"0.1": 79.4, "0.3": 72.0, "0.5": 56.5, "0.7": 16.8}},
+         "pose": {"full": {"location_m": 11.4, "heading_rad": 0.33}}}
+
+
+def _metrics(seed, *, label="full", ap=0.5, location=4.0, drift=1.0, town=0, known_start=False, by_step=(3.0, 3.0)):
+    """A metrics.json with what the tables read, every AP ``ap`` and the location mean ``location``."""
+    cfg = config.replace(config.get_config("cpu"), train=dict(seed=seed), data=dict(place_frames=32),
+                         eval=dict(town_seed=town, known_start=known_start))
+    pose = {"location_m": {"mean": location, "median": location, "p90": 2 * location, "within": {"10": 0.5}},
+            "heading_rad": {"mean": 0.05, "median": 0.05, "p90": 0.1, "within": {}},
+            "speed_mps": {"mean": 0.1, "median": 0.1, "p90": 0.2, "within": {}},
+            "location_m_by_step": {"bin_edges": [0, 10, 30, 100, 300, 1000, 3000],
+                                   "mean": [9.0, 9.0, 9.0, by_step[0], by_step[0], by_step[1]],
+                                   "count": [10, 20, 70, 200, 700, 875]},
+            "drift_per_100m": drift, "coverage95": {"place": 0.95, "place_heading": 0.9}}
+    return {"label": label, "config": json.loads(cfg.to_json()), "paper": PAPER,
+            "detection": {"ap": {iou: {"all": ap, "visible": ap, "occluded": ap / 2} for iou in ("0.1", "0.3", "0.5", "0.7")},
+                          "pr_curves": [[0.0] * 100]},
+            "examples": [1], "pose": pose,
+            "baseline": {"pose": {**pose, "location_m": {"mean": 160.0, "median": 150.0, "p90": 240.0, "within": {}},
+                                  "heading_rad": {"mean": 1.1, "median": 1.1, "p90": 2.0, "within": {}}}}}
+
+
+def _write_run(run_dir, evaluations):
+    for name, metrics in evaluations.items():
+        os.makedirs(os.path.join(run_dir, name), exist_ok=True)
+        with open(os.path.join(run_dir, name, "metrics.json"), "w") as f:
+            json.dump(metrics, f)
+
+
+@pytest.fixture
+def results(tmp_path):
+    """Two seeds of `place32` (AP 50 / 60 %, location 4 / 6 m) and one `dead_reckoning` run, kept."""
+    for seed, ap, location, by_step in ((0, 0.5, 4.0, (2.0, 4.0)), (1, 0.6, 6.0, (4.0, 6.0))):
+        _write_run(tmp_path / "runs" / f"place_s{seed}", {
+            "eval": _metrics(seed, ap=ap, location=location),
+            "eval_known_start": _metrics(seed, ap=ap, known_start=True, drift=0.5 + seed, by_step=by_step),
+            "eval_town7_known_start": _metrics(seed, ap=ap / 2, town=7, known_start=True, drift=2.0)})
+    _write_run(tmp_path / "runs" / "dead_reckoning", {
+        "eval_known_start": _metrics(0, label="dead_reckoning", ap=0.0, known_start=True, drift=3.0)})
+    out = tmp_path / "results"
+    tables.collect("place32", [str(tmp_path / "runs" / "place_s0"), str(tmp_path / "runs" / "place_s1")], str(out))
+    tables.collect("dead_reckoning", [str(tmp_path / "runs" / "dead_reckoning")], str(out))
+    return out
+
+
+def _row(table, method):
+    return next(line for line in table.splitlines() if line.startswith(f"| {method} |")).split(" | ")
+
+
+def test_cells_are_the_mean_and_std_over_seeds(results):
+    rendered = tables.render(str(results))
+    det = _row(rendered["detection"], "`place32`")
+    # AP 50 and 60 %: mean 55, population std 5; occluded AP is half
+    assert det[1:5] == ["55.0 ± 5.0"] * 4 and det[5] == "27.5 ± 2.5" and det[6].startswith("27.5 ± 2.5 / -")
+    assert "`dead_reckoning`" not in rendered["detection"]  # no boxes: no detection row
+    loc = _row(rendered["localisation"], "`place32`")
+    assert loc[1] == "5.0 ± 1.0 / 10.0 ± 2.0" and loc[2] == "0.050 ± 0.000" and loc[3] == "50.0 ± 0.0"
+    assert loc[4] == "95.0 ± 0.0 / 90.0 ± 0.0"
+    # frames 100-999 are the bins 100-300 and 300-1000 (both 2 m, then 4 m); 1,000+ is the last bin
+    assert loc[5] == "3.0 ± 1.0 / 5.0 ± 1.0"
+    assert loc[6].startswith("1.00 ± 0.50 / 2.00 ± 0.00 / -")
+    dr = _row(rendered["localisation"], "`dead_reckoning`")
+    assert dr[1] == "" and dr[6].startswith("3.00 / - / -")
+    assert "| constant pose (the drive's mean pose) | 160.0 / 240.0 | 1.100 |" in rendered["localisation"]
+    assert "| paper: full | 11.4 | 0.33 |" in rendered["localisation"]
+    assert ("- `place32` (2 runs): `python experiments/main.py --config=cpu --data.place_frames=32 --train.seed={0,1}`"
+            in rendered["localisation"].splitlines())
+    assert ("- `dead_reckoning` (1 run): `python experiments/baselines.py --baseline=dead_reckoning --config=cpu "
+            "--data.place_frames=32`" in rendered["localisation"].splitlines())
+
+
+def test_kept_evaluations_lose_only_their_curves(results):
+    kept = json.loads((results / "place32" / "place_s0" / "eval.json").read_text())
+    assert "pr_curves" not in kept["detection"] and "examples" not in kept
+    assert kept["detection"]["ap"] == _metrics(0)["detection"]["ap"] and kept["pose"] == _metrics(0)["pose"]
+
+
+def test_readme_blocks_are_filled_and_checked(results, tmp_path):
+    readme = tmp_path / "README.md"
+    readme.write_text("# x\n<!-- table:localisation:begin -->\nold\n<!-- table:localisation:end -->\ntext\n"
+                      "<!-- table:detection:begin --><!-- table:detection:end -->\n")
+    cmd = [sys.executable, os.path.join(REPO, "experiments", "tables.py"), f"--results={results}", f"--readme={readme}"]
+    stale = subprocess.run(cmd + ["--check"], capture_output=True, text=True, timeout=120)
+    assert stale.returncode == 1 and "differ" in stale.stderr
+    subprocess.run(cmd, check=True, capture_output=True, timeout=120)
+    text = readme.read_text()
+    assert "old" not in text and text.startswith("# x\n") and "\ntext\n" in text
+    assert tables.render(str(results))["detection"] in text
+    assert subprocess.run(cmd + ["--check"], capture_output=True, timeout=120).returncode == 0
+    with pytest.raises(ValueError, match="table:localisation"):
+        tables.fill("no markers", tables.render(str(results)))
+
+
+def test_the_readme_shows_what_the_kept_evaluations_render():
+    with open(os.path.join(REPO, "README.md")) as f:
+        text = f.read()
+    assert tables.fill(text, tables.render(os.path.join(REPO, "experiments", "results"))) == text
