@@ -22,7 +22,7 @@ import numpy as np
 from e2e_percep_jax import checkpoint, detection, pose_belief, xla_cpu
 from e2e_percep_jax import model as model_lib
 from e2e_percep_jax.config import Config
-from e2e_percep_jax.motion import MotionModel
+from e2e_percep_jax.sim.motion import MotionModel
 
 
 def _check(name, x, shape, dtype):
@@ -35,7 +35,7 @@ def _check(name, x, shape, dtype):
 @dataclasses.dataclass(frozen=True)
 class Perceiver:
     """The perception model of ``cfg`` as pure functions of (params, filter state, inputs). ``motion_model``:
-    the run's calibrated motion model (``motion_model.json``, :mod:`e2e_percep_jax.motion`), through which
+    the run's calibrated motion model (``motion_model.json``, :mod:`e2e_percep_jax.sim.motion`), through which
     the pose belief follows the commands; the default, the exact bicycle without lag or noise, is right
     only in a world whose plant has all its fields at zero."""
     cfg: Config
@@ -68,7 +68,7 @@ class Perceiver:
         steering command rad; ignored on a stream's first frame); key: a PRNG key to sample the latents, or None for the
         posterior means. Returns (state, outputs) with outputs:
         ``det_cls`` [B, R, R, 1] vehicle probability, ``det_reg`` [B, R, R, 6] PIXOR regression
-        (units in :mod:`e2e_percep_jax.pixor`), ``pose`` [B, 5] (x m, y m, cos ψ, sin ψ, speed m/s,
+        (units in :mod:`e2e_percep_jax.sim.pixor`), ``pose`` [B, 5] (x m, y m, cos ψ, sin ψ, speed m/s,
         town frame; with the belief head: at the filtered belief's mode, or under ``--model.pose_filter=none``
         the head's own mode this frame), ``z`` [B, z1_dim + z2_dim], the
         reconstructed images the variant has (``roadmap``, ``camera``, ``lidar``: float32 [B, R, R, 3] in

@@ -13,7 +13,7 @@ Baselines (``BASELINES``), each run in ``<workdir>/<baseline>/``:
 - ``pose``: the same encoders and the pose head (``model.MLP``), one frame, on :func:`loss.pose_term`.
 - ``dead_reckoning``: no network, on the same information as the pose belief's motion: from each drive's
   true first pose and speed, the logged commands through the same calibrated motion model
-  (:class:`CommandOdometry`, :mod:`e2e_percep_jax.motion`). Evaluated under the known-start protocol.
+  (:class:`CommandOdometry`, :mod:`e2e_percep_jax.sim.motion`). Evaluated under the known-start protocol.
 - ``wheel_odometry``: no network; ``tracking.DeadReckoner`` from each drive's true first pose, integrating
   wheel-speed and yaw-rate sensors: the true speed and yaw rate with a per-drive wheel-radius error and
   gyro bias, and per-sample noise (:func:`wheel_odometry_host`). Evaluated under the known-start protocol.
@@ -39,8 +39,8 @@ from e2e_percep_jax import loss as loss_lib
 from e2e_percep_jax import model as model_lib
 from e2e_percep_jax import report, tracking
 from e2e_percep_jax import train as train_lib
-from e2e_percep_jax import motion as motion_lib
 from e2e_percep_jax.config import Config, ModelConfig
+from e2e_percep_jax.sim import motion as motion_lib
 
 HEADS = ("detection", "pose")
 BASELINES = ("detector", "tracker", "pose", "dead_reckoning", "wheel_odometry")

@@ -1,4 +1,4 @@
-"""Fits the estimators' motion model (:class:`e2e_percep_jax.motion.MotionModel`) on training drives, as a
+"""Fits the estimators' motion model (:class:`e2e_percep_jax.sim.motion.MotionModel`) on training drives, as a
 car maker calibrates odometry: from logged commands and the true poses of drives, never from the plant.
 
 :func:`training_drives` drives worlds of the training town from keys disjoint from the training batches'
@@ -19,11 +19,11 @@ import functools
 import jax
 import numpy as np
 
-from e2e_percep_jax import motion, world
-from e2e_percep_jax import town as town_lib
 from e2e_percep_jax.config import Config
-from e2e_percep_jax.geometry import wrap_angle
-from e2e_percep_jax.motion import DT_S, WHEELBASE_M, MotionModel
+from e2e_percep_jax.sim import motion, world
+from e2e_percep_jax.sim import town as town_lib
+from e2e_percep_jax.sim.geometry import wrap_angle
+from e2e_percep_jax.sim.motion import DT_S, WHEELBASE_M, MotionModel
 
 CALIBRATION_SEED = 999_983  # the drives' root key: not a training seed's batches, nor the evaluation's worlds
 LAG_GRID_S = (0.0, 0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.4)

@@ -23,9 +23,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from e2e_percep_jax import geometry as geo
 from e2e_percep_jax import metrics as metrics_lib
-from e2e_percep_jax import pixor
+from e2e_percep_jax.sim import geometry as geo
+from e2e_percep_jax.sim import pixor
 
 DEDUP_CELL_M = 0.5
 TOP_K = 64

@@ -46,10 +46,11 @@ import numpy as np
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import detection
 from e2e_percep_jax import metrics as metrics_lib
-from e2e_percep_jax import report, rollout, summary, world
-from e2e_percep_jax import town as town_lib
+from e2e_percep_jax import report, summary
 from e2e_percep_jax.api import Perceiver, run_perceiver
 from e2e_percep_jax.config import Config, WorldConfig
+from e2e_percep_jax.sim import rollout, world
+from e2e_percep_jax.sim import town as town_lib
 
 IOU_THRESHOLDS = (0.1, 0.3, 0.5, 0.7)
 RESET_STREAM, SAMPLE_STREAM = 0, 1  # fold_in data of PRNGKey(cfg.eval.seed)

@@ -25,8 +25,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from e2e_percep_jax import geometry as geo
 from e2e_percep_jax import summary
+from e2e_percep_jax.sim import geometry as geo
 
 SUBSETS = ("all", "visible", "occluded")
 NMS_IOU = 0.3  # the evaluation's and the inference API's greedy NMS threshold (rotated IoU)

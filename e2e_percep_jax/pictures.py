@@ -12,10 +12,10 @@ import cv2
 import jax.numpy as jnp
 import numpy as np
 
-from e2e_percep_jax import geometry as geo
 from e2e_percep_jax import metrics as metrics_lib
-from e2e_percep_jax import motion
-from e2e_percep_jax import town as town_lib
+from e2e_percep_jax.sim import geometry as geo
+from e2e_percep_jax.sim import motion
+from e2e_percep_jax.sim import town as town_lib
 
 VISIBLE_RGB = (60, 230, 60)
 OCCLUDED_RGB = (255, 150, 30)

@@ -18,7 +18,7 @@ the mode cell refined by its offset.
 
 The histogram filter (:func:`init_state`, :func:`filter_step`) keeps a belief [B, H, n, n] (probabilities),
 a speed track [B], a heading offset [B] shared by all bins and the actuators' state [B, 2]. Motion: the
-run's calibrated motion model (:mod:`e2e_percep_jax.motion`, fitted on training drives, not the world's
+run's calibrated motion model (:mod:`e2e_percep_jax.sim.motion`, fitted on training drives, not the world's
 plant) driven by the logged commands, each heading bin's mass moved by its own displacement (a bilinear
 split over the neighbouring cells, which keeps the mass's mean exact) and the common yaw change added to
 the offset, whole bins rolling the heading axis; then the model's process noise: heading mass diffused to
@@ -36,9 +36,9 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from e2e_percep_jax import motion as motion_lib
-from e2e_percep_jax.geometry import pose_yaw, wrap_angle
-from e2e_percep_jax.motion import MotionModel
+from e2e_percep_jax.sim import motion as motion_lib
+from e2e_percep_jax.sim.geometry import pose_yaw, wrap_angle
+from e2e_percep_jax.sim.motion import MotionModel
 
 # Every town's lanes lie in [-7, 427] m; the margin keeps a vehicle's belief off the grid's edge, where the
 # filter's motion would push mass off the grid.

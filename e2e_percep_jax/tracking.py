@@ -37,9 +37,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from e2e_percep_jax import geometry as geo
 from e2e_percep_jax import metrics
-from e2e_percep_jax.motion import DT_S, WHEELBASE_M
+from e2e_percep_jax.sim import geometry as geo
+from e2e_percep_jax.sim.motion import DT_S, WHEELBASE_M
 
 STATE_DIM = 7  # x, y, yaw, length, width, vx, vy
 MEAS_DIM = 5  # x, y, yaw, length, width (a box)

@@ -45,14 +45,14 @@ import orbax.checkpoint as ocp
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from e2e_percep_jax import batch as batch_lib
 from e2e_percep_jax import board as board_lib
 from e2e_percep_jax import calibration, checkpoint
 from e2e_percep_jax import loss as loss_lib
-from e2e_percep_jax import town as town_lib
-from e2e_percep_jax import world
 from e2e_percep_jax.config import Config, TrainConfig, validate
-from e2e_percep_jax.motion import MotionModel
+from e2e_percep_jax.sim import batch as batch_lib
+from e2e_percep_jax.sim import town as town_lib
+from e2e_percep_jax.sim import world
+from e2e_percep_jax.sim.motion import MotionModel
 from e2e_percep_jax.train_state import (PERCEPTION, CarriedTrainState, Objective, TrainState, init_state, model_keys,
                                         optimizer)
 

@@ -33,14 +33,14 @@ from absl import app, flags
 from flax import linen as nn
 
 from e2e_percep_jax import allocator, xla_cpu
-from e2e_percep_jax import batch as batch_lib
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import evaluate as evaluate_lib
-from e2e_percep_jax import geometry as geo
 from e2e_percep_jax import model as model_lib
-from e2e_percep_jax import pixor, rollout, sensors, world
 from e2e_percep_jax import train as train_lib
-from e2e_percep_jax.town import build_town
+from e2e_percep_jax.sim import batch as batch_lib
+from e2e_percep_jax.sim import geometry as geo
+from e2e_percep_jax.sim import pixor, rollout, sensors, world
+from e2e_percep_jax.sim.town import build_town
 
 BENCHMARKS = ("world", "frames", "frames_parts", "batch", "loop", "train", "place", "train_parts", "train_profile", "deconv", "infer", "compile", "eval", "memory")
 _REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

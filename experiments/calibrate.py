@@ -15,7 +15,7 @@ from absl import app, flags
 
 from e2e_percep_jax import calibration
 from e2e_percep_jax import config as config_lib
-from e2e_percep_jax.motion import FILE_NAME
+from e2e_percep_jax.sim.motion import FILE_NAME
 
 flags.DEFINE_string("workdir", None, "training run directory (its config.json says the world)")
 flags.DEFINE_boolean("refit", False, "fit again even if the run has a motion model")

@@ -15,9 +15,10 @@ import sys
 
 from absl import app, flags
 
-from e2e_percep_jax import allocator, checkpoint, detection, report, world, xla_cpu
+from e2e_percep_jax import allocator, checkpoint, detection, report, xla_cpu
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import evaluate as eval_lib
+from e2e_percep_jax.sim import world
 
 config_lib.define_flags()
 flags.DEFINE_string("workdir", None, "run directory holding config.json and checkpoints/")

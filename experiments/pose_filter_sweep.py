@@ -21,12 +21,13 @@ import numpy as np
 from absl import app, flags
 
 from e2e_percep_jax import allocator, xla_cpu
-from e2e_percep_jax import batch as batch_lib
-from e2e_percep_jax import checkpoint, metrics, pose_belief, rollout
+from e2e_percep_jax import checkpoint, metrics, pose_belief
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import model as model_lib
-from e2e_percep_jax import town as town_lib
-from e2e_percep_jax.motion import MotionModel
+from e2e_percep_jax.sim import batch as batch_lib
+from e2e_percep_jax.sim import rollout
+from e2e_percep_jax.sim import town as town_lib
+from e2e_percep_jax.sim.motion import MotionModel
 
 flags.DEFINE_string("workdir", None, "a training run with the belief pose head")
 flags.DEFINE_integer("step", None, "checkpoint (default: the latest)")

@@ -21,8 +21,9 @@ import jax
 import numpy as np
 from absl import app, flags
 
-from e2e_percep_jax import config, pictures, rollout, world
-from e2e_percep_jax.town import build_town
+from e2e_percep_jax import config, pictures
+from e2e_percep_jax.sim import rollout, world
+from e2e_percep_jax.sim.town import build_town
 
 flags.DEFINE_string("out_dir", "runs/world", "where the PNGs and MP4s go")
 flags.DEFINE_integer("seed", 11, "world reset key (11: an ego that keeps moving through traffic in the default town)")

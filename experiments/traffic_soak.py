@@ -30,8 +30,9 @@ import numpy as np
 from absl import app, flags
 
 from e2e_percep_jax import config as config_lib
-from e2e_percep_jax import evaluate, geometry, world
-from e2e_percep_jax import town as town_lib
+from e2e_percep_jax import evaluate
+from e2e_percep_jax.sim import geometry, world
+from e2e_percep_jax.sim import town as town_lib
 
 config_lib.define_flags()
 flags.DEFINE_list("seeds", ["7", "8", "9"], "reset keys, one world each")

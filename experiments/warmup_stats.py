@@ -15,8 +15,8 @@ import numpy as np
 from absl import app, flags
 
 from e2e_percep_jax import config as config_lib
-from e2e_percep_jax import rollout, world
-from e2e_percep_jax.town import build_town
+from e2e_percep_jax.sim import rollout, world
+from e2e_percep_jax.sim.town import build_town
 
 config_lib.define_flags()
 flags.DEFINE_integer("num_worlds", 96, "worlds averaged over")

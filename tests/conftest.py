@@ -15,7 +15,7 @@ if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
 import pytest  # noqa: E402
 
 from e2e_percep_jax import config, xla_cpu  # noqa: E402
-from e2e_percep_jax import town as town_lib  # noqa: E402
+from e2e_percep_jax.sim import town as town_lib  # noqa: E402
 
 # The convolution path the launchers and e2e.load choose, set before any test computes (process-wide;
 # the launchers that tests start inherit it).

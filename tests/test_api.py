@@ -12,9 +12,10 @@ import pytest
 import e2e_percep_jax as e2e
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import model as model_lib
-from e2e_percep_jax import pixor, pose_belief
+from e2e_percep_jax import pose_belief
 from e2e_percep_jax import train as train_lib
-from e2e_percep_jax.motion import MotionModel
+from e2e_percep_jax.sim import pixor
+from e2e_percep_jax.sim.motion import MotionModel
 
 CFG = config_lib.get_config("tiny")
 R = CFG.data.image_size
@@ -207,5 +208,5 @@ def test_load_imports_no_evaluation_world_or_cv2():
     loaded = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, check=True)
     modules = loaded.stdout.split()
     assert "e2e_percep_jax.api" in modules, modules
-    heavy = ("cv2", "e2e_percep_jax.world", "e2e_percep_jax.town", "e2e_percep_jax.sensors", "e2e_percep_jax.evaluate")
+    heavy = ("cv2", "e2e_percep_jax.sim.world", "e2e_percep_jax.sim.town", "e2e_percep_jax.sim.sensors", "e2e_percep_jax.evaluate")
     assert not [m for m in modules if m in heavy or m.startswith("cv2.")], modules

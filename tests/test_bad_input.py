@@ -30,7 +30,7 @@ import e2e_percep_jax as e2e
 from e2e_percep_jax import checkpoint
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import train as train_lib
-from e2e_percep_jax.motion import MotionModel
+from e2e_percep_jax.sim.motion import MotionModel
 
 CFG = config_lib.replace(TINY, train=dict(num_steps=2, checkpoint_every=1, log_every=1))  # the run's config
 R, Z1, Z2 = TINY.data.image_size, TINY.model.z1_dim, TINY.model.z2_dim

@@ -6,7 +6,8 @@ import jax
 import numpy as np
 import pytest
 
-from e2e_percep_jax import batch, config, rollout, sensors, world
+from e2e_percep_jax import config
+from e2e_percep_jax.sim import batch, rollout, sensors, world
 
 CFG = config.get_config("tiny")
 

@@ -8,7 +8,7 @@ import pytest
 from helpers import EXACT_PLANT
 
 from e2e_percep_jax import calibration, config
-from e2e_percep_jax.motion import DT_S, WHEELBASE_M, MotionModel
+from e2e_percep_jax.sim.motion import DT_S, WHEELBASE_M, MotionModel
 
 TINY = config.get_config("tiny")
 

@@ -23,8 +23,8 @@ from e2e_percep_jax import detection
 from e2e_percep_jax import evaluate as eval_lib
 from e2e_percep_jax import model as model_lib
 from e2e_percep_jax import report
-from e2e_percep_jax import rollout, sensors, world
-from e2e_percep_jax import town as town_lib
+from e2e_percep_jax.sim import rollout, sensors, world
+from e2e_percep_jax.sim import town as town_lib
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 VIDEO_FRAMES = 40
@@ -36,7 +36,7 @@ _MEMORY_SCRIPT = textwrap.dedent("""
     import json, os, resource, sys
     import orbax.checkpoint as ocp
     from e2e_percep_jax import checkpoint, config as C, evaluate as ev, train as T
-    from e2e_percep_jax.motion import MotionModel
+    from e2e_percep_jax.sim.motion import MotionModel
     run = sys.argv[1]
     cfg = C.replace(C.get_config("tiny"), eval=dict(num_frames=200, num_worlds=4, chunk_steps=25))
     os.makedirs(run)

@@ -4,7 +4,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from e2e_percep_jax import geometry as geo
+from e2e_percep_jax.sim import geometry as geo
 
 
 @pytest.mark.parametrize("prefix", [(), (1,), (3, 5, 7)])

@@ -1,8 +1,8 @@
 """Pictures for people (e2e_percep_jax/pictures.py): boxes land where the geometry module puts them."""
 import numpy as np
 
-from e2e_percep_jax import geometry as geo
 from e2e_percep_jax import pictures
+from e2e_percep_jax.sim import geometry as geo
 
 VIEW_PX = 256  # the panel is drawn at a higher resolution than any frame; R only sets the scale below
 BOX = np.array([6.0, 3.0, 0.4, 4.5, 2.0], np.float32)  # ego frame: x m ahead, y m left, yaw, length, width
@@ -52,7 +52,7 @@ def test_town_map_puts_the_belief_and_the_paths_where_the_town_frame_says():
     """The map of the belief's area (north up): a belief of one cell colours that cell's square only, and
     the estimate's ring is drawn around its town position."""
     from e2e_percep_jax import pose_belief
-    from e2e_percep_jax import town as town_lib
+    from e2e_percep_jax.sim import town as town_lib
     grid = pose_belief.Grid(cell_m=10.0, heading_bins=36)
     lo, size = pose_belief.AREA_ORIGIN_M, pose_belief.AREA_SIZE_M
     view = pictures.TopDown(town_lib.build_town(0), (lo, lo, lo + size, lo + size), px_per_m=0.8)

@@ -3,8 +3,8 @@ import jax
 import numpy as np
 import pytest
 
-from e2e_percep_jax import geometry as geo
-from e2e_percep_jax import pixor
+from e2e_percep_jax.sim import geometry as geo
+from e2e_percep_jax.sim import pixor
 
 
 targets = jax.jit(pixor.targets, static_argnums=1)

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 from helpers import TINY
 
-from e2e_percep_jax import batch, config, loss, model, pose_belief, world
-from e2e_percep_jax import town as town_lib
+from e2e_percep_jax import config, loss, model, pose_belief
+from e2e_percep_jax.sim import batch, world
+from e2e_percep_jax.sim import town as town_lib
 
 CFG = config.replace(TINY, data=dict(place_frames=6))
 

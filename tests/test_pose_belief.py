@@ -4,7 +4,7 @@ measurement, restarts), its credible regions against sorting, the known-start od
 integration of the motion model, and the filter on real drives of a world whose ego has a plant.
 
 The expectations are computed here in NumPy float64 from the motion model's equations as
-e2e_percep_jax/motion.py's docstring states them; pose_belief's and motion.py's functions only produce the
+e2e_percep_jax/sim/motion.py's docstring states them; pose_belief's and motion.py's functions only produce the
 values under test."""
 import dataclasses
 import math
@@ -15,9 +15,10 @@ import numpy as np
 import pytest
 from helpers import EXACT_PLANT
 
-from e2e_percep_jax import calibration, config, pose_belief, rollout, world
-from e2e_percep_jax import motion as motion_lib
-from e2e_percep_jax.motion import MotionModel
+from e2e_percep_jax import calibration, config, pose_belief
+from e2e_percep_jax.sim import motion as motion_lib
+from e2e_percep_jax.sim import rollout, world
+from e2e_percep_jax.sim.motion import MotionModel
 
 GRID = pose_belief.Grid(cell_m=10.0, heading_bins=36)
 DT_S, WHEELBASE_M = 0.1, 2.7  # the world's step and wheelbase, written out again

@@ -5,7 +5,8 @@ import jax
 import numpy as np
 import pytest
 
-from e2e_percep_jax import config, rollout, world
+from e2e_percep_jax import config
+from e2e_percep_jax.sim import rollout, world
 
 CFG = config.get_config("tiny")
 NUM_FRAMES, IMAGE_SIZE = 3, 32

@@ -8,10 +8,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from e2e_percep_jax import geometry as geo
-from e2e_percep_jax import sensors
-from e2e_percep_jax.town import SEM_CENTRE_YELLOW, SEM_COLORS, SEM_OFFROAD, SEM_ROAD, SEM_STOP_LINE, Town
-from e2e_percep_jax.world import WorldState
+from e2e_percep_jax.sim import geometry as geo
+from e2e_percep_jax.sim import sensors
+from e2e_percep_jax.sim.town import SEM_CENTRE_YELLOW, SEM_COLORS, SEM_OFFROAD, SEM_ROAD, SEM_STOP_LINE, Town
+from e2e_percep_jax.sim.world import WorldState
 
 MAP_RES_M = 0.2
 MAP_ORIGIN_M = (-60.0, -60.0)

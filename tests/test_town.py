@@ -4,8 +4,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from e2e_percep_jax import town as town_lib
 from e2e_percep_jax.config import DEFAULT_TOWN_SEED
+from e2e_percep_jax.sim import town as town_lib
 
 HELD_OUT_SEED = 1
 DRIVABLE = [town_lib.SEM_ROAD, town_lib.SEM_LANE_WHITE, town_lib.SEM_CENTRE_YELLOW, town_lib.SEM_STOP_LINE]

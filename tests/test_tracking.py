@@ -12,12 +12,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from e2e_percep_jax import geometry as geo
 from e2e_percep_jax import metrics
-from e2e_percep_jax import town as town_lib
 from e2e_percep_jax import tracking as tr
-from e2e_percep_jax import world
 from e2e_percep_jax.config import DEFAULT_TOWN_SEED, WorldConfig
+from e2e_percep_jax.sim import geometry as geo
+from e2e_percep_jax.sim import town as town_lib
+from e2e_percep_jax.sim import world
 
 DT = 0.1
 CAR_LW = (4.5, 1.9)

@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from helpers import EXACT_PLANT
 
-from e2e_percep_jax import town as town_lib
-from e2e_percep_jax import world
 from e2e_percep_jax.config import DEFAULT_TOWN_SEED, WorldConfig
+from e2e_percep_jax.sim import town as town_lib
+from e2e_percep_jax.sim import world
 
 HELD_OUT_SEED = 1
 NUM_STEPS = 2000

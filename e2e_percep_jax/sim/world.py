@@ -35,10 +35,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from e2e_percep_jax import town as town_lib
 from e2e_percep_jax.config import WorldConfig
-from e2e_percep_jax.geometry import wrap_angle
-from e2e_percep_jax.motion import DT_S, WHEELBASE_M
+from e2e_percep_jax.sim import town as town_lib
+from e2e_percep_jax.sim.geometry import wrap_angle
+from e2e_percep_jax.sim.motion import DT_S, WHEELBASE_M
 
 EGO = 0  # index of the ego in every per-vehicle array
 

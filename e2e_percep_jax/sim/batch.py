@@ -1,6 +1,6 @@
 """Training batches generated on the fly, in one jit: reset B worlds, warm their traffic up, drive and observe.
 
-A batch is :class:`e2e_percep_jax.rollout.Frames` (the frame contract, field by field with units and
+A batch is :class:`e2e_percep_jax.sim.rollout.Frames` (the frame contract, field by field with units and
 shapes) with leading [B, T+1] axes. Every sequence starts from a fresh ``world.reset`` with its own key
 and records after ``cfg.data.warmup_steps`` steps (steady traffic), so a batch depends only on its key
 and successive batches are independent. Nothing touches the disk.
@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 
 from e2e_percep_jax import config as config_lib
-from e2e_percep_jax import rollout, sensors, world
+from e2e_percep_jax.sim import rollout, sensors, world
 
 PLACE_STREAM = 2 ** 20  # fold_in data of the place frames' key: above every segment index
 
@@ -70,7 +70,7 @@ def _with_places(frames, states, key, town, cfg: config_lib.Config):
 
 @functools.partial(jax.jit, static_argnames="cfg")
 def make_batch(key, town, cfg: config_lib.Config):
-    """A batch (:class:`~e2e_percep_jax.rollout.Frames` [B, T+1, ...]) from ``key`` alone; with the place
+    """A batch (:class:`~e2e_percep_jax.sim.rollout.Frames` [B, T+1, ...]) from ``key`` alone; with the place
     stream, a dict of its fields and the place frames (:func:`place_frames`, from the worlds after the drive).
 
     ``cfg`` is static (hashable frozen dataclasses); the same key, town and config give a bit-identical

@@ -18,7 +18,7 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 
-from e2e_percep_jax import sensors, world
+from e2e_percep_jax.sim import sensors, world
 
 
 @flax.struct.dataclass
@@ -28,7 +28,7 @@ class Frames(Mapping):
 
     camera, lidar, roadmap: uint8 [..., R, R, 3], the ego's views (R = ``data.image_size`` pixels a side);
     det_cls: float32 [..., R, R, 1], 1 on pixels inside a vehicle's box; det_reg: float32 [..., R, R, 6],
-    PIXOR regression targets (units in :mod:`e2e_percep_jax.pixor`); pose: float32 [..., 5], the ego's
+    PIXOR regression targets (units in :mod:`e2e_percep_jax.sim.pixor`); pose: float32 [..., 5], the ego's
     (x m, y m, cos yaw, sin yaw, speed m/s) in the town frame; action: float32 [..., 2], the ego's commands
     from this frame to the next, as a car logs them: (pedal in [-1, 1], steering command rad); the plant
     that turns them into motion (``world.EgoPlant``) is not part of the contract; boxes: float32 [..., N, 5],

@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from e2e_percep_jax import geometry as geo
+from e2e_percep_jax.sim import geometry as geo
 
 
 # Rasterisation by tiles: the BEV is cut into 2 m tiles; each tile tests its pixels only against the

@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from e2e_percep_jax.geometry import wrap_angle
+from e2e_percep_jax.sim.geometry import wrap_angle
 
 # Semantic classes of ``Town.sem_map`` (and of the roadmap image before colouring).
 SEM_OFFROAD = 0  # terrain between roads (buildings stand here)

@@ -31,11 +31,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from e2e_percep_jax import geometry as geo
-from e2e_percep_jax import pixor
-from e2e_percep_jax.town import (MAP_RES_M, NUM_SEM_CLASSES, SEM_CENTRE_YELLOW, SEM_COLORS, SEM_LANE_WHITE,
+from e2e_percep_jax.sim import geometry as geo
+from e2e_percep_jax.sim import pixor
+from e2e_percep_jax.sim.town import (MAP_RES_M, NUM_SEM_CLASSES, SEM_CENTRE_YELLOW, SEM_COLORS, SEM_LANE_WHITE,
                                  SEM_OFFROAD, SEM_ROAD, SEM_SIDEWALK, SEM_STOP_LINE, Town)
-from e2e_percep_jax.world import EGO, WorldState
+from e2e_percep_jax.sim.world import EGO, WorldState
 
 # Camera (frame contract): front pinhole, level, square image, focal length from the horizontal FOV.
 CAMERA_FOV_RAD = float(np.deg2rad(110.0))

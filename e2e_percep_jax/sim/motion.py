@@ -22,7 +22,7 @@ import os
 
 import jax.numpy as jnp
 
-from e2e_percep_jax.geometry import pose_yaw
+from e2e_percep_jax.sim.geometry import pose_yaw
 
 DT_S = 0.1  # the world's time step (s): one frame
 WHEELBASE_M = 2.7  # the kinematic bicycle model's wheelbase
