@@ -279,41 +279,46 @@ def bench_train(town, repeats):
 
 
 def bench_place(town, repeats):
-    """The place stream's cost: seconds per training step of the ``cpu`` preset (batch, sharding and step,
-    as ``train.train`` dispatches them, over the preset's stream) without it and with each
-    ``--place_frames`` P, alternated with the eager PyTorch peer at the same (B, T, R) for
-    ``--peer_rounds`` rounds, so each ratio is taken in one window of this shared VM."""
-    base, mesh = _cpu_stream_config(), train_lib.make_mesh()
-    cfgs = {p: config_lib.replace(base, data=dict(place_frames=p)) for p in [0, *map(int, FLAGS.place_frames)]}
-    runners = {}
-    for p, cfg in cfgs.items():
-        stream = batch_lib.batch_stream(town, cfg, seed=0)
-        _, step, _ = _train_step_runner(cfg, next(stream)[1])
-        runners[p] = (step, stream)
+    """The place stream's cost: seconds per training step (batch, sharding and step, dispatched as
+    ``train.train`` does, over the preset's stream) without it and with each ``--place_frames`` P, for the
+    ``cpu`` preset's network and for the paper's widths at the ``cpu`` preset's (B, T, R), the latter
+    alternated with the eager PyTorch peer (the same network, no place stream) for ``--peer_rounds``
+    rounds, so that each ratio is taken in one window of this shared VM."""
+    cpu = _cpu_stream_config()
+    b, t, r = cpu.data.batch_size, cpu.data.seq_len, cpu.data.image_size
+    paper = config_lib.replace(_paper_config(b, t, r), data=dict(batches_per_drive=cpu.data.batches_per_drive))
+    mesh, sizes = train_lib.make_mesh(), [0, *map(int, FLAGS.place_frames)]
+    figures = []
+    for name, base in (("cpu", cpu), ("paper widths", paper)):
+        runners = {}
+        for p in sizes:
+            cfg = config_lib.replace(base, data=dict(place_frames=p))
+            stream = batch_lib.batch_stream(town, cfg, seed=0)
+            runners[p] = (_train_step_runner(cfg, next(stream)[1])[1], stream)
 
-    def run(p):
-        step, stream = runners[p]
-        return _median_s(lambda: step(train_lib.shard_batch(next(stream)[1], mesh)), repeats)
+        def run(p):
+            step, stream = runners[p]
+            return _median_s(lambda: step(train_lib.shard_batch(next(stream)[1], mesh)), repeats)
 
-    rounds = {p: [] for p in cfgs}
-    peers = []
-    for _ in range(FLAGS.peer_rounds):
-        for p in cfgs:
-            rounds[p].append(run(p))
-        peers.append(_peer(base.data.batch_size, base.data.seq_len, base.data.image_size, repeats))
-    figure = {"config": "cpu", "batch": base.data.batch_size, "seq_len": base.data.seq_len,
-              "image_size": base.data.image_size}
-    for p, times in rounds.items():
-        figure[f"step_s_place{p}"] = statistics.median(times)
-        figure[f"step_s_place{p}_rounds"] = times
-        if p:
-            figure[f"place{p}_over_no_place"] = statistics.median([t / t0 for t, t0 in zip(times, rounds[0])])
-    if peers[0] is not None:
-        figure["peer_step_s_median"] = statistics.median(peer["step_s_median"] for peer in peers)
+        rounds, peers = {p: [] for p in sizes}, []
+        for _ in range(FLAGS.peer_rounds):
+            for p in sizes:
+                rounds[p].append(run(p))
+            if base is paper:
+                peers.append(_peer(b, t, r, repeats))
+        figure = {"network": name, "batch": b, "seq_len": t, "image_size": r}
         for p, times in rounds.items():
-            figure[f"ratio_vs_peer_place{p}"] = statistics.median(
-                [peer["step_s_median"] / t for peer, t in zip(peers, times)])
-    return figure
+            figure[f"step_s_place{p}"] = statistics.median(times)
+            figure[f"step_s_place{p}_rounds"] = times
+            if p:
+                figure[f"place{p}_over_no_place"] = statistics.median([x / x0 for x, x0 in zip(times, rounds[0])])
+        if peers and peers[0] is not None:
+            figure["peer_step_s_median"] = statistics.median(peer["step_s_median"] for peer in peers)
+            for p, times in rounds.items():
+                figure[f"ratio_vs_peer_place{p}"] = statistics.median(
+                    [peer["step_s_median"] / x for peer, x in zip(peers, times)])
+        figures.append(figure)
+    return {"sizes": figures}
 
 
 def bench_train_parts(town, repeats):
@@ -600,6 +605,7 @@ def main(argv):
         rows = figure.get("sizes", [figure])
         for row in rows:
             label = "x".join(str(row[k]) for k in ("batch", "seq_len", "image_size") if k in row)
+            label += f" ({row['network']})" if "network" in row else ""
             for key, value in row.items():
                 if isinstance(value, float):
                     print(f"| {name} {label} | {key} | {value:.4g} |")

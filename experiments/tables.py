@@ -64,12 +64,15 @@ def collect(method: str, run_dirs: list[str], results_dir: str) -> list[str]:
 
 
 def load(results_dir: str) -> dict:
-    """{method: {evaluation: [metrics per run]}}, runs in name order."""
+    """{method: {evaluation: [metrics per run]}}, runs in name order; each metrics dict gains ``run``, its
+    run directory's name (a baseline's is the baseline's name)."""
     found = {}
     for path in sorted(glob.glob(os.path.join(results_dir, "*", "*", "*.json"))):
-        method = os.path.basename(os.path.dirname(os.path.dirname(path)))
+        run_dir = os.path.dirname(path)
         with open(path) as f:
-            found.setdefault(method, {}).setdefault(os.path.basename(path)[:-5], []).append(json.load(f))
+            metrics = dict(json.load(f), run=os.path.basename(run_dir))
+        found.setdefault(os.path.basename(os.path.dirname(run_dir)), {}).setdefault(
+            os.path.basename(path)[:-5], []).append(metrics)
     return found
 
 
@@ -92,7 +95,7 @@ def command(evaluations: dict) -> str:
         raise ValueError(f"a method's runs differ in more than their seed: {sorted(lines)}")
     if runs[0]["label"] in config_lib.VARIANTS:
         return f"python experiments/main.py {lines.pop()}"
-    return f"python experiments/baselines.py --baseline={runs[0]['label']} {lines.pop()}"
+    return f"python experiments/baselines.py --baseline={runs[0]['run']} {lines.pop()}"
 
 
 # ----------------------------------------------------------------------------- cells
