@@ -101,15 +101,18 @@ def command(evaluations: dict) -> str:
 # ----------------------------------------------------------------------------- cells
 
 
-def _cell(evaluations: list[dict] | None, row: str, scale: float = 1.0, digits: int = 1) -> str:
+def _format(mean, std, n, digits=1) -> str:
+    """mean ± std (the std only over more than one run), or "" where no run has the number."""
+    if mean is None:
+        return ""
+    return f"{mean:.{digits}f}" + (f" ± {std:.{digits}f}" if n > 1 else "")
+
+
+def _cell(evaluations: list[dict] | None, row: str, digits: int = 1) -> str:
     """Mean ± std over the runs of one summary row, or "" where no run has it."""
     if not evaluations:
         return ""
-    mean, std, n = mean_std([summary_metrics(m) for m in evaluations])[row]
-    if mean is None:
-        return ""
-    text = f"{scale * mean:.{digits}f}"
-    return text + (f" ± {scale * std:.{digits}f}" if n > 1 else "")
+    return _format(*mean_std([summary_metrics(m) for m in evaluations])[row], digits=digits)
 
 
 def _error_by_frames(metrics: dict, lo: int, hi: int) -> float | None:
@@ -123,12 +126,10 @@ def _error_by_frames(metrics: dict, lo: int, hi: int) -> float | None:
 
 
 def _frames_cell(evaluations: list[dict] | None, lo: int, hi: int) -> str:
-    values = [v for v in (_error_by_frames(m, lo, hi) for m in evaluations or []) if v is not None]
-    if not values:
+    """Mean ± std over the runs of the location error over frames [lo, hi)."""
+    if not evaluations:
         return ""
-    mean = sum(values) / len(values)
-    std = (sum((v - mean) ** 2 for v in values) / len(values)) ** 0.5
-    return f"{mean:.1f}" + (f" ± {std:.1f}" if len(values) > 1 else "")
+    return _format(*mean_std([{"error": _error_by_frames(m, lo, hi)} for m in evaluations])["error"])
 
 
 def _markdown(header: list[str], rows: list[list[str]]) -> str:
