@@ -225,6 +225,12 @@ def wheel_odometry_host(seed: int, wheel_scale_std: float = WHEEL_SCALE_STD,
 # ----------------------------------------------------------------------------- runs
 
 
+def without_place_stream(cfg: Config) -> Config:
+    """``cfg`` as the modular pipeline trains: the place stream trains only the belief head, which the
+    pipeline has none of, so its frames would be made and never read."""
+    return config_lib.replace(cfg, data=dict(place_frames=0))
+
+
 def check(baselines, cfg: Config, workdir: str) -> None:
     """Every check that compiles nothing: the names, and that ``cfg`` fits each trained run already in
     ``workdir``. Raises ValueError naming the flag."""

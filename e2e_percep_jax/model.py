@@ -232,7 +232,7 @@ class PerceptionModel(nn.Module):
         self.image_decoders = {k: ImageDecoder(widths, m.feature_dim) for k in reconstructed_images(m.variant)}
         self.pixor_decoder = PixorDecoder(widths, m.feature_dim)
         if m.pose_head == "belief":
-            self.pose_belief_head = MLP(m.hidden_dim, pose_belief.grid_of(m).head_size)
+            self.pose_belief_head = MLP(m.pose_hidden_dim or m.hidden_dim, pose_belief.grid_of(m).head_size)
         else:
             self.pose_head = MLP(m.hidden_dim, 5)
 

@@ -35,7 +35,7 @@ def main(argv):
         config_lib.check_launch(argv)
         if FLAGS.video_frames < 0:
             raise ValueError(f"--video_frames={FLAGS.video_frames}: must be >= 0")
-        cfg = config_lib.from_flags()
+        cfg = baselines.without_place_stream(config_lib.from_flags())
         baselines.check(FLAGS.baseline, cfg, FLAGS.workdir)
     except ValueError as e:
         sys.exit(f"error: {e}")

@@ -90,9 +90,11 @@ def _size(spec: str) -> tuple:
 
 
 def _paper_config(batch_size, seq_len, image_size):
-    """The paper's network (default widths) at the given (B, T, R)."""
+    """The paper's network (default widths) at the given (B, T, R), without the place stream: the peer's
+    model and batch (``--what=place`` adds the stream)."""
     return config_lib.validate(config_lib.replace(
-        config_lib.get_config("paper"), data=dict(batch_size=batch_size, seq_len=seq_len, image_size=image_size)))
+        config_lib.get_config("paper"),
+        data=dict(batch_size=batch_size, seq_len=seq_len, image_size=image_size, place_frames=0)))
 
 
 def _warm_worlds(town, num_worlds, cfg):

@@ -1,7 +1,7 @@
 """The README's result tables, rendered from the runs' evaluations, never typed.
 
     # keep the evaluations a table reads: every eval*/metrics.json of the runs, without its PR curves
-    python experiments/tables.py --collect=place32=runs/place_s0,runs/place_s1 --collect=dead_reckoning=runs/baselines/dead_reckoning
+    python experiments/tables.py --collect=cpu=runs/cpu_s0,runs/cpu_s1 --collect=dead_reckoning=runs/baselines/dead_reckoning
     # write the tables into README.md between its <!-- table:<name>:begin/end --> markers
     python experiments/tables.py --readme=README.md
     # exit 1 if README.md's tables differ from what the kept evaluations render (tests/test_tables.py)

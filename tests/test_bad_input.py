@@ -107,6 +107,8 @@ CASES = {
     "train steering gain spread too wide": Case("train", ["--world.ego_steer_gain_std=0.5"],
                                                 "--world.ego_steer_gain_std=0.5: must lie in [0, 0.2]"),
     "train negative pose_weight": Case("train", ["--train.pose_weight=-1"], "--train.pose_weight=-1.0: must be >= 0"),
+    "train negative pose_hidden_dim": Case("train", ["--model.pose_hidden_dim=-1"],
+                                           "--model.pose_hidden_dim=-1: must be >= 0"),
     "train kl_weight zero": Case("train", ["--train.kl_weight=0"], "--train.kl_weight=0.0: must be positive"),
     "train pose_filter": Case("train", ["--model.pose_filter=kalman"], "--model.pose_filter='kalman': choose one of"),
     "train known_start without the filter": Case("train", ["--eval.known_start", "--model.pose_filter=none"],

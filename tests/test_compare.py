@@ -77,15 +77,22 @@ def test_launcher_writes_the_table_and_names_bad_flags(runs, tmp_path):
     assert bad.returncode == 1 and bad.stderr.strip().startswith("error: --sweep_dir"), bad.stderr
 
 
-def test_a_field_added_since_compares_as_its_default(runs):
+@pytest.mark.parametrize("comparable, refused", [
     # An evaluation written before a config field existed equals one that writes the field's default,
     # and still differs from one that sets it otherwise.
+    ({"batches_per_drive": 1}, {"batches_per_drive": 4}),
+    # The place stream trains the belief head alone: a pipeline trained without it compares with a model
+    # trained with it, and not once another data field differs too.
+    ({"place_frames": 32}, {"place_frames": 32, "seq_len": 7}),
+], ids=["a field added since compares as its default", "the place stream alone does not part them"])
+def test_the_tracker_compares_with_the_sweep_unless_its_data_differs(runs, comparable, refused):
     sweep, base = runs
-    newer = _metrics(0.3, 1.0)
-    newer["config"]["data"]["batches_per_drive"] = 1
-    _write(os.path.join(base, "tracker", "eval", "metrics.json"), newer)
-    compare.check_comparable(compare.collect(sweep, base))
-    newer["config"]["data"]["batches_per_drive"] = 4
-    _write(os.path.join(base, "tracker", "eval", "metrics.json"), newer)
-    with pytest.raises(ValueError, match=r"tracker.*differ in data"):
-        compare.check_comparable(compare.collect(sweep, base))
+    for data in (comparable, refused):
+        tracker = _metrics(0.3, 1.0)
+        tracker["config"]["data"].update(data)
+        _write(os.path.join(base, "tracker", "eval", "metrics.json"), tracker)
+        if data is comparable:
+            compare.check_comparable(compare.collect(sweep, base))
+        else:
+            with pytest.raises(ValueError, match=r"tracker.*differ in data"):
+                compare.check_comparable(compare.collect(sweep, base))

@@ -101,6 +101,8 @@ def test_paper_parameter_count_by_hand():
     belief = dense(800, 256) + dense(256, 256) + dense(256, 3 * 48 * 48 + 2 * 36 + 1)
     cfg = config.get_config("paper")
     assert count("full") == full - pose + belief
+    cfg = with_sizes(cfg, pose_hidden_dim=512)  # a wider belief head alone
+    assert count("full") == full - pose + dense(800, 512) + dense(512, 512) + dense(512, 3 * 48 * 48 + 2 * 36 + 1)
 
 
 # ----------------------------------------------------------------------------- layers vs NumPy (torch semantics)

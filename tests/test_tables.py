@@ -19,7 +19,7 @@ PAPER = {"ap_percent": {"full": {"0.1": 79.4, "0.3": 72.0, "0.5": 56.5, "0.7": 1
 
 def _metrics(seed, *, label="full", ap=0.5, location=4.0, drift=1.0, town=0, known_start=False, by_step=(3.0, 3.0)):
     """A metrics.json with what the tables read, every AP ``ap`` and the location mean ``location``."""
-    cfg = config.replace(config.get_config("cpu"), train=dict(seed=seed), data=dict(place_frames=32),
+    cfg = config.replace(config.get_config("cpu"), train=dict(seed=seed), data=dict(place_frames=64),
                          eval=dict(town_seed=town, known_start=known_start))
     pose = {"location_m": {"mean": location, "median": location, "p90": 2 * location, "within": {"10": 0.5}},
             "heading_rad": {"mean": 0.05, "median": 0.05, "p90": 0.1, "within": {}},
@@ -45,7 +45,7 @@ def _write_run(run_dir, evaluations):
 
 @pytest.fixture
 def results(tmp_path):
-    """Two seeds of `place32` (AP 50 / 60 %, location 4 / 6 m) and one `dead_reckoning` run, kept."""
+    """Two seeds of `place64` (AP 50 / 60 %, location 4 / 6 m) and one `dead_reckoning` run, kept."""
     for seed, ap, location, by_step in ((0, 0.5, 4.0, (2.0, 4.0)), (1, 0.6, 6.0, (4.0, 6.0))):
         _write_run(tmp_path / "runs" / f"place_s{seed}", {
             "eval": _metrics(seed, ap=ap, location=location),
@@ -54,7 +54,7 @@ def results(tmp_path):
     _write_run(tmp_path / "runs" / "dead_reckoning", {
         "eval_known_start": _metrics(0, label="dead_reckoning", ap=0.0, known_start=True, drift=3.0)})
     out = tmp_path / "results"
-    tables.collect("place32", [str(tmp_path / "runs" / "place_s0"), str(tmp_path / "runs" / "place_s1")], str(out))
+    tables.collect("place64", [str(tmp_path / "runs" / "place_s0"), str(tmp_path / "runs" / "place_s1")], str(out))
     tables.collect("dead_reckoning", [str(tmp_path / "runs" / "dead_reckoning")], str(out))
     return out
 
@@ -65,11 +65,11 @@ def _row(table, method):
 
 def test_cells_are_the_mean_and_std_over_seeds(results):
     rendered = tables.render(str(results))
-    det = _row(rendered["detection"], "`place32`")
+    det = _row(rendered["detection"], "`place64`")
     # AP 50 and 60 %: mean 55, population std 5; occluded AP is half
     assert det[1:5] == ["55.0 ± 5.0"] * 4 and det[5] == "27.5 ± 2.5" and det[6].startswith("27.5 ± 2.5 / -")
     assert "`dead_reckoning`" not in rendered["detection"]  # no boxes: no detection row
-    loc = _row(rendered["localisation"], "`place32`")
+    loc = _row(rendered["localisation"], "`place64`")
     assert loc[1] == "5.0 ± 1.0 / 10.0 ± 2.0" and loc[2] == "0.050 ± 0.000" and loc[3] == "50.0 ± 0.0"
     assert loc[4] == "95.0 ± 0.0 / 90.0 ± 0.0"
     # frames 100-999 are the bins 100-300 and 300-1000 (both 2 m, then 4 m); 1,000+ is the last bin
@@ -79,14 +79,14 @@ def test_cells_are_the_mean_and_std_over_seeds(results):
     assert dr[1] == "" and dr[6].startswith("3.00 / - / -")
     assert "| constant pose (the drive's mean pose) | 160.0 / 240.0 | 1.100 |" in rendered["localisation"]
     assert "| paper: full | 11.4 | 0.33 |" in rendered["localisation"]
-    assert ("- `place32` (2 runs): `python experiments/main.py --config=cpu --data.place_frames=32 --train.seed={0,1}`"
+    assert ("- `place64` (2 runs): `python experiments/main.py --config=cpu --data.place_frames=64 --train.seed={0,1}`"
             in rendered["localisation"].splitlines())
     assert ("- `dead_reckoning` (1 run): `python experiments/baselines.py --baseline=dead_reckoning --config=cpu "
-            "--data.place_frames=32`" in rendered["localisation"].splitlines())
+            "--data.place_frames=64`" in rendered["localisation"].splitlines())
 
 
 def test_kept_evaluations_lose_only_their_curves(results):
-    kept = json.loads((results / "place32" / "place_s0" / "eval.json").read_text())
+    kept = json.loads((results / "place64" / "place_s0" / "eval.json").read_text())
     assert "pr_curves" not in kept["detection"] and "examples" not in kept
     assert kept["detection"]["ap"] == _metrics(0)["detection"]["ap"] and kept["pose"] == _metrics(0)["pose"]
 
