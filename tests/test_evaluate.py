@@ -239,8 +239,11 @@ def test_memory_is_flat_in_the_number_of_steps(memory_run):
     # keeping every chunk's outputs on the host ~0.7 MB per chunk (~14 MB over this drive: a list of
     # per-frame views into the chunks' pose arrays did exactly that, +13 MB).
     assert max(long) <= max(short) + 12.0, (max(short), max(long))
-    # And no drift inside the long drive: its last quarter against its first tenth (measured: +3 MB).
-    assert max(long[-len(long) // 4:]) <= max(long[:len(long) // 10]) + 8.0, long
+    # And no drift inside the long drive: a leak grows with every chunk, so its last quarter is compared
+    # with its second (half a drive apart: the leak above, ~7 MB). Not with its start: on a loaded machine
+    # the allocator took one +8 MB step a few chunks in, once, and stayed flat after it.
+    quarter = len(long) // 4
+    assert max(long[-quarter:]) <= max(long[quarter:2 * quarter]) + 4.0, long
 
 
 @pytest.mark.slow
