@@ -21,6 +21,7 @@ import sys
 
 from absl import app, flags
 
+from e2e_percep_jax import checkpoint
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax.summary import mean_std, summary_metrics
 
@@ -76,17 +77,24 @@ def load(results_dir: str) -> dict:
     return found
 
 
+def _main_runs(evaluations: dict) -> list[dict]:
+    """A method's runs as its ``eval`` (or, lacking one, its first) evaluation has them."""
+    return evaluations.get("eval") or next(iter(evaluations.values()))
+
+
 def command(evaluations: dict) -> str:
     """The training command of a method's runs (``{0,1}`` where the seeds differ; the evaluation's own
     flags left out)."""
-    runs = next(iter(evaluations.values()))
+    runs = _main_runs(evaluations)
 
     def trained(m):  # the learning rate is constant, so a run's checkpoint is a run of that many steps
         cfg = config_lib.Config.from_dict(m["config"])
         if m.get("checkpoint_step") is not None:
             cfg = config_lib.replace(cfg, train=dict(num_steps=m["checkpoint_step"]))
         return cfg
-    lines = {" ".join(f for f in config_lib.as_flags(trained(m)) if not f.startswith("--eval.")) for m in runs}
+    # left out: the evaluation's flags, and those a run may change on resuming (they leave its weights as they are)
+    unsaid = ("--eval.", *(f"--{name}=" for name in checkpoint.RESUMABLE_CHANGES if name != "train.num_steps"))
+    lines = {" ".join(f for f in config_lib.as_flags(trained(m)) if not f.startswith(unsaid)) for m in runs}
     seeds = sorted({m["config"]["train"]["seed"] for m in runs})
     if len(seeds) > 1:
         lines = {re.sub(r" --train\.seed=\d+", "", line) + f" --train.seed={{{','.join(map(str, seeds))}}}"
@@ -145,7 +153,7 @@ def _order(found: dict) -> list[str]:
 
 def _runs_note(found: dict, methods: list[str]) -> str:
     """A line per method: its runs and the command that trained them."""
-    runs = {m: len(next(iter(found[m].values()))) for m in methods}
+    runs = {m: len(_main_runs(found[m])) for m in methods}
     return "\n".join(f"- `{m}` ({runs[m]} run{'s' if runs[m] > 1 else ''}): `{command(found[m])}`" for m in methods)
 
 
@@ -204,7 +212,27 @@ def detection(found: dict) -> str:
     return _markdown(header, rows) + "\n\n" + _runs_note(found, methods) + "\n"
 
 
-TABLES = {"localisation": localisation, "detection": detection}
+def learning_curve(found: dict) -> str:
+    """Town 0 under the global protocol at each kept checkpoint (a run's ``eval_step<N>`` evaluations)."""
+    curves = {}
+    for method in _order(found):
+        steps = {int(name[len("eval_step"):]): runs for name, runs in found[method].items()
+                 if re.fullmatch(r"eval_step\d+", name)}
+        if steps:
+            curves[method] = steps
+    if not curves:
+        return "(no run keeps evaluations of its checkpoints)\n"
+    header = ["training steps", *(f"`{m}`: location (m) / heading (rad) / AP@0.5 (%)" for m in curves)]
+    rows = [[f"{step:,}", *(" / ".join(filter(None, [_cell(c.get(step), "location mean (m)"),
+                                                     _cell(c.get(step), "heading mean (rad)", digits=3),
+                                                     _cell(c.get(step), "AP@0.5 all (%)")])) for c in curves.values())]
+            for step in sorted(set().union(*curves.values()))]
+    # the runs trained to the last kept step, evaluated at each checkpoint on the way
+    last = {m: {"eval": c[max(c)]} for m, c in curves.items()}
+    return _markdown(header, rows) + "\n\n" + _runs_note(last, list(curves)) + "\n"
+
+
+TABLES = {"localisation": localisation, "detection": detection, "learning_curve": learning_curve}
 
 
 def render(results_dir: str) -> dict:

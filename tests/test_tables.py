@@ -17,8 +17,10 @@ PAPER = {"ap_percent": {"full": {"0.1": 79.4, "0.3": 72.0, "0.5": 56.5, "0.7": 1
          "pose": {"full": {"location_m": 11.4, "heading_rad": 0.33}}}
 
 
-def _metrics(seed, *, label="full", ap=0.5, location=4.0, drift=1.0, town=0, known_start=False, by_step=(3.0, 3.0)):
-    """A metrics.json with what the tables read, every AP ``ap`` and the location mean ``location``."""
+def _metrics(seed, *, label="full", ap=0.5, location=4.0, drift=1.0, town=0, known_start=False, by_step=(3.0, 3.0),
+             step=None):
+    """A metrics.json with what the tables read, every AP ``ap`` and the location mean ``location``
+    (of checkpoint ``step``, or of the trained run where None)."""
     cfg = config.replace(config.get_config("cpu"), train=dict(seed=seed), data=dict(place_frames=64),
                          eval=dict(town_seed=town, known_start=known_start))
     pose = {"location_m": {"mean": location, "median": location, "p90": 2 * location, "within": {"10": 0.5}},
@@ -28,7 +30,7 @@ def _metrics(seed, *, label="full", ap=0.5, location=4.0, drift=1.0, town=0, kno
                                    "mean": [9.0, 9.0, 9.0, by_step[0], by_step[0], by_step[1]],
                                    "count": [10, 20, 70, 200, 700, 875]},
             "drift_per_100m": drift, "coverage95": {"place": 0.95, "place_heading": 0.9}}
-    return {"label": label, "config": json.loads(cfg.to_json()), "paper": PAPER,
+    return {"label": label, "config": json.loads(cfg.to_json()), "paper": PAPER, "checkpoint_step": step,
             "detection": {"ap": {iou: {"all": ap, "visible": ap, "occluded": ap / 2} for iou in ("0.1", "0.3", "0.5", "0.7")},
                           "pr_curves": [[0.0] * 100]},
             "examples": [1], "pose": pose,
@@ -45,16 +47,22 @@ def _write_run(run_dir, evaluations):
 
 @pytest.fixture
 def results(tmp_path):
-    """Two seeds of `place64` (AP 50 / 60 %, location 4 / 6 m) and one `dead_reckoning` run, kept."""
+    """Two seeds of `place64` (AP 50 / 60 %, location 4 / 6 m), two more of it with only their
+    checkpoints' evaluations (runs that sort first), and one `dead_reckoning` run, kept."""
     for seed, ap, location, by_step in ((0, 0.5, 4.0, (2.0, 4.0)), (1, 0.6, 6.0, (4.0, 6.0))):
         _write_run(tmp_path / "runs" / f"place_s{seed}", {
             "eval": _metrics(seed, ap=ap, location=location),
             "eval_known_start": _metrics(seed, ap=ap, known_start=True, drift=0.5 + seed, by_step=by_step),
             "eval_town7_known_start": _metrics(seed, ap=ap / 2, town=7, known_start=True, drift=2.0)})
+    for seed in (0, 1):
+        _write_run(tmp_path / "runs" / f"curve_s{seed}", {
+            "eval_step1000": _metrics(seed, ap=0.1, location=20.0 + 10 * seed, step=1000),
+            "eval_step2000": _metrics(seed, ap=0.3 + 0.2 * seed, location=5.0, step=2000)})
     _write_run(tmp_path / "runs" / "dead_reckoning", {
         "eval_known_start": _metrics(0, label="dead_reckoning", ap=0.0, known_start=True, drift=3.0)})
     out = tmp_path / "results"
-    tables.collect("place64", [str(tmp_path / "runs" / "place_s0"), str(tmp_path / "runs" / "place_s1")], str(out))
+    tables.collect("place64", [str(tmp_path / "runs" / name) for name in ("place_s0", "place_s1", "curve_s0", "curve_s1")],
+                   str(out))
     tables.collect("dead_reckoning", [str(tmp_path / "runs" / "dead_reckoning")], str(out))
     return out
 
@@ -85,6 +93,15 @@ def test_cells_are_the_mean_and_std_over_seeds(results):
             "--data.place_frames=64`" in rendered["localisation"].splitlines())
 
 
+def test_learning_curve_reads_each_checkpoints_evaluations(results):
+    curve = tables.render(str(results))["learning_curve"]
+    assert _row(curve, "1,000")[1] == "25.0 ± 5.0 / 0.050 ± 0.000 / 10.0 ± 0.0 |"
+    assert _row(curve, "2,000")[1] == "5.0 ± 0.0 / 0.050 ± 0.000 / 40.0 ± 10.0 |"
+    assert "`dead_reckoning`" not in curve  # no checkpoints evaluated
+    assert ("- `place64` (2 runs): `python experiments/main.py --config=cpu --data.place_frames=64 "
+            "--train.num_steps=2000 --train.seed={0,1}`" in curve.splitlines())
+
+
 def test_kept_evaluations_lose_only_their_curves(results):
     kept = json.loads((results / "place64" / "place_s0" / "eval.json").read_text())
     assert "pr_curves" not in kept["detection"] and "examples" not in kept
@@ -94,7 +111,8 @@ def test_kept_evaluations_lose_only_their_curves(results):
 def test_readme_blocks_are_filled_and_checked(results, tmp_path):
     readme = tmp_path / "README.md"
     readme.write_text("# x\n<!-- table:localisation:begin -->\nold\n<!-- table:localisation:end -->\ntext\n"
-                      "<!-- table:detection:begin --><!-- table:detection:end -->\n")
+                      "<!-- table:detection:begin --><!-- table:detection:end -->\n"
+                      "<!-- table:learning_curve:begin --><!-- table:learning_curve:end -->\n")
     cmd = [sys.executable, os.path.join(REPO, "experiments", "tables.py"), f"--results={results}", f"--readme={readme}"]
     stale = subprocess.run(cmd + ["--check"], capture_output=True, text=True, timeout=120)
     assert stale.returncode == 1 and "differ" in stale.stderr
