@@ -100,8 +100,7 @@ def vehicles_in_view(cfg, frames: int):
     return np.stack(counts)
 
 
-
-
+@pytest.mark.slow  # two evaluations' drives compiled (~1 min)
 def test_known_start_odometry_follows_the_drive_in_the_exact_world_and_drifts_under_the_plant(tmp_path):
     """Under ``--eval.known_start`` on a town the model was not trained on, the belief starts at each drive's
     true first pose and then follows the commands through the motion model alone. Where the world's plant
@@ -140,6 +139,7 @@ class RecordingPerceiver:
                 {"det_cls": jnp.zeros((b, r, r, 1)), "det_reg": jnp.zeros((b, r, r, 6)), "pose": jnp.zeros((b, 5))})
 
 
+@pytest.mark.slow  # a drive compiled with a host callback each frame, then compiled again to re-simulate (~2.5 min)
 def test_evaluation_hands_a_perceiver_the_logged_commands_and_never_the_plant(tmp_path):
     """A perceiver that records what it receives: each frame's ``action`` is the commands of the frame
     contract (the previous frame's ``action`` of the same worlds driven here by ``rollout.drive``), pedal
