@@ -151,9 +151,8 @@ def frame_panel(frame, panel_px=256, pred_boxes=None, pred_scores=None, titles=T
         draw_predictions(boxes_view, pred_boxes, pred_scores)
     views = [camera, lidar, roadmap, boxes_view]
     if titles:
-        for view, title in zip(views, _TITLES):
-            cv2.putText(view, title, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 3, cv2.LINE_AA)
-            cv2.putText(view, title, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
+        for view, name in zip(views, _TITLES):
+            title(view, name)
     return np.concatenate(views, axis=1)
 
 
@@ -179,15 +178,20 @@ def map_panel(view, true_xy, pred_xy, place=None):
         cv2.circle(img, tuple(xy), 1 << _SHIFT, ESTIMATE_RGB, -1, cv2.LINE_AA, _SHIFT)
     if len(pred_px):
         cv2.circle(img, tuple(pred_px[-1]), 6 << _SHIFT, ESTIMATE_RGB, 2, cv2.LINE_AA, _SHIFT)
-    for colour, thick in (((0, 0, 0), 3), ((255, 255, 255), 1)):
-        cv2.putText(img, "town: true path, estimate, belief", (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
-                    colour, thick, cv2.LINE_AA)
-    return img
+    return title(img, "town: true path, estimate, belief")
 
 
-def title(view, text):
-    for colour, thick in (((0, 0, 0), 3), ((255, 255, 255), 1)):
-        cv2.putText(view, text, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, colour, thick, cv2.LINE_AA)
+def title(view, text, scale=0.4):
+    """Writes ``text`` in ``view``'s top-left corner (in place; ``view`` may be a slice of a larger picture):
+    white on a black box, the font shrunk until the box fits the view's width."""
+    font, pad = cv2.FONT_HERSHEY_SIMPLEX, 3
+    (w, h), base = cv2.getTextSize(text, font, scale, 1)
+    if w + 2 * pad > view.shape[1]:
+        scale *= (view.shape[1] - 2 * pad) / w
+        (w, h), base = cv2.getTextSize(text, font, scale, 1)
+    # (a box, not a thick dark copy of the text beneath: a thicker Hershey stroke also spaces its letters wider)
+    cv2.rectangle(view, (0, 0), (w + 2 * pad - 1, h + base + 2 * pad - 1), (0, 0, 0), -1)
+    cv2.putText(view, text, (pad, h + pad), font, scale, (255, 255, 255), 1, cv2.LINE_AA)
     return view
 
 

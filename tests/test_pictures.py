@@ -1,5 +1,6 @@
 """Pictures for people (e2e_percep_jax/pictures.py): boxes land where the geometry module puts them."""
 import numpy as np
+import pytest
 
 from e2e_percep_jax import pictures
 from e2e_percep_jax.sim import geometry as geo
@@ -71,3 +72,19 @@ def test_town_map_puts_the_belief_and_the_paths_where_the_town_frame_says():
     ring = np.argwhere(np.any(pictures.map_panel(view, xy, xy) != blank, -1))
     centre = np.array([size - 300.0, 100.0]) * 0.8  # (row, col)
     assert np.all(np.linalg.norm(ring - centre, axis=-1) < 10)
+
+
+@pytest.mark.parametrize("text", ["camera", "recon. roadmap: not decoded, and more words than a panel holds"])
+def test_a_title_stays_inside_its_panel_on_a_box_it_can_be_read_against(text):
+    """A title written into one panel of a row changes no pixel of its neighbour, sits on a black box in
+    the panel's top-left corner, and is drawn in white inside that box."""
+    green = np.array([30, 160, 90], np.uint8)  # not grey: white letters on black never make it
+    row = np.tile(green, (VIEW_PX, 2 * VIEW_PX, 1))
+    pictures.title(row[:, :VIEW_PX], text)
+    assert np.all(row[:, VIEW_PX:] == green)
+    changed = np.argwhere(np.any(row != green, -1))
+    box_h, box_w = changed[:, 0].max() + 1, changed[:, 1].max() + 1
+    assert changed[:, 0].min() == 0 and changed[:, 1].min() == 0 and box_h < 24 and box_w <= VIEW_PX
+    box = row[:box_h, :box_w].astype(int)
+    assert np.all(box.max(-1) == box.min(-1))  # all grey: one filled box, nothing of the green shows through
+    assert (box.min(-1) > 200).sum() > 20  # the white letters
