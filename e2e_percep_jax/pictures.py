@@ -170,7 +170,9 @@ def map_panel(view, true_xy, pred_xy, place=None):
         alpha = cv2.resize((0.85 * heat).astype(np.uint8), size, interpolation=cv2.INTER_NEAREST)[..., None]
         colour = cv2.resize(colour, size, interpolation=cv2.INTER_NEAREST)
         img = ((img.astype(np.uint16) * (255 - alpha) + colour.astype(np.uint16) * alpha) // 255).astype(np.uint8)
-    true_px, pred_px = view._px(np.reshape(true_xy, (-1, 2))), view._px(np.reshape(pred_xy, (-1, 2)))
+    pred_xy = np.reshape(pred_xy, (-1, 2))
+    pred_xy = pred_xy[np.all(np.isfinite(pred_xy), -1)]  # a perceiver without a pose estimate has NaN here
+    true_px, pred_px = view._px(np.reshape(true_xy, (-1, 2))), view._px(pred_xy)
     if len(true_px):
         cv2.polylines(img, [true_px], False, VISIBLE_RGB, 1, cv2.LINE_AA, _SHIFT)
         cv2.circle(img, tuple(true_px[-1]), 6 << _SHIFT, VISIBLE_RGB, 2, cv2.LINE_AA, _SHIFT)

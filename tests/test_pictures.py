@@ -72,6 +72,10 @@ def test_town_map_puts_the_belief_and_the_paths_where_the_town_frame_says():
     ring = np.argwhere(np.any(pictures.map_panel(view, xy, xy) != blank, -1))
     centre = np.array([size - 300.0, 100.0]) * 0.8  # (row, col)
     assert np.all(np.linalg.norm(ring - centre, axis=-1) < 10)
+    # a perceiver without a pose (a detector alone) hands NaN estimates: only the true path is drawn
+    with np.errstate(invalid="raise"):
+        unposed = pictures.map_panel(view, xy, np.full((1, 2), np.nan))
+    assert np.array_equal(unposed, pictures.map_panel(view, xy, np.zeros((0, 2))))
 
 
 @pytest.mark.parametrize("text", ["camera", "recon. roadmap: not decoded, and more words than a panel holds"])
