@@ -24,8 +24,10 @@ def summary_metrics(metrics: dict) -> dict:
     for name, unit in (("location", "m"), ("heading", "rad"), ("speed", "mps")):
         for stat in ("mean", "median", "p90"):  # evaluations saved before p90 existed: None
             row[f"{name} {stat} ({unit.replace('mps', 'm/s')})"] = defined(pose[f"{name}_{unit}"].get(stat))
-        for bound, share in pose[f"{name}_{unit}"].get("within", {}).items():
-            row[f"{name} within {bound} {unit} (%)"] = None if defined(share) is None else 100.0 * share
+        errors_defined = defined(pose[f"{name}_{unit}"].get("mean")) is not None
+        for bound, share in pose[f"{name}_{unit}"].get("within", {}).items():  # none within a bound of no error
+            defined_share = errors_defined and defined(share) is not None
+            row[f"{name} within {bound} {unit} (%)"] = 100.0 * share if defined_share else None
     row["drift per 100 m (m)"] = defined(pose.get("drift_per_100m"))
     for region, share in (pose.get("coverage95") or {}).items():  # evaluations saved before it: absent
         row[f"truth in the 95 % region, {region.replace('_', ' + ')} (%)"] = 100.0 * share

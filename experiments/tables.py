@@ -120,7 +120,7 @@ def _cell(evaluations: list[dict] | None, row: str, digits: int = 1) -> str:
     """Mean ± std over the runs of one summary row, or "" where no run has it."""
     if not evaluations:
         return ""
-    return _format(*mean_std([summary_metrics(m) for m in evaluations])[row], digits=digits)
+    return _format(*mean_std([summary_metrics(m) for m in evaluations]).get(row, (None, None, 0)), digits=digits)
 
 
 def _error_by_frames(metrics: dict, lo: int, hi: int) -> float | None:
@@ -165,21 +165,25 @@ def localisation(found: dict) -> str:
     header = ["method", "location mean / p90 (m)", "heading (rad)", "within 10 m (%)", "truth in 95 % region: place / + heading (%)",
               "known start: error at frames 100-999 / 1,000+ (m)",
               "known-start drift per 100 m: town 0 / " + " / ".join(map(str, HELD_OUT_TOWNS)) + " (m)"]
-    methods, rows, constant, paper = _order(found), [], None, {}
-    for method in methods:
+    rows, shown, constant, paper = [], [], None, {}
+    for method in _order(found):
         ev = found[method]
         known = ev.get("eval_known_start")
         drift = [_cell(ev.get(name), "drift per 100 m (m)", digits=2)
                  for name in ("eval_known_start", *(f"eval_town{t}_known_start" for t in HELD_OUT_TOWNS))]
         glob_ = ev.get("eval")
-        rows.append([f"`{method}`",
-                     " / ".join(filter(None, [_cell(glob_, "location mean (m)"), _cell(glob_, "location p90 (m)")])),
-                     _cell(glob_, "heading mean (rad)", digits=3),
-                     _cell(glob_, "location within 10 m (%)"),
-                     " / ".join(filter(None, [_cell(glob_, "truth in the 95 % region, place (%)"),
-                                              _cell(glob_, "truth in the 95 % region, place + heading (%)")])),
-                     " / ".join(filter(None, [_frames_cell(known, 100, 1000), _frames_cell(known, 1000, 10**9)])),
-                     " / ".join(d or "-" for d in drift) if any(drift) else ""])
+        row = [f"`{method}`",
+               " / ".join(filter(None, [_cell(glob_, "location mean (m)"), _cell(glob_, "location p90 (m)")])),
+               _cell(glob_, "heading mean (rad)", digits=3),
+               _cell(glob_, "location within 10 m (%)"),
+               " / ".join(filter(None, [_cell(glob_, "truth in the 95 % region, place (%)"),
+                                        _cell(glob_, "truth in the 95 % region, place + heading (%)")])),
+               " / ".join(filter(None, [_frames_cell(known, 100, 1000), _frames_cell(known, 1000, 10**9)])),
+               " / ".join(d or "-" for d in drift) if any(drift) else ""]
+        if not any(row[1:]):
+            continue  # a method without a pose (a detector, a tracker)
+        shown.append(method)
+        rows.append(row)
         if glob_ and constant is None:
             constant = glob_[0]["baseline"]["pose"]
             paper = glob_[0]["paper"]["pose"]
@@ -188,7 +192,7 @@ def localisation(found: dict) -> str:
                      f"{constant['location_m']['p90']:.1f}", f"{constant['heading_rad']['mean']:.3f}", "", "", "", ""])
         rows += [[f"paper: {name}", f"{p['location_m']}", f"{p['heading_rad']}", "", "", "", ""]
                  for name, p in paper.items()]
-    return _markdown(header, rows) + "\n\n" + _runs_note(found, methods) + "\n"
+    return _markdown(header, rows) + "\n\n" + _runs_note(found, shown) + "\n"
 
 
 def detection(found: dict) -> str:

@@ -48,7 +48,8 @@ def _write_run(run_dir, evaluations):
 @pytest.fixture
 def results(tmp_path):
     """Two seeds of `place64` (AP 50 / 60 %, location 4 / 6 m), two more of it with only their
-    checkpoints' evaluations (runs that sort first), and one `dead_reckoning` run, kept."""
+    checkpoints' evaluations (runs that sort first), one `dead_reckoning` run and one `detector` run
+    (no pose), kept."""
     for seed, ap, location, by_step in ((0, 0.5, 4.0, (2.0, 4.0)), (1, 0.6, 6.0, (4.0, 6.0))):
         _write_run(tmp_path / "runs" / f"place_s{seed}", {
             "eval": _metrics(seed, ap=ap, location=location),
@@ -58,12 +59,20 @@ def results(tmp_path):
         _write_run(tmp_path / "runs" / f"curve_s{seed}", {
             "eval_step1000": _metrics(seed, ap=0.1, location=20.0 + 10 * seed, step=1000),
             "eval_step2000": _metrics(seed, ap=0.3 + 0.2 * seed, location=5.0, step=2000)})
+    unposed = _metrics(0, label="single-frame detector", ap=0.7)  # boxes and no pose: NaN errors, 0 % within
+    for name in ("location_m", "heading_rad", "speed_mps"):
+        unposed["pose"][name].update(mean=float("nan"), median=float("nan"), p90=float("nan"))
+    unposed["pose"].update(drift_per_100m=None, location_m_by_step={"bin_edges": [0, 10], "mean": [None], "count": [10]})
+    del unposed["pose"]["coverage95"]
+    unposed["pose"]["location_m"]["within"] = {"10": 0.0}
+    _write_run(tmp_path / "runs" / "detector", {"eval": unposed})
     _write_run(tmp_path / "runs" / "dead_reckoning", {
         "eval_known_start": _metrics(0, label="dead_reckoning", ap=0.0, known_start=True, drift=3.0)})
     out = tmp_path / "results"
     tables.collect("place64", [str(tmp_path / "runs" / name) for name in ("place_s0", "place_s1", "curve_s0", "curve_s1")],
                    str(out))
     tables.collect("dead_reckoning", [str(tmp_path / "runs" / "dead_reckoning")], str(out))
+    tables.collect("detector", [str(tmp_path / "runs" / "detector")], str(out))
     return out
 
 
@@ -77,6 +86,8 @@ def test_cells_are_the_mean_and_std_over_seeds(results):
     # AP 50 and 60 %: mean 55, population std 5; occluded AP is half
     assert det[1:5] == ["55.0 ± 5.0"] * 4 and det[5] == "27.5 ± 2.5" and det[6].startswith("27.5 ± 2.5 / -")
     assert "`dead_reckoning`" not in rendered["detection"]  # no boxes: no detection row
+    assert _row(rendered["detection"], "`detector`")[3] == "70.0"
+    assert "`detector`" not in rendered["localisation"]  # no pose: no localisation row, no command line
     loc = _row(rendered["localisation"], "`place64`")
     assert loc[1] == "5.0 ± 1.0 / 10.0 ± 2.0" and loc[2] == "0.050 ± 0.000" and loc[3] == "50.0 ± 0.0"
     assert loc[4] == "95.0 ± 0.0 / 90.0 ± 0.0"
