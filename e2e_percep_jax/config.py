@@ -201,7 +201,8 @@ PRESETS = {
         Config(),
         data=dict(image_size=64, batch_size=8, batches_per_drive=_BATCHES_PER_DRIVE, place_frames=_PLACE_FRAMES),
         # a belief head 512 wide and (below) a pose weight of 16: both seeds within 5 m and 0.07 rad by
-        # 2,000 steps, where pose weight 4 and a 128-wide head were at 10-16 m (BUILD_NOTES, "Localisation sooner")
+        # 2,000 steps, where pose weight 4 and a 128-wide head were at 10-16 m
+        # (BUILD_NOTES, "The `cpu` preset with both levers")
         model=dict(conv_channels=(16, 32, 64, 128, 128), feature_dim=128, hidden_dim=128, pose_hidden_dim=512,
                    pose_head="belief"),
         # lr 1e-3, not the paper's 1e-4: reaches 1e-4's 600-step loss in 200 steps
