@@ -183,10 +183,10 @@ def map_panel(view, true_xy, pred_xy, place=None):
     return title(img, "town: true path, estimate, belief")
 
 
-def title(view, text, scale=0.4):
+def title(view, text):
     """Writes ``text`` in ``view``'s top-left corner (in place; ``view`` may be a slice of a larger picture):
     white on a black box, the font shrunk until the box fits the view's width."""
-    font, pad = cv2.FONT_HERSHEY_SIMPLEX, 3
+    font, pad, scale = cv2.FONT_HERSHEY_SIMPLEX, 3, 0.4
     (w, h), base = cv2.getTextSize(text, font, scale, 1)
     if w + 2 * pad > view.shape[1]:
         scale *= (view.shape[1] - 2 * pad) / w

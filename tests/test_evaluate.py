@@ -33,7 +33,8 @@ VIDEO_FRAMES = 40
 # as the CLI restores it, then a warm-up, a 200-step and a 2,000-step evaluation in one process (the compiled
 # program is shared), with the resident set size sampled after every chunk.
 _MEMORY_SCRIPT = textwrap.dedent("""
-    import json, os, resource, sys
+    import ctypes, json, os, resource, sys
+    import jax
     import orbax.checkpoint as ocp
     from e2e_percep_jax import checkpoint, config as C, evaluate as ev, train as T
     from e2e_percep_jax.sim.motion import MotionModel
@@ -48,7 +49,14 @@ _MEMORY_SCRIPT = textwrap.dedent("""
     restored_cfg, params, step = checkpoint.restore_params(run)
     assert restored_cfg == cfg and step == 7, (restored_cfg, step)
     page = os.sysconf("SC_PAGE_SIZE")
-    rss = lambda: int(open("/proc/self/statm").read().split()[1]) * page / 2**20
+    # Resident MB once the queued chunk has run and freed heap pages are handed back to the kernel: what
+    # the evaluation keeps alive, not how far the next chunk had got nor what glibc kept of the last one
+    # (either moved a sample by 8-15 MB at random).
+    trim = getattr(ctypes.CDLL(None), "malloc_trim", lambda pad: 0)
+    def rss():
+        jax.block_until_ready(jax.live_arrays())
+        trim(0)
+        return int(open("/proc/self/statm").read().split()[1]) * page / 2**20
     samples = {}
     # A first 200-step evaluation warms the process (lazily started threads, allocator pools) and is not
     # compared: on a loaded machine those first touches landed in whichever evaluation ran first.
@@ -231,19 +239,17 @@ def test_eval_dir_keeps_protocols_and_the_filterless_reading_apart():
 
 @pytest.mark.slow
 def test_memory_is_flat_in_the_number_of_steps(memory_run):
-    r = memory_run()
-    short, long = r["samples"]["200"], r["samples"]["2000"]
-    assert len(long) > 15 and len(short) >= 3
-    # Peak resident memory (MB, sampled after every chunk) while driving 2,000 frames vs 200, same
-    # process and compiled program. Measured: +1 and +5 MB. One scan over all frames would add ~40 MB;
-    # keeping every chunk's outputs on the host ~0.7 MB per chunk (~14 MB over this drive: a list of
-    # per-frame views into the chunks' pose arrays did exactly that, +13 MB).
-    assert max(long) <= max(short) + 12.0, (max(short), max(long))
-    # And no drift inside the long drive: a leak grows with every chunk, so its last quarter is compared
-    # with its second (half a drive apart: the leak above, ~7 MB). Not with its start: on a loaded machine
-    # the allocator took one +8 MB step a few chunks in, once, and stayed flat after it.
-    quarter = len(long) // 4
-    assert max(long[-quarter:]) <= max(long[quarter:2 * quarter]) + 4.0, long
+    samples = memory_run()["samples"]
+    warm, short, long = samples["0"], samples["200"], samples["2000"]
+    assert len(long) > 15 and len(short) >= 3  # one sample a chunk: the drive is driven in chunks
+    # Resident MB after each chunk, same process and compiled program. Without a leak most samples of a
+    # drive sit on one level and a few ~12 MB above it (a buffer alive or not), and a 200-frame drive need
+    # not show the upper one: measured +12.7 MB. Keeping every chunk's outputs measured +40 MB.
+    assert max(long) <= max(warm + short) + 25.0, (max(warm + short), max(long))
+    # A leak grows with every chunk, a few buffers' noise does not move a median: the drive's second half
+    # against its first (10 chunks apart). Measured: +0.2 MB; keeping 0.68 MB a chunk, +8.8 MB.
+    half = len(long) // 2
+    assert np.median(long[half:]) <= np.median(long[1:half]) + 3.0, long
 
 
 @pytest.mark.slow
