@@ -227,7 +227,7 @@ def example_rows(frame, pred_boxes, pred_scores, panel_px=192):
 def pr_curves_image(results, size=360):
     """uint8 BGR picture of the PR curves: one panel per subset (all / visible / occluded), one curve per IoU."""
     colours = {0.1: (200, 120, 30), 0.3: (40, 160, 40), 0.5: (30, 110, 230), 0.7: (160, 40, 160)}  # BGR
-    margin_l, margin_b, margin_t, margin_r = 48, 40, 28, 12
+    margin_l, margin_b, margin_t, margin_r = 48, 40, 64, 12  # the legend sits above the axes, off the curves
     views = []
     for subset in metrics_lib.SUBSETS:
         img = np.full((size + margin_t + margin_b, size + margin_l + margin_r, 3), 255, np.uint8)
@@ -249,8 +249,8 @@ def pr_curves_image(results, size=360):
                 pts = np.array([px(a, b) for a, b in zip(rec, prec)], np.int32)
                 cv2.polylines(img, [pts], False, colour, 2, cv2.LINE_AA)
             ap = "n/a" if not np.isfinite(curve.ap) else f"{100 * curve.ap:.1f}%"
-            y = margin_t + 16 + 16 * j
-            cv2.line(img, (margin_l + size - 150, y - 4), (margin_l + size - 130, y - 4), colour, 2)
-            cv2.putText(img, f"IoU {thr:.1f}: AP {ap}", (margin_l + size - 125, y), cv2.FONT_HERSHEY_SIMPLEX, 0.38, (0, 0, 0), 1, cv2.LINE_AA)
+            x, y = margin_l + (size // 2) * (j % 2), 36 + 16 * (j // 2)  # two entries a row
+            cv2.line(img, (x, y - 4), (x + 20, y - 4), colour, 2)
+            cv2.putText(img, f"IoU {thr:.1f}: AP {ap}", (x + 25, y), cv2.FONT_HERSHEY_SIMPLEX, 0.38, (0, 0, 0), 1, cv2.LINE_AA)
         views.append(img)
     return np.concatenate(views, 1)

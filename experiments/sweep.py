@@ -1,15 +1,23 @@
-"""Seed x variant sweeps: one training + online evaluation per (seed, variant), then one table.
+"""Seed x variant sweeps: every (seed, variant) trained and evaluated online, optionally with the modular
+baselines and held-out towns beside them; then one table per evaluation protocol.
 
     python experiments/sweep.py --config=cpu --sweep_dir=runs/sweep --seeds=0,1 \
-        --variants=full,no_input_recon,no_roadmap_recon [--parallel=2] [--eval.town_seed=7]
+        --variants=full,no_input_recon,no_roadmap_recon [--baselines=detector,tracker,pose,dead_reckoning] \
+        [--held_out_towns=7,8] [--parallel=2]
 
 Each run is ``experiments/main.py`` in its own process and directory ``SWEEP_DIR/<variant>-seed<seed>``
-(with ``--train.seed`` and ``--model.variant`` set, and every other config flag given here passed on).
-A stopped sweep resumes: finished runs are skipped, interrupted ones continue from their checkpoint.
-``--parallel=N`` runs N processes at once (each sees all cores; on a 2-core machine 1 is fastest).
-Writes ``SWEEP_DIR/summary.json`` and ``summary.md``: mean ± std over seeds of each metric per variant.
-With a held-out ``--eval.town_seed`` the trained runs are re-evaluated there (into each run's
-``eval_town<seed>/``) and the table goes to ``summary_town<seed>.json`` and ``.md``.
+(with ``--train.seed`` and ``--model.variant`` set, and every other config flag given here passed on),
+evaluated on the training town (``eval/``) and then on each ``--held_out_towns`` town under the
+known-start protocol (``eval_town<seed>_known_start/``: an unseen town has no places to recognise, so
+the belief starts at the true pose and shows its odometry; detection is measured there as well). The
+``--baselines`` of each seed are ``experiments/baselines.py`` in ``SWEEP_DIR/baselines-seed<seed>/``, on
+the same towns and protocols (the pose regressor only on the training town, whose places it learned). Runs go seed by
+seed, so a stopped sweep has whole seeds done. It resumes: finished evaluations are skipped, interrupted
+trainings continue from their checkpoint. ``--parallel=N`` runs N processes at once (each sees all cores;
+on a 2-core machine 1 is fastest). Writes ``SWEEP_DIR/summary<protocol>.json`` and ``.md`` per protocol
+(``summary.md``: the training town; ``summary_town7_known_start.md``, ...): mean ± std over seeds of each
+metric per method. With a held-out ``--eval.town_seed`` instead, every run is evaluated there alone.
+The README's tables come from these runs through ``experiments/tables.py --collect``.
 """
 import json
 import os
@@ -19,16 +27,20 @@ import time
 
 from absl import app, flags
 
+from e2e_percep_jax import baselines as baselines_lib
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import report
 from e2e_percep_jax.summary import mean_std, summary_metrics
 
-MAIN = os.path.join(os.path.dirname(os.path.abspath(__file__)), "main.py")
+HERE = os.path.dirname(os.path.abspath(__file__))
+MAIN, BASELINES = os.path.join(HERE, "main.py"), os.path.join(HERE, "baselines.py")
 
 config_lib.define_flags()
-flags.DEFINE_string("sweep_dir", None, "one sub-directory per run, and the summary, go here")
+flags.DEFINE_string("sweep_dir", None, "one sub-directory per run, and the summaries, go here")
 flags.DEFINE_list("seeds", ["0", "1"], "training seeds (--train.seed of each run)")
 flags.DEFINE_list("variants", list(config_lib.VARIANTS), f"model variants, any of {config_lib.VARIANTS}")
+flags.DEFINE_list("baselines", [], f"modular baselines per seed, any of {baselines_lib.BASELINES} (default: none)")
+flags.DEFINE_list("held_out_towns", [], "town seeds each run is also evaluated on, from the known start")
 flags.DEFINE_integer("parallel", 1, "runs at once, as separate processes")
 flags.DEFINE_integer("video_frames", 0, "frames of drive.mp4 per run (0: none)")
 FLAGS = flags.FLAGS
@@ -39,12 +51,13 @@ def run_name(variant: str, seed: int) -> str:
 
 
 def table_markdown(summary: dict, seeds) -> str:
-    variants = list(summary)
-    keys = list(next(iter(summary.values())))
+    methods = list(summary)
+    keys = list(dict.fromkeys(k for rows in summary.values() for k in rows))  # a baseline may lack a head
     cell = lambda m, s, n: "n/a" if m is None else f"{m:.3g} ± {s:.2g}"
     lines = [f"Mean ± std over seeds {', '.join(map(str, seeds))} (population std).", "",
-             "| metric | " + " | ".join(variants) + " |", "|---" * (len(variants) + 1) + "|"]
-    lines += [f"| {k} | " + " | ".join(cell(*summary[v][k]) for v in variants) + " |" for k in keys]
+             "| metric | " + " | ".join(methods) + " |", "|---" * (len(methods) + 1) + "|"]
+    lines += [f"| {k} | " + " | ".join(cell(*summary[m].get(k, (None, None, 0))) for m in methods) + " |"
+              for k in keys]
     return "\n".join(lines) + "\n"
 
 
@@ -58,64 +71,130 @@ def _overrides():
     return passed
 
 
+def _int_list(name: str, values) -> list[int]:
+    try:
+        numbers = [int(v) for v in values]
+    except ValueError:
+        raise ValueError(f"--{name}={','.join(values)}: expected comma-separated integers")
+    if len(set(numbers)) != len(numbers):
+        raise ValueError(f"--{name}={','.join(values)}: give distinct values")
+    return numbers
+
+
+def _check(base: config_lib.Config) -> tuple[list[int], list[int]]:
+    """The seeds and held-out towns; raises ValueError naming the flag, before anything runs."""
+    seeds, towns = _int_list("seeds", FLAGS.seeds), _int_list("held_out_towns", FLAGS.held_out_towns)
+    if not seeds:
+        raise ValueError("--seeds=: give at least one seed")
+    for v in FLAGS.variants:
+        if v not in config_lib.VARIANTS:
+            raise ValueError(f"--variants: {v!r} is not one of {config_lib.VARIANTS}")
+    for b in FLAGS.baselines:
+        if b not in baselines_lib.BASELINES:
+            raise ValueError(f"--baselines: {b!r} is not one of {baselines_lib.BASELINES}")
+    if base.world.town_seed in towns:
+        raise ValueError(f"--held_out_towns={','.join(FLAGS.held_out_towns)}: town {base.world.town_seed} "
+                         "is the training town (--world.town_seed)")
+    if towns and base.eval.town_seed != base.world.town_seed:
+        raise ValueError("--held_out_towns: give held-out towns here or in --eval.town_seed, not both")
+    if FLAGS.parallel < 1:
+        raise ValueError(f"--parallel={FLAGS.parallel}: must be >= 1")
+    return seeds, towns
+
+
+def _protocols(cfg: config_lib.Config, towns: list[int]) -> list[config_lib.Config]:
+    """A run's evaluations: ``cfg``'s own, then each held-out town under the known-start protocol."""
+    return [cfg] + [config_lib.replace(cfg, eval=dict(town_seed=t, known_start=True)) for t in towns]
+
+
+def _protocol_flags(cfg: config_lib.Config, base: config_lib.Config) -> list[str]:
+    if cfg.eval == base.eval:
+        return []
+    return [f"--eval.town_seed={cfg.eval.town_seed}", f"--eval.known_start={cfg.eval.known_start}"]
+
+
 def main(argv):
     try:
         config_lib.check_launch(argv, required=("sweep_dir",))
-        try:
-            seeds = [int(s) for s in FLAGS.seeds]
-        except ValueError:
-            raise ValueError(f"--seeds={','.join(FLAGS.seeds)}: expected comma-separated integers")
-        if not seeds or len(set(seeds)) != len(seeds):
-            raise ValueError(f"--seeds={','.join(FLAGS.seeds)}: give distinct seeds")
-        for v in FLAGS.variants:
-            if v not in config_lib.VARIANTS:
-                raise ValueError(f"--variants: {v!r} is not one of {config_lib.VARIANTS}")
-        if FLAGS.parallel < 1:
-            raise ValueError(f"--parallel={FLAGS.parallel}: must be >= 1")
         base = config_lib.from_flags()
+        seeds, towns = _check(base)
     except ValueError as e:
         sys.exit(f"error: {e}")
 
-    runs = [(v, s) for v in FLAGS.variants for s in seeds]
     run_cfg = lambda v, s: config_lib.replace(base, train=dict(seed=s), model=dict(variant=v))
-    out_dir = lambda v, s: report.eval_dir(os.path.join(FLAGS.sweep_dir, run_name(v, s)), run_cfg(v, s))
-    done = lambda v, s: report.finished_evaluation(out_dir(v, s), v, base.train.num_steps, run_cfg(v, s))
+    workdir = lambda name: os.path.join(FLAGS.sweep_dir, name)
+    # (method, evaluation directory) of everything the sweep evaluates
+    evaluations = []
+    jobs = []  # (run directory name, the commands still to run there, in order)
+    for s in seeds:
+        for v in FLAGS.variants:
+            todo = []
+            for cfg in _protocols(run_cfg(v, s), towns):
+                out_dir = report.eval_dir(workdir(run_name(v, s)), cfg)
+                evaluations.append((v, out_dir))
+                if report.finished_evaluation(out_dir, v, base.train.num_steps, cfg) is None:
+                    todo.append([MAIN, f"--workdir={workdir(run_name(v, s))}", f"--train.seed={s}",
+                                 f"--model.variant={v}", *_protocol_flags(cfg, base)])
+            jobs.append((run_name(v, s), todo))
+        if FLAGS.baselines:
+            name = run_name("baselines", s)
+            todo = []
+            for cfg in _protocols(base, towns):
+                chosen = [b for b in FLAGS.baselines if cfg.eval == base.eval or b != "pose"]
+                for b in chosen:
+                    evaluations.append((b, report.eval_dir(os.path.join(workdir(name), b),
+                                                           baselines_lib.eval_config(b, cfg))))
+                if chosen:  # baselines.py itself skips what is already trained and evaluated
+                    todo.append([BASELINES, f"--workdir={workdir(name)}", f"--train.seed={s}",
+                                 f"--baseline={','.join(chosen)}", *_protocol_flags(cfg, base)])
+            jobs.append((name, todo))
 
-    todo = [(v, s) for v, s in runs if done(v, s) is None]
-    print(f"sweep: {len(runs)} runs, {len(runs) - len(todo)} already finished", flush=True)
+    model_runs = [todo for name, todo in jobs if not name.startswith("baselines-")]
+    print(f"sweep: {len(model_runs)} runs, {sum(not t for t in model_runs)} already finished", flush=True)
+    jobs = [(name, todo) for name, todo in jobs if todo]
     os.makedirs(FLAGS.sweep_dir, exist_ok=True)
+
+    def start(name, todo):
+        os.makedirs(workdir(name), exist_ok=True)
+        log = open(os.path.join(workdir(name), "main.log"), "a")
+        # the protocol's own flags go last, so they win over a passed-on --eval flag
+        cmd = [sys.executable, todo[0][0], *_overrides(), f"--video_frames={FLAGS.video_frames}", *todo[0][1:]]
+        print(f"sweep: started {name}: {' '.join(todo[0][1:])} (log: {log.name})", flush=True)
+        return name, todo[1:], subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT), log
+
     running = []
-    while todo or running:
-        while todo and len(running) < FLAGS.parallel:
-            v, s = todo.pop(0)
-            workdir = os.path.join(FLAGS.sweep_dir, run_name(v, s))
-            os.makedirs(workdir, exist_ok=True)
-            cmd = [sys.executable, MAIN, f"--workdir={workdir}", f"--train.seed={s}", f"--model.variant={v}",
-                   f"--video_frames={FLAGS.video_frames}", *_overrides()]
-            log = open(os.path.join(workdir, "main.log"), "a")
-            running.append(((v, s), subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT), log))
-            print(f"sweep: started {run_name(v, s)} (log: {log.name})", flush=True)
+    while jobs or running:
+        while jobs and len(running) < FLAGS.parallel:
+            running.append(start(*jobs.pop(0)))
         time.sleep(1.0)
         for item in list(running):
-            (v, s), proc, log = item
+            name, todo, proc, log = item
             if proc.poll() is None:
                 continue
             running.remove(item)
             log.close()
             if proc.returncode:
-                for _, other, _ in running:
+                for _, _, other, _ in running:
                     other.terminate()  # they checkpoint on SIGTERM; a rerun resumes them
-                sys.exit(f"error: run {run_name(v, s)} failed with status {proc.returncode}; see {log.name}")
-            print(f"sweep: finished {run_name(v, s)}", flush=True)
+                sys.exit(f"error: {name} failed with status {proc.returncode}; see {log.name}")
+            if todo:
+                running.append(start(name, todo))  # the same run's next evaluation
+            else:
+                print(f"sweep: finished {name}", flush=True)
 
-    summary = {v: mean_std([summary_metrics(done(v, s)) for s in seeds]) for v in FLAGS.variants}
-    name = "summary" if base.eval.town_seed == base.world.town_seed else f"summary_town{base.eval.town_seed}"
-    with open(os.path.join(FLAGS.sweep_dir, f"{name}.json"), "w") as f:
-        json.dump({"seeds": seeds, "config": json.loads(base.to_json()), "summary": summary}, f, indent=1)
-    table = table_markdown(summary, seeds)
-    with open(os.path.join(FLAGS.sweep_dir, f"{name}.md"), "w") as f:
-        f.write(table)
-    print(table)
+    by_protocol = {}  # evaluation directory name -> method -> [metrics per seed]
+    for method, out_dir in evaluations:
+        with open(os.path.join(out_dir, "metrics.json")) as f:
+            by_protocol.setdefault(os.path.basename(out_dir), {}).setdefault(method, []).append(json.load(f))
+    for protocol, methods in by_protocol.items():
+        summary = {m: mean_std([summary_metrics(x) for x in runs]) for m, runs in methods.items()}
+        name = "summary" + protocol[len("eval"):]
+        with open(os.path.join(FLAGS.sweep_dir, f"{name}.json"), "w") as f:
+            json.dump({"seeds": seeds, "config": json.loads(base.to_json()), "summary": summary}, f, indent=1)
+        table = table_markdown(summary, seeds)
+        with open(os.path.join(FLAGS.sweep_dir, f"{name}.md"), "w") as f:
+            f.write(f"{protocol}\n\n{table}")
+        print(f"{name}.md:\n{table}")
 
 
 if __name__ == "__main__":

@@ -45,7 +45,12 @@ def collect(method: str, run_dirs: list[str], results_dir: str) -> list[str]:
     if not re.fullmatch(r"[A-Za-z0-9_.-]+", method):
         raise ValueError(f"--collect={method}=...: a method name is letters, digits, '_', '.' or '-'")
     written = []
-    for run in run_dirs:
+    # a run's name is its path below the runs' common folder ("baselines-seed0-detector" beside
+    # "baselines-seed1-detector"), or its folder's name if it is alone
+    paths = [os.path.abspath(r) for r in run_dirs]
+    common = os.path.commonpath(paths) if len(paths) > 1 else os.path.dirname(paths[0])
+    for run, run_path in zip(run_dirs, paths):
+        name = os.path.relpath(run_path, common).replace(os.sep, "-")
         evaluations = sorted(glob.glob(os.path.join(run, "eval*", "metrics.json")))
         if not evaluations:
             raise ValueError(f"--collect={method}={run}: no eval*/metrics.json in {run}")
@@ -55,8 +60,7 @@ def collect(method: str, run_dirs: list[str], results_dir: str) -> list[str]:
             for section, keys in DROPPED.items():
                 for key in keys:
                     (metrics[section] if section else metrics).pop(key, None)
-            out = os.path.join(results_dir, method, os.path.basename(os.path.normpath(run)),
-                               os.path.basename(os.path.dirname(path)) + ".json")
+            out = os.path.join(results_dir, method, name, os.path.basename(os.path.dirname(path)) + ".json")
             os.makedirs(os.path.dirname(out), exist_ok=True)
             with open(out, "w") as f:
                 json.dump(metrics, f, indent=1, sort_keys=True)

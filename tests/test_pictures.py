@@ -92,3 +92,23 @@ def test_a_title_stays_inside_its_panel_on_a_box_it_can_be_read_against(text):
     box = row[:box_h, :box_w].astype(int)
     assert np.all(box.max(-1) == box.min(-1))  # all grey: one filled box, nothing of the green shows through
     assert (box.min(-1) > 200).sum() > 20  # the white letters
+
+
+def test_pr_legend_sits_above_the_axes_where_no_curve_runs():
+    """Detectors with the same precision at every recall draw horizontal lines high in the axes, where a
+    legend inside them would cover them: each colour appears above the axes (its swatch) and on its own
+    curve only."""
+    from e2e_percep_jax.metrics import SUBSETS, PRCurve
+    recall = np.linspace(0.01, 1.0, 50)
+    precision = {0.1: 0.95, 0.3: 0.9, 0.5: 0.85, 0.7: 0.8}
+    image = pictures.pr_curves_image({t: {s: PRCurve(p, np.full_like(recall, p), recall, np.linspace(1, 0, 50), 10)
+                                          for s in SUBSETS} for t, p in precision.items()})
+    panel = image[:, :image.shape[1] // len(SUBSETS)]
+    frame = np.flatnonzero((panel == 0).all(-1).sum(1) > panel.shape[1] // 2)  # the axes' top and bottom edges
+    top, bottom = frame.min(), frame.max()
+    colours = {0.1: (200, 120, 30), 0.3: (40, 160, 40), 0.5: (30, 110, 230), 0.7: (160, 40, 160)}  # BGR
+    for t, colour in colours.items():
+        rows = np.flatnonzero((panel == colour).all(-1).any(1))
+        assert rows.min() < top, colour  # its legend swatch, above the axes
+        inside, curve_row = rows[rows >= top], top + (1 - precision[t]) * (bottom - top)
+        assert len(inside) and np.abs(inside - curve_row).max() <= 3, (colour, inside, curve_row)

@@ -1,5 +1,6 @@
 """Seed sweeps on the tiny config: the same seed gives identical metrics, a rerun skips finished runs,
 and the summary is the mean ± std of the runs' own metrics."""
+import glob
 import json
 import os
 import subprocess
@@ -19,8 +20,8 @@ def _sweep(sweep_dir, *argv):
     return subprocess.run(cmd, capture_output=True, text=True, timeout=1200)
 
 
-def _metrics(sweep_dir, name):
-    with open(os.path.join(sweep_dir, name, "eval", "metrics.json")) as f:
+def _metrics(sweep_dir, name, evaluation="eval"):
+    with open(os.path.join(sweep_dir, name, evaluation, "metrics.json")) as f:
         return json.load(f)
 
 
@@ -64,27 +65,44 @@ def test_summary_is_mean_and_std_of_the_runs(sweeps):
 
 
 @pytest.mark.slow
-def test_held_out_town_is_evaluated_apart_without_retraining(sweeps):
+def test_held_out_towns_and_baselines_join_a_finished_sweep_without_retraining(sweeps):
+    """Grown by held-out towns and the modular baselines, a finished sweep trains nothing of its own again:
+    each run is evaluated on the new town from the known start, the baselines train and evaluate beside
+    (the pose regressor on the training town only), and each protocol gets its table of its methods."""
     a, _ = sweeps
     run = os.path.join(a, "full-seed0")
     before = {p: os.path.getmtime(os.path.join(run, p)) for p in ("eval/metrics.json", "metrics.jsonl")}
-    held_out = _sweep(a, "--seeds=0", "--variants=full", "--eval.town_seed=3")
-    assert held_out.returncode == 0 and "0 already finished" in held_out.stdout, held_out.stdout + held_out.stderr
+    grown = ("--seeds=0", "--variants=full", "--held_out_towns=3", "--baselines=detector,tracker,pose,dead_reckoning")
+    result = _sweep(a, *grown)
+    assert result.returncode == 0 and "1 runs, 0 already finished" in result.stdout, result.stdout + result.stderr
     assert {p: os.path.getmtime(os.path.join(run, p)) for p in before} == before  # no training, no overwrite
-    with open(os.path.join(run, "eval_town3", "metrics.json")) as f:
-        metrics = json.load(f)
-    assert metrics["config"]["eval"]["town_seed"] == 3 and metrics["checkpoint_step"] == 4
-    assert metrics["detection"]["num_gt"] != _metrics(a, "full-seed0")["detection"]["num_gt"]  # another town
-    with open(os.path.join(a, "summary_town3.json")) as f:
-        summary = json.load(f)["summary"]["full"]
-    assert summary["location mean (m)"][0] == summary_metrics(metrics)["location mean (m)"]
-    again = _sweep(a, "--seeds=0", "--variants=full", "--eval.town_seed=3")
-    assert again.returncode == 0 and "1 already finished" in again.stdout
+    held_out = _metrics(a, "full-seed0", "eval_town3_known_start")
+    assert held_out["config"]["eval"]["town_seed"] == 3 and held_out["config"]["eval"]["known_start"]
+    assert held_out["checkpoint_step"] == 4
+    assert held_out["detection"]["num_gt"] != _metrics(a, "full-seed0")["detection"]["num_gt"]  # another town
+    base = "baselines-seed0"
+    evaluated = {os.path.relpath(os.path.dirname(p), os.path.join(a, base))
+                 for p in glob.glob(os.path.join(a, base, "*", "eval*", "metrics.json"))}
+    assert evaluated == {"detector/eval", "tracker/eval", "pose/eval", "dead_reckoning/eval_known_start",
+                         "detector/eval_town3_known_start", "tracker/eval_town3_known_start",
+                         "dead_reckoning/eval_town3_known_start"}
+    assert _metrics(a, os.path.join(base, "detector"))["config"]["train"]["seed"] == 0
+    with open(os.path.join(a, "summary_town3_known_start.json")) as f:
+        summary = json.load(f)["summary"]
+    assert set(summary) == {"full", "detector", "tracker", "dead_reckoning"}
+    assert summary["full"]["location mean (m)"][0] == summary_metrics(held_out)["location mean (m)"]
+    with open(os.path.join(a, "summary_known_start.json")) as f:
+        assert set(json.load(f)["summary"]) == {"dead_reckoning"}
+    with open(os.path.join(a, "summary.json")) as f:
+        assert set(json.load(f)["summary"]) == {"full", "detector", "tracker", "pose"}
+    again = _sweep(a, *grown)
+    assert again.returncode == 0 and "1 runs, 1 already finished" in again.stdout
 
 
 @pytest.mark.slow
 def test_bad_sweep_flags_are_named(tmp_path):
     for argv, flag in ((["--seeds=0,x"], "--seeds"), (["--variants=full,bogus"], "--variants"),
-                       (["--parallel=0"], "--parallel"), (["--data.image_size=48"], "--data.image_size")):
+                       (["--parallel=0"], "--parallel"),
+                       (["--baselines=detector,bogus"], "--baselines"), (["--held_out_towns=0"], "--held_out_towns"), (["--data.image_size=48"], "--data.image_size")):
         result = _sweep(tmp_path, *argv)
         assert result.returncode == 1 and result.stderr.strip().startswith(f"error: {flag}"), result.stderr

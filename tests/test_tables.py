@@ -113,6 +113,19 @@ def test_learning_curve_reads_each_checkpoints_evaluations(results):
             "--train.num_steps=2000 --train.seed={0,1}`" in curve.splitlines())
 
 
+def test_collected_runs_are_named_by_their_path_below_the_common_folder(tmp_path):
+    """A sweep keeps each seed's baselines in ``baselines-seed<s>/<baseline>``: same folder names, two runs."""
+    for seed in (0, 1):
+        _write_run(tmp_path / "sweep" / f"baselines-seed{seed}" / "detector", {"eval": _metrics(seed, ap=0.1 * seed)})
+    written = tables.collect("detector", [str(tmp_path / "sweep" / f"baselines-seed{s}" / "detector") for s in (0, 1)],
+                             str(tmp_path / "results"))
+    assert sorted(os.path.relpath(p, tmp_path / "results") for p in written) == [
+        os.path.join("detector", f"baselines-seed{s}-detector", "eval.json") for s in (0, 1)]
+    assert [m["config"]["train"]["seed"] for m in tables.load(str(tmp_path / "results"))["detector"]["eval"]] == [0, 1]
+    alone = tables.collect("detector", [str(tmp_path / "sweep" / "baselines-seed0" / "detector")], str(tmp_path / "r2"))
+    assert alone == [str(tmp_path / "r2" / "detector" / "detector" / "eval.json")]
+
+
 def test_kept_evaluations_lose_only_their_curves(results):
     kept = json.loads((results / "place64" / "place_s0" / "eval.json").read_text())
     assert "pr_curves" not in kept["detection"] and "examples" not in kept
