@@ -6,7 +6,7 @@
   (cyan, brighter for higher scores) over the dimmed roadmap;
 - the town map of a drive (:func:`map_panel`): its true path, the estimates and the pose belief;
 - an evaluation's pictures: the paper's Fig. 6 rows (:func:`example_rows`) and the PR curves
-  (:func:`pr_curves_image`).
+  (:func:`pr_curves_image`), drawn by :func:`line_chart`, as the learning curves are.
 """
 import cv2
 import jax.numpy as jnp
@@ -224,33 +224,53 @@ def example_rows(frame, pred_boxes, pred_scores, panel_px=192):
     return np.concatenate([top, bottom], 0)
 
 
+def line_chart(series, title, x_label, x_range, y_range, log_y=False, size=360):
+    """uint8 BGR picture of one chart: ``series`` is [(legend text, BGR colour, xs, ys)], drawn on a grid
+    over ``x_range`` x ``y_range`` (``log_y``: a log10 axis), with the legend above the axes (two entries
+    a row), where it covers no curve. Points with a non-finite y are left out; a lone point is a dot."""
+    font, black = cv2.FONT_HERSHEY_SIMPLEX, (0, 0, 0)
+    left, right, bottom, top = 48, 12, 40, 32 + 16 * ((len(series) + 1) // 2)
+    img = np.full((size + top + bottom, size + left + right, 3), 255, np.uint8)
+    (x0, x1), (y0, y1) = x_range, y_range
+    fy = np.log10 if log_y else (lambda v: v)
+
+    def px(x, y):
+        return (int(round(left + (x - x0) / (x1 - x0) * size)),
+                int(round(top + (1 - (fy(y) - fy(y0)) / (fy(y1) - fy(y0))) * size)))
+    y_ticks = (10.0 ** np.arange(np.floor(np.log10(y0)), np.ceil(np.log10(y1)) + 1)) if log_y else np.linspace(y0, y1, 6)
+    for v in np.linspace(x0, x1, 6):
+        cv2.line(img, px(v, y0), px(v, y1), (225, 225, 225), 1)
+        cv2.putText(img, f"{v:g}", (px(v, y0)[0] - 9, px(v, y0)[1] + 14), font, 0.35, black, 1, cv2.LINE_AA)
+    for v in y_ticks[(y_ticks >= y0) & (y_ticks <= y1)]:
+        cv2.line(img, px(x0, v), px(x1, v), (225, 225, 225), 1)
+        cv2.putText(img, f"{v:g}", (4, px(x0, v)[1] + 4), font, 0.35, black, 1, cv2.LINE_AA)
+    cv2.rectangle(img, px(x0, y1), px(x1, y0), black, 1)
+    cv2.putText(img, x_label, (left + size // 2 - 20, size + top + 32), font, 0.45, black, 1, cv2.LINE_AA)
+    cv2.putText(img, title, (left, 18), font, 0.45, black, 1, cv2.LINE_AA)
+    for j, (text, colour, xs, ys) in enumerate(series):
+        pts = np.array([px(x, y) for x, y in zip(xs, ys) if np.isfinite(y)], np.int32).reshape(-1, 2)
+        if len(pts) > 1:
+            cv2.polylines(img, [pts], False, colour, 2, cv2.LINE_AA)
+        elif len(pts):
+            cv2.circle(img, tuple(map(int, pts[0])), 4, colour, -1, cv2.LINE_AA)
+        x, y = left + (size // 2) * (j % 2), 36 + 16 * (j // 2)
+        cv2.line(img, (x, y - 4), (x + 20, y - 4), colour, 2)
+        cv2.putText(img, text, (x + 25, y), font, 0.38, black, 1, cv2.LINE_AA)
+    return img
+
+
 def pr_curves_image(results, size=360):
     """uint8 BGR picture of the PR curves: one panel per subset (all / visible / occluded), one curve per IoU."""
     colours = {0.1: (200, 120, 30), 0.3: (40, 160, 40), 0.5: (30, 110, 230), 0.7: (160, 40, 160)}  # BGR
-    margin_l, margin_b, margin_t, margin_r = 48, 40, 64, 12  # the legend sits above the axes, off the curves
     views = []
     for subset in metrics_lib.SUBSETS:
-        img = np.full((size + margin_t + margin_b, size + margin_l + margin_r, 3), 255, np.uint8)
-        px = lambda rec, prec: (int(round(margin_l + rec * size)), int(round(margin_t + (1 - prec) * size)))
-        for v in np.linspace(0, 1, 6):
-            cv2.line(img, px(v, 0), px(v, 1), (225, 225, 225), 1)
-            cv2.line(img, px(0, v), px(1, v), (225, 225, 225), 1)
-            cv2.putText(img, f"{v:.1f}", (px(v, 0)[0] - 9, px(v, 0)[1] + 14), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
-            cv2.putText(img, f"{v:.1f}", (4, px(0, v)[1] + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
-        cv2.rectangle(img, px(0, 1), px(1, 0), (0, 0, 0), 1)
-        cv2.putText(img, "recall", (margin_l + size // 2 - 20, size + margin_t + 32), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
-        cv2.putText(img, f"precision vs recall: {subset} GT", (margin_l, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
-        for j, thr in enumerate(sorted(results)):
+        series = []
+        for thr in sorted(results):
             curve = results[thr][subset]
-            colour = colours.get(thr, (0, 0, 0))
-            if curve.num_gt and len(curve.recall):
-                rec = np.concatenate([[0.0], curve.recall])
-                prec = np.concatenate([[curve.precision[0]], curve.precision])
-                pts = np.array([px(a, b) for a, b in zip(rec, prec)], np.int32)
-                cv2.polylines(img, [pts], False, colour, 2, cv2.LINE_AA)
+            rec, prec = [], []
+            if curve.num_gt and len(curve.recall):  # from recall 0 at the first level's precision
+                rec, prec = np.concatenate([[0.0], curve.recall]), np.concatenate([[curve.precision[0]], curve.precision])
             ap = "n/a" if not np.isfinite(curve.ap) else f"{100 * curve.ap:.1f}%"
-            x, y = margin_l + (size // 2) * (j % 2), 36 + 16 * (j // 2)  # two entries a row
-            cv2.line(img, (x, y - 4), (x + 20, y - 4), colour, 2)
-            cv2.putText(img, f"IoU {thr:.1f}: AP {ap}", (x + 25, y), cv2.FONT_HERSHEY_SIMPLEX, 0.38, (0, 0, 0), 1, cv2.LINE_AA)
-        views.append(img)
+            series.append((f"IoU {thr:.1f}: AP {ap}", colours.get(thr, (0, 0, 0)), rec, prec))
+        views.append(line_chart(series, f"precision vs recall: {subset} GT", "recall", (0, 1), (0, 1), size=size))
     return np.concatenate(views, 1)

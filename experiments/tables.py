@@ -6,12 +6,15 @@
     python experiments/tables.py --readme=README.md
     # exit 1 if README.md's tables differ from what the kept evaluations render (tests/test_tables.py)
     python experiments/tables.py --readme=README.md --check
+    # the learning curves of the kept runs: training loss, place term, location error and AP@0.5
+    python experiments/tables.py --figure=experiments/figures/learning_curves.png
 
 The kept evaluations live in ``--results`` (default ``experiments/results/``) as
 ``<method>/<run>/<evaluation>.json``: a method is a recipe (a row), a run one seed of it, an evaluation one
 of the run's ``eval*`` directories (``eval``: the training town's global protocol; ``eval_town7``:
 a held-out town; ``_known_start``: the belief starts at the true pose). Each cell is the mean ± std over a
-method's runs; each method's row names the command that trained it.
+method's runs; each method's row names the command that trained it. Beside them, ``training.jsonl``
+keeps every 100th record of the run's ``metrics.jsonl`` for the learning curves' figure.
 """
 import glob
 import json
@@ -19,20 +22,28 @@ import os
 import re
 import sys
 
+import cv2
+import numpy as np
 from absl import app, flags
 
 from e2e_percep_jax import checkpoint
 from e2e_percep_jax import config as config_lib
+from e2e_percep_jax import pictures
 from e2e_percep_jax.summary import mean_std, summary_metrics
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 DROPPED = {"detection": ("pr_curves", "at_threshold"), "": ("examples", "sample")}  # large, no table reads them
 HELD_OUT_TOWNS = (7, 8)
+TRAINING_EVERY = 100  # steps between the kept training records (a 9,000-step run: 90 lines)
+# BGR, one per method in the learning curves' figure
+COLOURS = ((200, 120, 30), (30, 110, 230), (40, 160, 40), (160, 40, 160), (40, 40, 200), (120, 120, 120),
+           (0, 170, 200), (140, 90, 60))
 
 flags.DEFINE_multi_string("collect", [], "METHOD=RUN_DIR[,RUN_DIR...]: keep these runs' evaluations as METHOD")
 flags.DEFINE_string("results", os.path.join(HERE, "results"), "directory of the kept evaluations")
 flags.DEFINE_string("readme", None, "markdown file whose table markers to fill (default: print the tables)")
 flags.DEFINE_boolean("check", False, "with --readme: exit 1 if its tables differ from the rendered ones")
+flags.DEFINE_string("figure", None, "also draw the learning curves of the kept runs into this PNG")
 FLAGS = flags.FLAGS
 
 
@@ -54,9 +65,11 @@ def collect(method: str, run_dirs: list[str], results_dir: str) -> list[str]:
         evaluations = sorted(glob.glob(os.path.join(run, "eval*", "metrics.json")))
         if not evaluations:
             raise ValueError(f"--collect={method}={run}: no eval*/metrics.json in {run}")
+        kept = []
         for path in evaluations:
             with open(path) as f:
                 metrics = json.load(f)
+            kept.append(metrics)
             for section, keys in DROPPED.items():
                 for key in keys:
                     (metrics[section] if section else metrics).pop(key, None)
@@ -65,7 +78,36 @@ def collect(method: str, run_dirs: list[str], results_dir: str) -> list[str]:
             with open(out, "w") as f:
                 json.dump(metrics, f, indent=1, sort_keys=True)
             written.append(out)
+        # up to the last evaluated checkpoint: a run may have trained on since
+        last = max(m.get("checkpoint_step") or m["config"]["train"]["num_steps"] for m in kept)
+        record = keep_training_record(run, os.path.join(results_dir, method, name), last)
+        written += [record] if record else []
     return written
+
+
+def keep_training_record(run: str, out_dir: str, last_step: int) -> str | None:
+    """Every ``TRAINING_EVERY``-th step of ``run/metrics.jsonl`` (the losses, gradient norm and counters) up
+    to ``last_step`` into ``out_dir/training.jsonl``; its path, or None where the run has no record."""
+    path = os.path.join(run, "metrics.jsonl")
+    if not os.path.exists(path):
+        return None
+    with open(path) as f:
+        records = [r for r in map(json.loads, f) if r["step"] % TRAINING_EVERY == 0 and r["step"] <= last_step]
+    by_step = {r["step"]: r for r in records}  # a resumed run logs the steps since its checkpoint again
+    out = os.path.join(out_dir, "training.jsonl")
+    with open(out, "w") as f:
+        f.writelines(json.dumps(by_step[step], sort_keys=True) + "\n" for step in sorted(by_step))
+    return out
+
+
+def load_training(results_dir: str) -> dict:
+    """{method: [[training records] per run]}, runs in name order."""
+    found = {}
+    for path in sorted(glob.glob(os.path.join(results_dir, "*", "*", "training.jsonl"))):
+        with open(path) as f:
+            found.setdefault(os.path.basename(os.path.dirname(os.path.dirname(path))), []).append(
+                [json.loads(line) for line in f])
+    return found
 
 
 def load(results_dir: str) -> dict:
@@ -240,6 +282,65 @@ def learning_curve(found: dict) -> str:
     return _markdown(header, rows) + "\n\n" + _runs_note(last, list(curves)) + "\n"
 
 
+def _evaluations_by_step(evaluations: dict) -> dict:
+    """{training step: [metrics per run]} of a method's town-0 global evaluations: each checkpoint's
+    ``eval_step<N>``, and ``eval`` at the step its runs were trained to."""
+    steps = {int(name[len("eval_step"):]): runs for name, runs in evaluations.items()
+             if re.fullmatch(r"eval_step\d+", name)}
+    for m in evaluations.get("eval", []):
+        step = m.get("checkpoint_step") or m["config"]["train"]["num_steps"]
+        if step not in steps:
+            steps.setdefault(step, []).append(m)
+    return steps
+
+
+def figure(results_dir: str):
+    """uint8 BGR picture, 2 x 2 charts against training steps, one line per method (the mean over its runs):
+    from the kept training records, the -ELBO (reconstructions and KL) and the place term over its weight,
+    which recipes weigh differently; from the kept evaluations, town 0's location error and AP@0.5. A
+    method without the output (no record, no pose, no boxes) is left out of that chart."""
+    found, training = load(results_dir), load_training(results_dir)
+    methods = [m for m in _order(found) if m in training or _evaluations_by_step(found[m])]
+    colour = dict(zip(methods, COLOURS * 2))
+    elbo_terms = ("recon_camera", "recon_lidar", "recon_roadmap", "kl")
+
+    def trained(value):  # mean over a method's runs at the steps they all logged
+        series = []
+        for m in methods:
+            runs = training.get(m, [])
+            weight = _main_runs(found[m])[0]["config"]["train"]["pose_weight"]
+            steps = sorted(set.intersection(*({r["step"] for r in run} for run in runs))) if runs else []
+            by_step = [{r["step"]: r for r in run} for run in runs]
+            series.append((m, steps, [np.mean([value(r[s], weight) for r in by_step]) for s in steps]))
+        return series
+
+    def evaluated(row):
+        series = []
+        for m in methods:
+            by_step = _evaluations_by_step(found[m])
+            means = [mean_std([summary_metrics(x) for x in by_step[s]])[row][0] for s in sorted(by_step)]
+            series.append((m, sorted(by_step), [np.nan if v is None else v for v in means]))
+        return series
+    charts = [(trained(lambda r, w: sum(r.get(k, 0.0) for k in elbo_terms)), "training: -ELBO (reconstructions + KL)", None),
+              (trained(lambda r, w: r.get("pose_place", np.nan) / w), "training: place term / pose weight", None),
+              (evaluated("location mean (m)"), "town 0: location error (m)", None),
+              (evaluated("AP@0.5 all (%)"), "town 0: AP@0.5 (%)", (0.0, 100.0))]
+    last = max([s for series, _, _ in charts for _, steps, _ in series for s in steps], default=1)
+    views = []
+    for series, title, y_range in charts:
+        shown = [(m, colour[m], steps, ys) for m, steps, ys in series
+                 if np.isfinite(ys).any() and np.nanmax(np.abs(ys)) > 0]  # NaN or AP 0: no such output
+        log = y_range is None
+        if log:  # whole decades around the values
+            values = np.array([v for *_, ys in shown for v in ys if np.isfinite(v) and v > 0]) if shown else np.ones(1)
+            lo = np.floor(np.log10(values.min()))
+            y_range = 10.0 ** lo, 10.0 ** max(np.ceil(np.log10(values.max())), lo + 1)
+        views.append(pictures.line_chart(shown, title, "training steps", (0, last), y_range, log_y=log))
+    height = max(v.shape[0] for v in views)  # legends of more rows make taller charts
+    views = [np.pad(v, ((0, height - v.shape[0]), (0, 0), (0, 0)), constant_values=255) for v in views]
+    return np.concatenate([np.concatenate(views[:2], 1), np.concatenate(views[2:], 1)], 0)
+
+
 TABLES = {"localisation": localisation, "detection": detection, "learning_curve": learning_curve}
 
 
@@ -273,6 +374,10 @@ def main(argv):
             for path in collect(method, runs.split(","), FLAGS.results):
                 print(f"kept {path}")
         tables = render(FLAGS.results)
+        if FLAGS.figure:
+            if not cv2.imwrite(FLAGS.figure, figure(FLAGS.results)):
+                raise ValueError(f"--figure={FLAGS.figure}: could not write it (a .png path in an existing folder?)")
+            print(f"wrote {FLAGS.figure}")
         if FLAGS.readme is None:
             print("\n\n".join(tables.values()))
             return

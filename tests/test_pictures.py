@@ -112,3 +112,15 @@ def test_pr_legend_sits_above_the_axes_where_no_curve_runs():
         assert rows.min() < top, colour  # its legend swatch, above the axes
         inside, curve_row = rows[rows >= top], top + (1 - precision[t]) * (bottom - top)
         assert len(inside) and np.abs(inside - curve_row).max() <= 3, (colour, inside, curve_row)
+
+
+def test_line_chart_places_a_point_by_its_axes_log_or_linear():
+    """x 5 on [0, 10] and y 10 on a log axis [1, 100] are the middle of the axes, as y 50 on a linear [0, 100]."""
+    colour = (10, 200, 90)
+    for y, y_range, log_y in ((10.0, (1.0, 100.0), True), (50.0, (0.0, 100.0), False)):
+        chart = pictures.line_chart([("a point", colour, [5.0], [y])], "t", "x", (0.0, 10.0), y_range, log_y=log_y)
+        frame = np.flatnonzero((chart == 0).all(-1).sum(1) > chart.shape[1] // 2)  # the axes' top and bottom
+        columns = np.flatnonzero((chart == 0).all(-1).sum(0) > (frame.max() - frame.min()) // 2)  # left, right
+        rows, cols = np.nonzero((chart == colour).all(-1)[frame.min():])  # below the legend: the dot
+        centre = (frame.min() + frame.max()) / 2 - frame.min(), (columns.min() + columns.max()) / 2
+        assert abs(rows.mean() - centre[0]) <= 1 and abs(cols.mean() - centre[1]) <= 1, (rows.mean(), cols.mean(), centre)

@@ -45,12 +45,22 @@ def _write_run(run_dir, evaluations):
             json.dump(metrics, f)
 
 
+def _write_training(run_dir, seed):
+    """A metrics.jsonl logged every 50 steps to 3,500 (trained on past its evaluated 3,000), resumed once
+    from step 150, so steps 200 and 250 are logged twice (the second time with kl 20)."""
+    os.makedirs(run_dir, exist_ok=True)
+    record = lambda step, kl: json.dumps({"step": step, "recon_camera": 1000.0 + seed, "kl": kl, "pose_place": 160.0})
+    lines = [record(step, 10.0) for step in range(50, 300, 50)] + [record(step, 20.0) for step in range(200, 3550, 50)]
+    (run_dir / "metrics.jsonl").write_text("\n".join(lines) + "\n")
+
+
 @pytest.fixture
 def results(tmp_path):
     """Two seeds of `place64` (AP 50 / 60 %, location 4 / 6 m), two more of it with only their
     checkpoints' evaluations (runs that sort first), one `dead_reckoning` run and one `detector` run
     (no pose), kept."""
     for seed, ap, location, by_step in ((0, 0.5, 4.0, (2.0, 4.0)), (1, 0.6, 6.0, (4.0, 6.0))):
+        _write_training(tmp_path / "runs" / f"place_s{seed}", seed)
         _write_run(tmp_path / "runs" / f"place_s{seed}", {
             "eval": _metrics(seed, ap=ap, location=location),
             "eval_known_start": _metrics(seed, ap=ap, known_start=True, drift=0.5 + seed, by_step=by_step),
@@ -124,6 +134,26 @@ def test_collected_runs_are_named_by_their_path_below_the_common_folder(tmp_path
     assert [m["config"]["train"]["seed"] for m in tables.load(str(tmp_path / "results"))["detector"]["eval"]] == [0, 1]
     alone = tables.collect("detector", [str(tmp_path / "sweep" / "baselines-seed0" / "detector")], str(tmp_path / "r2"))
     assert alone == [str(tmp_path / "r2" / "detector" / "detector" / "eval.json")]
+
+
+def test_kept_training_record_is_every_100th_step_to_the_evaluated_checkpoint(results):
+    with open(results / "place64" / "place_s0" / "training.jsonl") as f:
+        kept = [json.loads(line) for line in f]
+    assert [r["step"] for r in kept] == list(range(100, 3001, 100))
+    assert [r["kl"] for r in kept[:2]] == [10.0, 20.0]  # step 200 as the resumed run logged it
+    assert not (results / "place64" / "curve_s0" / "training.jsonl").exists()  # no record, none kept
+
+
+def test_learning_curves_figure_draws_each_method_where_it_has_the_output(results):
+    """place64 has training records, checkpoint evaluations and a pose: a line in all four charts; the
+    detector has one evaluation with boxes and no pose, and no record: only in the AP chart."""
+    image = tables.figure(str(results))
+    h, w = image.shape[0] // 2, image.shape[1] // 2
+    charts = [image[:h, :w], image[:h, w:], image[h:, :w], image[h:, w:]]  # -ELBO, place, location, AP
+    shows = lambda chart, colour: bool((chart == colour).all(-1).sum() > 30)
+    place64, detector = tables.COLOURS[0], tables.COLOURS[1]  # end-to-end methods first
+    assert [shows(c, place64) for c in charts] == [True] * 4
+    assert [shows(c, detector) for c in charts] == [False, False, False, True]
 
 
 def test_kept_evaluations_lose_only_their_curves(results):
