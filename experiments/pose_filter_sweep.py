@@ -8,9 +8,11 @@ E = ``--worlds`` drives of the run's town start from ``PRNGKey(--eval_seed)`` (t
 filters its latent along each drive once; then the histogram filter (``pose_belief.filter_step``) runs over
 the same head outputs for every combination of measurement floor, measurement power, speed gain and
 relocation share, each
-with both ways of reading a position off the belief (``pose_belief.POSITIONS``), and the location /
-heading errors (mean, median, over every frame, and over frames 100 on) are printed as a table.
+with both ways of reading a position off the belief (``pose_belief.POSITIONS``) and each factor on the
+motion model's heading process noise, and the location / heading errors (mean, median, over every frame,
+and over frames 100 on) and how often the truth lies in the belief's 95 % region are printed as a table.
 """
+import dataclasses
 import functools
 import itertools
 import sys
@@ -39,6 +41,7 @@ flags.DEFINE_list("powers", ["0.25", "0.5", "1.0"], "measurement powers to try")
 flags.DEFINE_list("speed_gains", ["0.2"], "speed gains to try")
 flags.DEFINE_list("relocations", ["0.001"], "shares of each cell's mass spread over all headings after each "
                   "motion step, to try")
+flags.DEFINE_list("heading_noise_scales", ["1"], "factors on the motion model's heading process noise, to try")
 FLAGS = flags.FLAGS
 
 
@@ -48,7 +51,7 @@ def main(argv):
     try:
         config_lib.check_launch(argv)
         settings = [tuple(map(float, s)) for s in itertools.product(FLAGS.floors, FLAGS.powers, FLAGS.speed_gains,
-                                                                    FLAGS.relocations)]
+                                                                    FLAGS.relocations, FLAGS.heading_noise_scales)]
         settings = [s + (position,) for s in settings for position in pose_belief.POSITIONS]
         if FLAGS.worlds < 1 or FLAGS.frames < 1:
             raise ValueError("--worlds and --frames must be positive")
@@ -79,29 +82,36 @@ def main(argv):
     first = jnp.arange(FLAGS.frames) == 0
 
     @functools.partial(jax.jit, static_argnames="position")
-    def track(floor, power, gain, relocation, position):
+    def track(floor, power, gain, relocation, heading_noise_scale, position):
+        model = dataclasses.replace(motion_model, heading_noise_rad2pm=heading_noise_scale * motion_model.heading_noise_rad2pm)
+
         def body(state, xs):
-            h, action, is_first = xs
-            return pose_belief.filter_step(state, h, action, jnp.full(FLAGS.worlds, is_first), grid, motion_model,
-                                           floor=floor,
-                                           power=power, speed_gain=gain, relocation=relocation, position=position)
-        return jax.lax.scan(body, pose_belief.init_state(FLAGS.worlds, grid), (head, time_major(prev_action), first))[1]
+            h, action, is_first, pose = xs
+            state, estimate = pose_belief.filter_step(state, h, action, jnp.full(FLAGS.worlds, is_first), grid, model,
+                                                      floor=floor, power=power, speed_gain=gain,
+                                                      relocation=relocation, position=position)
+            return state, (estimate, pose_belief.in_region(state, pose, grid))
+        xs = (head, time_major(prev_action), first, time_major(frames["pose"]))
+        return jax.lax.scan(body, pose_belief.init_state(FLAGS.worlds, grid), xs)[1]
 
     truth = np.asarray(time_major(frames["pose"]))
-    rows = [("head alone (no filter)", np.asarray(pose_belief.decode(head, grid)))]
-    rows += [(f"floor {f:g}, power {p:g}, speed gain {g:g}, relocation {r:g}, {position}",
-              np.asarray(track(f, p, g, r, position=position))) for f, p, g, r, position in settings]
+    no_region = np.full(truth.shape[:2] + (2,), np.nan)
+    rows = [("head alone (no filter)", (np.asarray(pose_belief.decode(head, grid)), no_region))]
+    rows += [(f"floor {f:g}, power {p:g}, speed gain {g:g}, relocation {r:g}, heading noise x{k:g}, {position}",
+              jax.tree.map(np.asarray, track(f, p, g, r, k, position=position)))
+             for f, p, g, r, k, position in settings]
     print(f"{FLAGS.workdir} step {step}: {FLAGS.worlds} drives x {FLAGS.frames} frames from PRNGKey({FLAGS.eval_seed})")
     print("| filter | location mean / median (m) | from frame 100: mean / median (m) | heading mean (rad) | "
-          "within 10 m | drives ending within 10 m |")
-    print("|---|---|---|---|---|---|")
-    for name, pred in rows:
+          "within 10 m | drives ending within 10 m | truth in 95 % region: place / + heading |")
+    print("|---|---|---|---|---|---|---|")
+    for name, (pred, inside) in rows:
         err = metrics.pose_errors(pred, truth)
         late = err.location_m[100:]
+        place, joint = 100 * inside.reshape(-1, 2).mean(0)
         print(f"| {name} | {err.location_m.mean():.1f} / {np.median(err.location_m):.1f} | "
               f"{late.mean():.1f} / {np.median(late):.1f} | {err.heading_rad.mean():.3f} | "
-              f"{100 * np.mean(err.location_m <= 10):.1f} % | {np.sum(err.location_m[-1] <= 10)} / {FLAGS.worlds} |",
-              flush=True)
+              f"{100 * np.mean(err.location_m <= 10):.1f} % | {np.sum(err.location_m[-1] <= 10)} / {FLAGS.worlds} | "
+              f"{place:.1f} / {joint:.1f} % |", flush=True)
 
 
 if __name__ == "__main__":
