@@ -79,7 +79,7 @@ def collect(method: str, run_dirs: list[str], results_dir: str) -> list[str]:
                 json.dump(metrics, f, indent=1, sort_keys=True)
             written.append(out)
         # up to the last evaluated checkpoint: a run may have trained on since
-        last = max(m.get("checkpoint_step") or m["config"]["train"]["num_steps"] for m in kept)
+        last = max(map(_trained_steps, kept))
         record = keep_training_record(run, os.path.join(results_dir, method, name), last)
         written += [record] if record else []
     return written
@@ -123,6 +123,18 @@ def load(results_dir: str) -> dict:
     return found
 
 
+def _trained_steps(metrics: dict) -> int:
+    """The training steps behind an evaluation: its checkpoint's, or (where not recorded) the run's own."""
+    step = metrics.get("checkpoint_step")
+    return metrics["config"]["train"]["num_steps"] if step is None else step
+
+
+def _checkpoint_evaluations(evaluations: dict) -> dict:
+    """{step: [metrics per run]} of a method's ``eval_step<N>`` evaluations (its checkpoints')."""
+    return {int(name[len("eval_step"):]): runs for name, runs in evaluations.items()
+            if re.fullmatch(r"eval_step\d+", name)}
+
+
 def _main_runs(evaluations: dict) -> list[dict]:
     """A method's runs as its ``eval`` (or, lacking one, its first) evaluation has them."""
     return evaluations.get("eval") or next(iter(evaluations.values()))
@@ -134,10 +146,7 @@ def command(evaluations: dict) -> str:
     runs = _main_runs(evaluations)
 
     def trained(m):  # the learning rate is constant, so a run's checkpoint is a run of that many steps
-        cfg = config_lib.Config.from_dict(m["config"])
-        if m.get("checkpoint_step") is not None:
-            cfg = config_lib.replace(cfg, train=dict(num_steps=m["checkpoint_step"]))
-        return cfg
+        return config_lib.replace(config_lib.Config.from_dict(m["config"]), train=dict(num_steps=_trained_steps(m)))
     # left out: the evaluation's flags, and those a run may change on resuming (they leave its weights as they are)
     unsaid = ("--eval.", *(f"--{name}=" for name in checkpoint.RESUMABLE_CHANGES if name != "train.num_steps"))
     lines = {" ".join(f for f in config_lib.as_flags(trained(m)) if not f.startswith(unsaid)) for m in runs}
@@ -266,8 +275,7 @@ def learning_curve(found: dict) -> str:
     """Town 0 under the global protocol at each kept checkpoint (a run's ``eval_step<N>`` evaluations)."""
     curves = {}
     for method in _order(found):
-        steps = {int(name[len("eval_step"):]): runs for name, runs in found[method].items()
-                 if re.fullmatch(r"eval_step\d+", name)}
+        steps = _checkpoint_evaluations(found[method])
         if steps:
             curves[method] = steps
     if not curves:
@@ -285,12 +293,10 @@ def learning_curve(found: dict) -> str:
 def _evaluations_by_step(evaluations: dict) -> dict:
     """{training step: [metrics per run]} of a method's town-0 global evaluations: each checkpoint's
     ``eval_step<N>``, and ``eval`` at the step its runs were trained to."""
-    steps = {int(name[len("eval_step"):]): runs for name, runs in evaluations.items()
-             if re.fullmatch(r"eval_step\d+", name)}
+    steps = _checkpoint_evaluations(evaluations)
     for m in evaluations.get("eval", []):
-        step = m.get("checkpoint_step") or m["config"]["train"]["num_steps"]
-        if step not in steps:
-            steps.setdefault(step, []).append(m)
+        if _trained_steps(m) not in steps:
+            steps.setdefault(_trained_steps(m), []).append(m)
     return steps
 
 
@@ -302,7 +308,6 @@ def figure(results_dir: str):
     found, training = load(results_dir), load_training(results_dir)
     methods = [m for m in _order(found) if m in training or _evaluations_by_step(found[m])]
     colour = dict(zip(methods, COLOURS * 2))
-    elbo_terms = ("recon_camera", "recon_lidar", "recon_roadmap", "kl")
 
     def trained(value):  # mean over a method's runs at the steps they all logged
         series = []
@@ -321,7 +326,8 @@ def figure(results_dir: str):
             means = [mean_std([summary_metrics(x) for x in by_step[s]])[row][0] for s in sorted(by_step)]
             series.append((m, sorted(by_step), [np.nan if v is None else v for v in means]))
         return series
-    charts = [(trained(lambda r, w: sum(r.get(k, 0.0) for k in elbo_terms)), "training: -ELBO (reconstructions + KL)", None),
+    elbo = lambda r, w: sum(v for k, v in r.items() if k.startswith("recon_") or k == "kl")  # a variant's own terms
+    charts = [(trained(elbo), "training: -ELBO (reconstructions + KL)", None),
               (trained(lambda r, w: r.get("pose_place", np.nan) / w), "training: place term / pose weight", None),
               (evaluated("location mean (m)"), "town 0: location error (m)", None),
               (evaluated("AP@0.5 all (%)"), "town 0: AP@0.5 (%)", (0.0, 100.0))]
