@@ -23,11 +23,13 @@ def test_presets_validate_and_are_hashable(name):
         cfg.data.batch_size = 3
 
 
-def test_paper_preset_is_the_papers_network():
-    cfg = config_lib.get_config("paper")
-    assert (cfg.data.image_size, cfg.data.seq_len) == (128, 10)
+def test_paper_preset_is_the_papers_network_with_the_cpu_recipe():
+    cfg, cpu = config_lib.get_config("paper"), config_lib.get_config("cpu")
+    assert (cfg.data.image_size, cfg.data.seq_len, cfg.data.batch_size) == (128, 10, 32)
     assert cfg.model.conv_channels[:5] == (32, 64, 128, 256, 256)
-    assert (cfg.model.z1_dim, cfg.model.z2_dim, cfg.train.learning_rate) == (32, 256, 1e-4)
+    assert (cfg.model.z1_dim, cfg.model.z2_dim) == (32, 256)
+    assert cfg.train == cpu.train and cfg.model.pose_hidden_dim == cpu.model.pose_hidden_dim
+    assert (cfg.data.place_frames, cfg.data.batches_per_drive) == (cpu.data.place_frames, cpu.data.batches_per_drive)
 
 
 def test_flags_override_only_the_named_fields():

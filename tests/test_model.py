@@ -99,9 +99,9 @@ def test_paper_parameter_count_by_hand():
     # The belief head: features 512 + z1 32 + z2 256 in; logit and (x, y) offset per 10 m cell of the
     # 480 m area (48 x 48), logit and offset per heading bin (36), speed.
     belief = dense(800, 256) + dense(256, 256) + dense(256, 3 * 48 * 48 + 2 * 36 + 1)
-    cfg = config.get_config("paper")
+    cfg = with_sizes(config.get_config("paper"), pose_hidden_dim=256)
     assert count("full") == full - pose + belief
-    cfg = with_sizes(cfg, pose_hidden_dim=512)  # a wider belief head alone
+    cfg = config.get_config("paper")  # the preset's belief head is 512 wide
     assert count("full") == full - pose + dense(800, 512) + dense(512, 512) + dense(512, 3 * 48 * 48 + 2 * 36 + 1)
 
 

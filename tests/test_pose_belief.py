@@ -155,13 +155,13 @@ def test_measurement_update_is_bayes_rule_against_brute_force():
         np.testing.assert_allclose(new["belief"][row], want / want.sum(), rtol=1e-4, atol=1e-9)
 
 
-def np_transition(move_m, ds_m, yaw_after_rad, model, n, cell_m, h, relocation, stats):
+def np_transition(move_m, ds_m, yaw_after_rad, model, n, cell_m, h, relocation, heading_noise_scale, stats):
     """The histogram's motion step as a dense matrix [S, S] (S = h n n, state (k, i, j) at (k n + i) n + j,
     i along y, j along x), built from where each source state's mass goes, stage by stage: bin k's mass
     split bilinearly by its displacement ``move_m[k]`` (x, then y; mass leaving the grid lost), position
-    noise (per axis, the variance the split has not spread), heading noise (to the neighbouring bins,
-    around), whole bins of ``yaw_after_rad`` rolled onto the heading axis, then ``relocation`` of each
-    cell's mass spread evenly over its headings."""
+    noise (per axis, the variance the split has not spread), heading noise (the model's times
+    ``heading_noise_scale``, to the neighbouring bins, around), whole bins of ``yaw_after_rad`` rolled onto
+    the heading axis, then ``relocation`` of each cell's mass spread evenly over its headings."""
     s = h * n * n
     index = lambda k, i, j: (k * n + i) * n + j
     bin_rad = 2 * np.pi / h
@@ -188,7 +188,7 @@ def np_transition(move_m, ds_m, yaw_after_rad, model, n, cell_m, h, relocation, 
                                      (k, i, j + 1, pos_share[k, 0])])
     noise_y = stage(lambda k, i, j: [(k, i, j, 1 - 2 * pos_share[k, 1]), (k, i - 1, j, pos_share[k, 1]),
                                      (k, i + 1, j, pos_share[k, 1])])
-    head_share = min(0.5 * model.heading_noise_rad2pm * ds_m / bin_rad ** 2, 0.25)
+    head_share = min(0.5 * heading_noise_scale * model.heading_noise_rad2pm * ds_m / bin_rad ** 2, 0.25)
     noise_heading = stage(lambda k, i, j: [(k, i, j, 1 - 2 * head_share), (k - 1, i, j, head_share),
                                            (k + 1, i, j, head_share)])
     whole = int(np.round(yaw_after_rad / bin_rad))
@@ -226,7 +226,7 @@ def test_filter_step_is_brute_force_bayes_through_the_motion_model(name, monkeyp
     n, h, b, frames = grid.n, grid.heading_bins, 2, 10
     assert n == 6
     model = MotionModel(**MOVING_MODELS[name])
-    floor, power, gain, relocation = 0.08, 0.6, 0.3, 0.02
+    floor, power, gain, relocation, heading_scale = 0.08, 0.6, 0.3, 0.02, 2.5
     rng = np.random.default_rng(11)
     first = np.zeros((frames, b), bool)
     first[0] = True
@@ -240,7 +240,8 @@ def test_filter_step_is_brute_force_bayes_through_the_motion_model(name, monkeyp
     heads = [{k: v.astype(np.float32) for k, v in head.items()} for head in heads]
 
     step = jax.jit(lambda state, head, action, first: pose_belief.filter_step(
-        state, head, action, first, grid, model, floor=floor, power=power, speed_gain=gain, relocation=relocation))
+        state, head, action, first, grid, model, floor=floor, power=power, speed_gain=gain, relocation=relocation,
+        heading_noise_scale=heading_scale))
     state = pose_belief.init_state(b, grid)
     centres = -np.pi + (np.arange(h) + 0.5) * 2 * np.pi / h
     want = [dict(belief=np.full((h, n, n), 1.0 / (h * n * n)), speed=0.0, offset=0.0, actuator=np.zeros(2),
@@ -259,7 +260,7 @@ def test_filter_step_is_brute_force_bayes_through_the_motion_model(name, monkeyp
                 actuator, v_new, ds, dyaw = np_model_step(model, actuator, command, w["speed"])
                 move = np_centre_move(ds, dyaw, centres + w["offset"])
                 yaw_after = w["offset"] + dyaw
-                matrix = np_transition(move, ds, yaw_after, model, n, grid.cell_m, h, relocation, stats)
+                matrix = np_transition(move, ds, yaw_after, model, n, grid.cell_m, h, relocation, heading_scale, stats)
                 whole = np.round(yaw_after / grid.bin_rad)
                 w.update(belief=(matrix @ w["belief"].ravel()).reshape(h, n, n),
                          speed=v_new + gain * (head_speed - v_new), offset=yaw_after - whole * grid.bin_rad,
