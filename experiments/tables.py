@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 from absl import app, flags
 
-from e2e_percep_jax import checkpoint
+from e2e_percep_jax import baselines, checkpoint
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import pictures
 from e2e_percep_jax.summary import mean_std, summary_metrics
@@ -158,7 +158,9 @@ def command(evaluations: dict) -> str:
         raise ValueError(f"a method's runs differ in more than their seed: {sorted(lines)}")
     if runs[0]["label"] in config_lib.VARIANTS:
         return f"python experiments/main.py {lines.pop()}"
-    return f"python experiments/baselines.py --baseline={runs[0]['run']} {lines.pop()}"
+    # a baseline's run is named after it ("detector", or "baselines-seed0-detector" collected from a sweep)
+    name = next(b for b in baselines.BASELINES if re.fullmatch(rf"(.*-)?{b}", runs[0]["run"]))
+    return f"python experiments/baselines.py --baseline={name} {lines.pop()}"
 
 
 # ----------------------------------------------------------------------------- cells
@@ -200,10 +202,42 @@ def _markdown(header: list[str], rows: list[list[str]]) -> str:
     return "\n".join(lines + ["| " + " | ".join(row) + " |" for row in rows])
 
 
+def _label(evaluations: dict) -> str:
+    """A method's variant (``config.VARIANTS``) or, for a baseline, its label."""
+    return next(iter(evaluations.values()))[0]["label"]
+
+
 def _order(found: dict) -> list[str]:
     """End-to-end methods first (by name), then the baselines."""
-    baseline = lambda method: next(iter(found[method].values()))[0]["label"] not in config_lib.VARIANTS
+    baseline = lambda method: _label(found[method]) not in config_lib.VARIANTS
     return sorted(found, key=lambda method: (baseline(method), method))
+
+
+def _preset_recipe(evaluations: dict) -> bool:
+    """Whether a method's runs are their preset's own recipe: nothing set beyond the seed, the variant and
+    the steps (a baseline's runs always count). The paper's tables compare these; other recipes show in
+    the learning curves."""
+    if _label(evaluations) not in config_lib.VARIANTS:
+        return True
+    flags_ = command(evaluations).split()[3:]  # after "python experiments/main.py --config=<preset>"
+    return all(f.startswith(("--train.seed=", "--model.variant=", "--train.num_steps=")) for f in flags_)
+
+
+def _paper_rows(found: dict) -> list[tuple[str, str | None]]:
+    """The paper's tables' layout: per variant (``config.VARIANTS`` order) our preset-recipe methods of it
+    (by name), then the paper's own row (method None, variant); then the modular pipeline."""
+    shown = [m for m in _order(found) if _preset_recipe(found[m])]
+    rows = []
+    for variant in config_lib.VARIANTS:
+        rows += [(m, variant) for m in shown if _label(found[m]) == variant] + [(None, variant)]
+    return rows + [(m, None) for m in shown if _label(found[m]) not in config_lib.VARIANTS]
+
+
+def _paper_figures(found: dict, table: str) -> dict:
+    """{variant: the paper's figures} of ``table`` ("ap_percent" or "pose"), keyed by the variant its name
+    ends with ("Inputs and roadmap (full)")."""
+    paper = next(iter(next(iter(found.values())).values()))[0]["paper"][table]
+    return {re.search(r"\((\w+)\)$", name).group(1): (name, figures) for name, figures in paper.items()}
 
 
 def _runs_note(found: dict, methods: list[str]) -> str:
@@ -216,58 +250,81 @@ def _runs_note(found: dict, methods: list[str]) -> str:
 
 
 def localisation(found: dict) -> str:
-    """Town 0 under the global protocol; the known-start protocol's error and drift on towns 0, 7 and 8."""
-    header = ["method", "location mean / p90 (m)", "heading (rad)", "within 10 m (%)", "truth in 95 % region: place / + heading (%)",
-              "known start: error at frames 100-999 / 1,000+ (m)",
-              "known-start drift per 100 m: town 0 / " + " / ".join(map(str, HELD_OUT_TOWNS)) + " (m)"]
-    rows, shown, constant, paper = [], [], None, {}
-    for method in _order(found):
+    """The paper's Table II: town 0 under the global protocol, each variant beside the paper's row, then the
+    modular pipeline; with what the paper lacks: the frames within 5 and 10 m, the belief's coverage, and
+    the known-start protocol's error and drift on towns 0, 7 and 8 beside dead reckoning's."""
+    header = ["method", "location mean / p90 (m)", "heading (rad)", "within 5 / 10 m (%)",
+              "truth in 95 % region: place / + heading (%)", "known start: error at frames 100-999 / 1,000+ (m)",
+              "known-start drift per 100 m: town 0 / " + " / ".join(map(str, HELD_OUT_TOWNS)) + " (m)",
+              "against the paper's row: location / heading"]
+    rows, shown, constant, paper = [], [], None, _paper_figures(found, "pose")
+    for method, variant in _paper_rows(found):
+        if method is None:
+            if variant in paper:
+                name, p = paper[variant]
+                rows.append([f"paper: {name}", f"{p['location_m']}", f"{p['heading_rad']}", "", "", "", "", ""])
+            continue
         ev = found[method]
         known = ev.get("eval_known_start")
         drift = [_cell(ev.get(name), "drift per 100 m (m)", digits=2)
                  for name in ("eval_known_start", *(f"eval_town{t}_known_start" for t in HELD_OUT_TOWNS))]
         glob_ = ev.get("eval")
+        against = ""
+        if glob_ and variant in paper:
+            mean = mean_std([summary_metrics(m) for m in glob_])
+            p = paper[variant][1]
+            against = " / ".join("better" if mean[k][0] <= p[f] else "worse"
+                                 for k, f in (("location mean (m)", "location_m"), ("heading mean (rad)", "heading_rad")))
         row = [f"`{method}`",
                " / ".join(filter(None, [_cell(glob_, "location mean (m)"), _cell(glob_, "location p90 (m)")])),
                _cell(glob_, "heading mean (rad)", digits=3),
-               _cell(glob_, "location within 10 m (%)"),
+               " / ".join(filter(None, [_cell(glob_, "location within 5 m (%)"), _cell(glob_, "location within 10 m (%)")])),
                " / ".join(filter(None, [_cell(glob_, "truth in the 95 % region, place (%)"),
                                         _cell(glob_, "truth in the 95 % region, place + heading (%)")])),
                " / ".join(filter(None, [_frames_cell(known, 100, 1000), _frames_cell(known, 1000, 10**9)])),
-               " / ".join(d or "-" for d in drift) if any(drift) else ""]
+               " / ".join(d or "-" for d in drift) if any(drift) else "", against]
         if not any(row[1:]):
             continue  # a method without a pose (a detector, a tracker)
         shown.append(method)
         rows.append(row)
         if glob_ and constant is None:
             constant = glob_[0]["baseline"]["pose"]
-            paper = glob_[0]["paper"]["pose"]
     if constant is not None:
         rows.append(["constant pose (the drive's mean pose)", f"{constant['location_m']['mean']:.1f} / "
-                     f"{constant['location_m']['p90']:.1f}", f"{constant['heading_rad']['mean']:.3f}", "", "", "", ""])
-        rows += [[f"paper: {name}", f"{p['location_m']}", f"{p['heading_rad']}", "", "", "", ""]
-                 for name, p in paper.items()]
+                     f"{constant['location_m']['p90']:.1f}", f"{constant['heading_rad']['mean']:.3f}", "", "", "", "", ""])
     return _markdown(header, rows) + "\n\n" + _runs_note(found, shown) + "\n"
 
 
 def detection(found: dict) -> str:
-    """AP on town 0 at every IoU, occluded AP@0.1, and AP@0.5 on the held-out towns."""
-    header = ["method", "AP@0.1 (%)", "AP@0.3 (%)", "AP@0.5 (%)", "AP@0.7 (%)", "occluded AP@0.1 (%)",
-              "AP@0.5 town " + " / ".join(map(str, HELD_OUT_TOWNS)) + " (%)"]
-    methods, rows, paper = [], [], {}
-    for method in _order(found):
+    """The paper's Table I: AP on town 0 at every IoU, each variant beside the paper's row, then the modular
+    pipeline; with what the paper lacks: visible and occluded AP, and AP@0.5 on the held-out towns."""
+    ious = ("0.1", "0.3", "0.5", "0.7")
+    header = ["method", *(f"AP@{iou} (%)" for iou in ious), "visible AP@0.5 (%)", "occluded AP@0.1 / 0.5 (%)",
+              "AP@0.5 town " + " / ".join(map(str, HELD_OUT_TOWNS)) + " (%)", "against the paper's row"]
+    methods, rows, paper = [], [], _paper_figures(found, "ap_percent")
+    for method, variant in _paper_rows(found):
+        if method is None:
+            if variant in paper:
+                name, ap = paper[variant]
+                rows.append([f"paper: {name}", *(f"{ap[iou]}" for iou in ious), "", "", "", ""])
+            continue
         ev = found[method]
         town0 = ev.get("eval") or ev.get("eval_known_start")
         if town0 is None or not mean_std([summary_metrics(m) for m in town0])["AP@0.5 all (%)"][0]:
             continue  # a method without boxes (an odometry, the pose regressor)
-        held_out = [_cell(ev.get(f"eval_town{t}") or ev.get(f"eval_town{t}_known_start"), "AP@0.5 all (%)")
+        # detection is the same under either protocol: a run's held-out town counts under whichever it has
+        held_out = [_cell(ev.get(f"eval_town{t}", []) + ev.get(f"eval_town{t}_known_start", []), "AP@0.5 all (%)")
                     for t in HELD_OUT_TOWNS]
+        against = ""
+        if variant in paper:
+            mean = mean_std([summary_metrics(m) for m in town0])
+            below = [iou for iou in ious if mean[f"AP@{iou} all (%)"][0] < paper[variant][1][iou]]
+            against = f"below at IoU {', '.join(below)}" if below else "at or above at every IoU"
         methods.append(method)
-        rows.append([f"`{method}`", *(_cell(town0, f"AP@{iou} all (%)") for iou in ("0.1", "0.3", "0.5", "0.7")),
-                     _cell(town0, "AP@0.1 occluded (%)"), " / ".join(h or "-" for h in held_out)])
-        paper = paper or town0[0]["paper"]["ap_percent"]
-    rows += [[f"paper: {name}", *(f"{ap[iou]}" for iou in ("0.1", "0.3", "0.5", "0.7")), "", ""]
-             for name, ap in paper.items()]
+        rows.append([f"`{method}`", *(_cell(town0, f"AP@{iou} all (%)") for iou in ious),
+                     _cell(town0, "AP@0.5 visible (%)"),
+                     " / ".join([_cell(town0, "AP@0.1 occluded (%)"), _cell(town0, "AP@0.5 occluded (%)")]),
+                     " / ".join(h or "-" for h in held_out), against])
     return _markdown(header, rows) + "\n\n" + _runs_note(found, methods) + "\n"
 
 
