@@ -194,7 +194,8 @@ _PLACE_FRAMES = 32
 
 PRESETS = {
     # the paper's network and batch with the `cpu` preset's recipe: the place stream, a belief head 512 wide,
-    # pose weight 16, lr 1e-3 and the clip (lr 1e-4 and no clip are the reference's; see the `cpu` preset)
+    # pose weight 16, lr 1e-3 and the clip (lr 1e-4 and no clip are the reference's; see the `cpu` preset);
+    # 10 m belief cells, as measured at this size (5 m not yet)
     "paper": replace(Config(),
                      data=dict(batch_size=32, batches_per_drive=_BATCHES_PER_DRIVE, place_frames=_PLACE_FRAMES),
                      model=dict(pose_head="belief", pose_hidden_dim=512),
@@ -205,8 +206,10 @@ PRESETS = {
         # a belief head 512 wide and (below) a pose weight of 16: both seeds within 5 m and 0.07 rad by
         # 2,000 steps, where pose weight 4 and a 128-wide head were at 10-16 m
         # (BUILD_NOTES, "The `cpu` preset with both levers")
+        # 5 m belief cells: 2.2 m at 3,000 steps on both seeds, where 10 m cells flatten at 3.4-3.8 m (a point
+        # uniform in a 10 m cell lies 3.8 m from its centre); BUILD_NOTES, "Finer belief cells"
         model=dict(conv_channels=(16, 32, 64, 128, 128), feature_dim=128, hidden_dim=128, pose_hidden_dim=512,
-                   pose_head="belief"),
+                   pose_head="belief", pose_cell_m=5.0),
         # lr 1e-3, not the paper's 1e-4: reaches 1e-4's 600-step loss in 200 steps
         # max_grad_norm 1e6: above the steady norms (3e4-6e5), below a spike's (1e13)
         train=dict(num_steps=3000, learning_rate=1e-3, max_grad_norm=1e6, pose_weight=16.0),

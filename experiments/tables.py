@@ -213,20 +213,11 @@ def _order(found: dict) -> list[str]:
     return sorted(found, key=lambda method: (baseline(method), method))
 
 
-def _preset_recipe(evaluations: dict) -> bool:
-    """Whether a method's runs are their preset's own recipe: nothing set beyond the seed, the variant and
-    the steps (a baseline's runs always count). The paper's tables compare these; other recipes show in
-    the learning curves."""
-    if _label(evaluations) not in config_lib.VARIANTS:
-        return True
-    flags_ = command(evaluations).split()[3:]  # after "python experiments/main.py --config=<preset>"
-    return all(f.startswith(("--train.seed=", "--model.variant=", "--train.num_steps=")) for f in flags_)
-
-
 def _paper_rows(found: dict) -> list[tuple[str, str | None]]:
-    """The paper's tables' layout: per variant (``config.VARIANTS`` order) our preset-recipe methods of it
-    (by name), then the paper's own row (method None, variant); then the modular pipeline."""
-    shown = [m for m in _order(found) if _preset_recipe(found[m])]
+    """The paper's tables' layout: per variant (``config.VARIANTS`` order) our methods of it (by name), then
+    the paper's own row (method None, variant); then the modular pipeline. A method that keeps only its
+    checkpoints' evaluations (a superseded recipe's learning curve) is left to the learning curve."""
+    shown = [m for m in _order(found) if any(not re.fullmatch(r"eval_step\d+", name) for name in found[m])]
     rows = []
     for variant in config_lib.VARIANTS:
         rows += [(m, variant) for m in shown if _label(found[m]) == variant] + [(None, variant)]
