@@ -37,7 +37,7 @@ HELD_OUT_TOWNS = (7, 8)
 TRAINING_EVERY = 100  # steps between the kept training records (a 9,000-step run: 90 lines)
 # BGR, one per method in the learning curves' figure
 COLOURS = ((200, 120, 30), (30, 110, 230), (40, 160, 40), (160, 40, 160), (40, 40, 200), (120, 120, 120),
-           (0, 170, 200), (140, 90, 60))
+           (0, 170, 200), (140, 90, 60), (20, 20, 20), (200, 200, 0), (120, 60, 220), (90, 200, 140))
 
 flags.DEFINE_multi_string("collect", [], "METHOD=RUN_DIR[,RUN_DIR...]: keep these runs' evaluations as METHOD")
 flags.DEFINE_string("results", os.path.join(HERE, "results"), "directory of the kept evaluations")
