@@ -213,7 +213,7 @@ def _order(found: dict) -> list[str]:
     return sorted(found, key=lambda method: (baseline(method), method))
 
 
-def _paper_rows(found: dict) -> list[tuple[str, str | None]]:
+def _paper_rows(found: dict) -> list[tuple[str | None, str | None]]:
     """The paper's tables' layout: per variant (``config.VARIANTS`` order) our methods of it (by name), then
     the paper's own row (method None, variant); then the modular pipeline. A method that keeps only its
     checkpoints' evaluations (a superseded recipe's learning curve) is left to the learning curve."""
@@ -264,12 +264,12 @@ def localisation(found: dict) -> str:
         if glob_ and variant in paper:
             mean = mean_std([summary_metrics(m) for m in glob_])
             p = paper[variant][1]
-            against = " / ".join("better" if mean[k][0] <= p[f] else "worse"
-                                 for k, f in (("location mean (m)", "location_m"), ("heading mean (rad)", "heading_rad")))
+            pairs = (("location mean (m)", "location_m"), ("heading mean (rad)", "heading_rad"))
+            against = " / ".join("better" if mean[k][0] <= p[f] else "worse" for k, f in pairs)
         row = [f"`{method}`",
                " / ".join(filter(None, [_cell(glob_, "location mean (m)"), _cell(glob_, "location p90 (m)")])),
                _cell(glob_, "heading mean (rad)", digits=3),
-               " / ".join(filter(None, [_cell(glob_, "location within 5 m (%)"), _cell(glob_, "location within 10 m (%)")])),
+               " / ".join(filter(None, [_cell(glob_, f"location within {m} m (%)") for m in (5, 10)])),
                " / ".join(filter(None, [_cell(glob_, "truth in the 95 % region, place (%)"),
                                         _cell(glob_, "truth in the 95 % region, place + heading (%)")])),
                " / ".join(filter(None, [_frames_cell(known, 100, 1000), _frames_cell(known, 1000, 10**9)])),
@@ -282,7 +282,7 @@ def localisation(found: dict) -> str:
             constant = glob_[0]["baseline"]["pose"]
     if constant is not None:
         rows.append(["constant pose (the drive's mean pose)", f"{constant['location_m']['mean']:.1f} / "
-                     f"{constant['location_m']['p90']:.1f}", f"{constant['heading_rad']['mean']:.3f}", "", "", "", "", ""])
+                     f"{constant['location_m']['p90']:.1f}", f"{constant['heading_rad']['mean']:.3f}", *[""] * 5])
     return _markdown(header, rows) + "\n\n" + _runs_note(found, shown) + "\n"
 
 
