@@ -217,7 +217,7 @@ def _paper_rows(found: dict) -> list[tuple[str | None, str | None]]:
     """The paper's tables' layout: per variant (``config.VARIANTS`` order) our methods of it (by name), then
     the paper's own row (method None, variant); then the modular pipeline. A method that keeps only its
     checkpoints' evaluations (a superseded recipe's learning curve) is left to the learning curve."""
-    shown = [m for m in _order(found) if any(not re.fullmatch(r"eval_step\d+", name) for name in found[m])]
+    shown = [m for m in _order(found) if len(_checkpoint_evaluations(found[m])) < len(found[m])]
     rows = []
     for variant in config_lib.VARIANTS:
         rows += [(m, variant) for m in shown if _label(found[m]) == variant] + [(None, variant)]
