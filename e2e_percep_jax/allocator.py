@@ -14,6 +14,7 @@ the system. A process-wide setting, so the launchers in ``experiments/`` call it
 never does on its own; call it from your own entry point if you generate batches or run the
 perceiver in a loop.
 """
+
 import ctypes
 import ctypes.util
 
@@ -23,17 +24,22 @@ _MIB = 1 << 20
 MMAP_THRESHOLD_MIB = 256
 TRIM_THRESHOLD_MIB = 512
 # The same setting for a process started afresh (glibc reads it at start-up), e.g. the benchmark's peer.
-GLIBC_TUNABLES = (f"glibc.malloc.mmap_threshold={MMAP_THRESHOLD_MIB * _MIB}"
-                  f":glibc.malloc.trim_threshold={TRIM_THRESHOLD_MIB * _MIB}")
+GLIBC_TUNABLES = (
+    f"glibc.malloc.mmap_threshold={MMAP_THRESHOLD_MIB * _MIB}:glibc.malloc.trim_threshold={TRIM_THRESHOLD_MIB * _MIB}"
+)
 
 
-def keep_freed_buffers(mmap_threshold_mib: int = MMAP_THRESHOLD_MIB, trim_threshold_mib: int = TRIM_THRESHOLD_MIB) -> bool:
+def keep_freed_buffers(
+    mmap_threshold_mib: int = MMAP_THRESHOLD_MIB, trim_threshold_mib: int = TRIM_THRESHOLD_MIB
+) -> bool:
     """Serves allocations below ``mmap_threshold_mib`` from the heap and keeps up to
     ``trim_threshold_mib`` of freed heap. Returns whether it took effect: False where the C library
     is not glibc (macOS, musl), where this does nothing."""
     if not 0 < mmap_threshold_mib <= trim_threshold_mib:
-        raise ValueError(f"mmap_threshold_mib={mmap_threshold_mib}, trim_threshold_mib={trim_threshold_mib}: "
-                         "need 0 < mmap_threshold_mib <= trim_threshold_mib")
+        raise ValueError(
+            f"mmap_threshold_mib={mmap_threshold_mib}, trim_threshold_mib={trim_threshold_mib}: "
+            "need 0 < mmap_threshold_mib <= trim_threshold_mib"
+        )
     try:
         libc = ctypes.CDLL(ctypes.util.find_library("c"))
         mallopt = libc.mallopt

@@ -13,6 +13,7 @@ sequence frame by frame reproduces the training-time posterior. With the belief 
 it also runs the pose belief's histogram filter (:mod:`e2e_percep_jax.pose_belief`), so the pose it
 returns sharpens as a drive goes on. The online evaluation perceives through this same ``step``.
 """
+
 import dataclasses
 
 import jax
@@ -28,8 +29,9 @@ from e2e_percep_jax.sim.motion import MotionModel
 def _check(name, x, shape, dtype):
     """Trace-time check (shapes and dtypes are static, so this also works under jit)."""
     if tuple(x.shape) != tuple(shape) or x.dtype != dtype:
-        raise ValueError(f"{name}: expected {jnp.dtype(dtype).name}{list(shape)}, got "
-                         f"{jnp.dtype(x.dtype).name}{list(x.shape)}")
+        raise ValueError(
+            f"{name}: expected {jnp.dtype(dtype).name}{list(shape)}, got {jnp.dtype(x.dtype).name}{list(x.shape)}"
+        )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -38,6 +40,7 @@ class Perceiver:
     the run's calibrated motion model (``motion_model.json``, :mod:`e2e_percep_jax.sim.motion`), through which
     the pose belief follows the commands; the default, the exact bicycle without lag or noise, is right
     only in a world whose plant has all its fields at zero."""
+
     cfg: Config
     motion_model: MotionModel = MotionModel()
 
@@ -95,14 +98,23 @@ class Perceiver:
         z = jnp.concatenate([latent["z1"], latent["z2"]], -1)
         decoded = model_lib.decode(params, z, self.cfg)
         outputs = {"det_cls": decoded["det_cls"], "det_reg": decoded["det_reg"], "z": z}
-        outputs.update({k: jnp.clip(decoded[k], 0.0, 1.0) for k in model_lib.reconstructed_images(self.cfg.model.variant)})
+        outputs.update(
+            {k: jnp.clip(decoded[k], 0.0, 1.0) for k in model_lib.reconstructed_images(self.cfg.model.variant)}
+        )
         if not self.belief:
             return latent_state, dict(outputs, pose=model_lib.pose_to_metres(decoded["pose_normalised"]))
         head, grid = model_lib.pose_belief_head(params, latent, self.cfg), pose_belief.grid_of(self.cfg.model)
         if self.cfg.model.pose_filter == "histogram":
-            pose_state, outputs["pose"] = pose_belief.filter_step(state["pose"], head, action, state["first"], grid,
-                                                                  self.motion_model, start_pose=start_pose,
-                                                                  measure=measure)
+            pose_state, outputs["pose"] = pose_belief.filter_step(
+                state["pose"],
+                head,
+                action,
+                state["first"],
+                grid,
+                self.motion_model,
+                start_pose=start_pose,
+                measure=measure,
+            )
         else:  # the frame's head alone: its own distribution is the belief
             pose_state, outputs["pose"] = pose_belief.head_state(head, grid), pose_belief.decode(head, grid)
         outputs["pose_place"] = pose_belief.place_marginal(pose_state["belief"])
@@ -137,8 +149,10 @@ class Perceiver:
         after greedy NMS on exact rotated IoU. ``score_threshold`` defaults to the config's."""
         threshold = self.cfg.eval.score_threshold if score_threshold is None else score_threshold
         cls_maps, reg_maps = np.asarray(outputs["det_cls"]), np.asarray(outputs["det_reg"])
-        return [detection.thresholded_boxes(cls_map, reg_map, threshold, iou_threshold)
-                for cls_map, reg_map in zip(cls_maps, reg_maps)]
+        return [
+            detection.thresholded_boxes(cls_map, reg_map, threshold, iou_threshold)
+            for cls_map, reg_map in zip(cls_maps, reg_maps)
+        ]
 
 
 def load(workdir: str, step: int | None = None):

@@ -23,6 +23,7 @@ evaluation is ``evaluate.evaluate`` with a :class:`SingleFramePerceiver` (the in
 and a per-drive ``host_fn``. A head a baseline does not have reports nothing: no boxes (AP 0) or a NaN pose ("n/a").
 The loss's ``key`` is unused (nothing is sampled) and kept for ``train.Objective``'s signature.
 """
+
 import dataclasses
 import functools
 import os
@@ -32,12 +33,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from e2e_percep_jax import checkpoint
+from e2e_percep_jax import checkpoint, report, tracking
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import evaluate as eval_lib
 from e2e_percep_jax import loss as loss_lib
 from e2e_percep_jax import model as model_lib
-from e2e_percep_jax import report, tracking
 from e2e_percep_jax import train as train_lib
 from e2e_percep_jax.config import Config, ModelConfig
 from e2e_percep_jax.sim import motion as motion_lib
@@ -52,14 +52,18 @@ WHEEL_SCALE_STD, GYRO_BIAS_STD_RPS = 0.02, float(np.deg2rad(0.1))
 SPEED_NOISE_STD_MPS, YAW_RATE_NOISE_STD_RPS = 0.05, float(np.deg2rad(0.2))
 TRAINED_RUN = {"detector": "detector", "tracker": "detector", "pose": "pose"}  # baseline -> its trained run
 RUN_HEAD = {"detector": "detection", "pose": "pose"}  # trained run -> its head
-LABELS = {"detector": "single-frame detector", "tracker": "single-frame detector + Kalman tracker",
-          "pose": "single-frame pose regressor"}
+LABELS = {
+    "detector": "single-frame detector",
+    "tracker": "single-frame detector + Kalman tracker",
+    "pose": "single-frame pose regressor",
+}
 
 
 class SingleFrameModel(nn.Module):
     """uint8 camera, lidar [N, R, R, 3] -> the perception model's decoded dict for ``head``:
     ``detection``: det_logit / det_cls [N, R, R, 1], det_reg [N, R, R, 6]; ``pose``: pose_normalised [N, 5]
     (normalised units). Submodules are named as in ``model.PerceptionModel``."""
+
     cfg: ModelConfig
     image_size: int
     head: str
@@ -93,8 +97,9 @@ def init_params(key, cfg: Config, head: str):
     features (z1 + z2 = 2F) so that its decoders fit them, with the regression pose head, restricted to the
     networks ``head`` uses."""
     build_model(cfg, head)  # checks the head
-    wide = config_lib.replace(cfg, model=dict(z1_dim=cfg.model.feature_dim, z2_dim=cfg.model.feature_dim,
-                                              pose_head="regression"))
+    wide = config_lib.replace(
+        cfg, model=dict(z1_dim=cfg.model.feature_dim, z2_dim=cfg.model.feature_dim, pose_head="regression")
+    )
     params = model_lib.init_params(key, wide)["params"]
     used = ("camera_encoder", "lidar_encoder", "pixor_decoder" if head == "detection" else "pose_head")
     return {"params": {k: params[k] for k in used}}
@@ -117,11 +122,14 @@ def loss_fn(params, batch, key, cfg: Config, head: str):
     pred = predict(params, batch["camera"], batch["lidar"], cfg, head)
     if head == "detection":
         return loss_lib.with_total(loss_lib.detection_terms(pred, batch, cfg.train.perception_weight))
-    return loss_lib.with_total({"pose": loss_lib.pose_term(pred["pose_normalised"], batch["pose"], loss_lib.pose_weight(cfg))})
+    return loss_lib.with_total(
+        {"pose": loss_lib.pose_term(pred["pose_normalised"], batch["pose"], loss_lib.pose_weight(cfg))}
+    )
 
 
-OBJECTIVES = {h: train_lib.Objective(functools.partial(init_params, head=h), functools.partial(loss_fn, head=h))
-              for h in HEADS}
+OBJECTIVES = {
+    h: train_lib.Objective(functools.partial(init_params, head=h), functools.partial(loss_fn, head=h)) for h in HEADS
+}
 
 
 # ----------------------------------------------------------------------------- evaluation hooks
@@ -132,6 +140,7 @@ class SingleFramePerceiver:
     """The inference API's ``init`` / ``step`` for a baseline ``head`` (None: no network, for dead
     reckoning): each frame on its own, nothing carried. A head it does not have gives empty maps (no
     boxes) or a NaN pose."""
+
     cfg: Config
     head: str | None
 
@@ -145,8 +154,11 @@ class SingleFramePerceiver:
         if "pose_normalised" in out:
             out = {"pose": model_lib.pose_to_metres(out["pose_normalised"])}
         b, r = camera.shape[0], self.cfg.data.image_size
-        empty = {"det_cls": jnp.zeros((b, r, r, 1)), "det_reg": jnp.zeros((b, r, r, 6)),
-                 "pose": jnp.full((b, 5), jnp.nan)}
+        empty = {
+            "det_cls": jnp.zeros((b, r, r, 1)),
+            "det_reg": jnp.zeros((b, r, r, 6)),
+            "pose": jnp.full((b, 5), jnp.nan),
+        }
         return state, {**empty, **out}
 
 
@@ -173,12 +185,16 @@ class CommandOdometry:
     """Dead reckoning on the logged commands, as the inference API's ``init`` / ``step``: each stream
     starts at ``start_pose`` (its true first pose and speed) and then moves by the commands through
     ``motion_model`` alone (no sensor). No boxes."""
+
     cfg: Config
     motion_model: motion_lib.MotionModel
 
     def init(self, batch_size: int) -> dict:
-        return {"pose": jnp.zeros((batch_size, 5)), "actuator": jnp.zeros((batch_size, 2)),
-                "started": jnp.zeros((batch_size,), bool)}
+        return {
+            "pose": jnp.zeros((batch_size, 5)),
+            "actuator": jnp.zeros((batch_size, 2)),
+            "started": jnp.zeros((batch_size,), bool),
+        }
 
     def step(self, params, state, camera, lidar, action, key=None, start_pose=None, measure=True):
         if start_pose is None:
@@ -189,14 +205,19 @@ class CommandOdometry:
         first = ~state["started"]
         pose = jnp.where(first[:, None], start_pose, moved)
         b, r = camera.shape[0], self.cfg.data.image_size
-        return ({"pose": pose, "actuator": jnp.where(first[:, None], 0.0, actuator), "started": jnp.ones_like(first)},
-                {"det_cls": jnp.zeros((b, r, r, 1)), "det_reg": jnp.zeros((b, r, r, 6)), "pose": pose})
+        return (
+            {"pose": pose, "actuator": jnp.where(first[:, None], 0.0, actuator), "started": jnp.ones_like(first)},
+            {"det_cls": jnp.zeros((b, r, r, 1)), "det_reg": jnp.zeros((b, r, r, 6)), "pose": pose},
+        )
 
 
-def wheel_odometry_host(seed: int, wheel_scale_std: float = WHEEL_SCALE_STD,
-                        gyro_bias_std_rps: float = GYRO_BIAS_STD_RPS,
-                        speed_noise_std_mps: float = SPEED_NOISE_STD_MPS,
-                        yaw_rate_noise_std_rps: float = YAW_RATE_NOISE_STD_RPS):
+def wheel_odometry_host(
+    seed: int,
+    wheel_scale_std: float = WHEEL_SCALE_STD,
+    gyro_bias_std_rps: float = GYRO_BIAS_STD_RPS,
+    speed_noise_std_mps: float = SPEED_NOISE_STD_MPS,
+    yaw_rate_noise_std_rps: float = YAW_RATE_NOISE_STD_RPS,
+):
     """``evaluate``'s ``host_fn``: per drive, a ``tracking.DeadReckoner`` started at the drive's true first
     pose and stepped with wheel-speed and yaw-rate readings: ``tracking.noisy_odometry`` of consecutive
     true poses, the speed scaled by a per-drive wheel-radius error and the yaw rate offset by a per-drive
@@ -212,8 +233,9 @@ def wheel_odometry_host(seed: int, wheel_scale_std: float = WHEEL_SCALE_STD,
             if not drive:
                 drive.update(reckoner=tracking.DeadReckoner(pose), previous=pose)
                 return boxes, scores, drive["reckoner"].pose
-            speed, yaw_rate = tracking.noisy_odometry(np.stack([drive["previous"], pose]), speed_noise_std_mps,
-                                                      yaw_rate_noise_std_rps, rng)
+            speed, yaw_rate = tracking.noisy_odometry(
+                np.stack([drive["previous"], pose]), speed_noise_std_mps, yaw_rate_noise_std_rps, rng
+            )
             drive["previous"] = pose
             return boxes, scores, drive["reckoner"].step(scale * speed[0], yaw_rate[0] + bias_rps)
 
@@ -277,19 +299,32 @@ def run(baseline: str, cfg: Config, workdir: str, *, video_frames: int = 300, lo
         label = "dead reckoning (commands through the calibrated motion model)"
         hooks = dict(perceiver=CommandOdometry(cfg, odometry_model(cfg, workdir)))
     elif baseline == "wheel_odometry":
-        label = (f"wheel odometry (wheel radius {100 * WHEEL_SCALE_STD:g} %, gyro bias "
-                 f"{np.rad2deg(GYRO_BIAS_STD_RPS):g} deg/s, noise {SPEED_NOISE_STD_MPS:g} m/s, "
-                 f"{np.rad2deg(YAW_RATE_NOISE_STD_RPS):g} deg/s)")
+        label = (
+            f"wheel odometry (wheel radius {100 * WHEEL_SCALE_STD:g} %, gyro bias "
+            f"{np.rad2deg(GYRO_BIAS_STD_RPS):g} deg/s, noise {SPEED_NOISE_STD_MPS:g} m/s, "
+            f"{np.rad2deg(YAW_RATE_NOISE_STD_RPS):g} deg/s)"
+        )
         hooks = dict(perceiver=SingleFramePerceiver(cfg, None), host_fn=wheel_odometry_host(cfg.eval.seed))
     else:
         label, model_dir = LABELS[baseline], os.path.abspath(os.path.join(workdir, TRAINED_RUN[baseline]))
         params, step = trained_params(cfg, workdir, TRAINED_RUN[baseline], log)
-        hooks = dict(perceiver=SingleFramePerceiver(cfg, RUN_HEAD[TRAINED_RUN[baseline]]),
-                     host_fn=tracker_host() if baseline == "tracker" else None)
+        hooks = dict(
+            perceiver=SingleFramePerceiver(cfg, RUN_HEAD[TRAINED_RUN[baseline]]),
+            host_fn=tracker_host() if baseline == "tracker" else None,
+        )
     out_dir = report.eval_dir(os.path.join(workdir, baseline), cfg)
     done = report.finished_evaluation(out_dir, label, step, cfg)
     if done is not None:
         log(f"{out_dir} already evaluates {label} at step {step}; nothing to do")
         return done
-    return eval_lib.evaluate(cfg, params, out_dir, video_frames=video_frames, workdir=model_dir,
-                             checkpoint_step=step, label=label, log=log, **hooks)
+    return eval_lib.evaluate(
+        cfg,
+        params,
+        out_dir,
+        video_frames=video_frames,
+        workdir=model_dir,
+        checkpoint_step=step,
+        label=label,
+        log=log,
+        **hooks,
+    )

@@ -14,6 +14,7 @@ of one training sequence's last frame: each input beside its reconstruction, and
 probabilities with the true cell marked. A resumed run purges the events past its checkpoint, as
 ``metrics.jsonl`` is truncated there.
 """
+
 import functools
 
 import cv2
@@ -52,8 +53,11 @@ class Board:
     def scalars(self, record: dict, learning_rate: float) -> None:
         if self.writer is None:
             return
-        values = [self.summary.Value(tag=name if name in NOT_LOSSES else f"loss/{name}", simple_value=value)
-                  for name, value in record.items() if name != "step"]
+        values = [
+            self.summary.Value(tag=name if name in NOT_LOSSES else f"loss/{name}", simple_value=value)
+            for name, value in record.items()
+            if name != "step"
+        ]
         values.append(self.summary.Value(tag="learning_rate", simple_value=learning_rate))
         self.writer.add_summary(self.summary(value=values), record["step"])
 
@@ -65,8 +69,14 @@ class Board:
         for name, image in images.items():
             image = np.asarray(image)
             png = cv2.imencode(".png", image[..., ::-1])[1].tobytes()  # (OpenCV writes BGR)
-            values.append(self.summary.Value(tag=name, image=self.summary.Image(
-                height=image.shape[0], width=image.shape[1], colorspace=3, encoded_image_string=png)))
+            values.append(
+                self.summary.Value(
+                    tag=name,
+                    image=self.summary.Image(
+                        height=image.shape[0], width=image.shape[1], colorspace=3, encoded_image_string=png
+                    ),
+                )
+            )
         self.writer.add_summary(self.summary(value=values), step)
         self.writer.flush()
 
@@ -94,8 +104,10 @@ def preview(params, camera, lidar, roadmap, action, pose, cfg: Config) -> dict:
     decoded = model_lib.decode(params, jnp.concatenate([last["z1"], last["z2"]], -1), cfg)
     inputs = {"camera": camera, "lidar": lidar, "roadmap": roadmap}
     to_uint8 = lambda x: (jnp.clip(x, 0.0, 1.0) * 255.0 + 0.5).astype(jnp.uint8)
-    images = {f"reconstruction/{name}": jnp.concatenate([inputs[name][0, -1], to_uint8(decoded[name][0])], 1)
-              for name in model_lib.reconstructed_images(cfg.model.variant)}
+    images = {
+        f"reconstruction/{name}": jnp.concatenate([inputs[name][0, -1], to_uint8(decoded[name][0])], 1)
+        for name in model_lib.reconstructed_images(cfg.model.variant)
+    }
     if cfg.model.pose_head == "belief":
         grid = pose_belief.grid_of(cfg.model)
         head = model_lib.pose_belief_head(params, last, cfg)

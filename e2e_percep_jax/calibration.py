@@ -13,6 +13,7 @@ and the evaluation's (ego commands, speed and pose each step, no sensors: second
    mean distance over those horizons, so the belief covers the model's error up to the longest (per-drive
    parameters, a steering offset above all, make errors grow faster than a random walk's).
 """
+
 import dataclasses
 import functools
 
@@ -37,9 +38,11 @@ def _drive(key, town, cfg: Config, num_worlds: int, num_steps: int):
         def body(s, _):
             after = world.step(s, town)
             return after, (s.veh_box[world.EGO, :3], s.veh_speed_mps[world.EGO], after.ego_action)
+
         # (one loop through the warm-up and the drive: the world's step is compiled once, not twice)
         drive = jax.lax.scan(body, world.reset(k, town, cfg.world), None, length=cfg.data.warmup_steps + num_steps)[1]
-        return jax.tree.map(lambda x: x[cfg.data.warmup_steps:], drive)
+        return jax.tree.map(lambda x: x[cfg.data.warmup_steps :], drive)
+
     return jax.vmap(one)(jax.random.split(key, num_worlds))
 
 
@@ -54,8 +57,11 @@ def training_drives(cfg: Config, num_worlds: int = 8, num_steps: int = 1500) -> 
         # (the world and data sections alone: runs that differ in anything else share one compilation)
         drives = _drive(key, town, Config(world=cfg.world, data=cfg.data), num_worlds, num_steps)
         pose, speed, command = jax.tree.map(np.asarray, drives)
-    return {"pose": pose.astype(np.float64), "speed_mps": speed.astype(np.float64),
-            "command": command.astype(np.float64)}
+    return {
+        "pose": pose.astype(np.float64),
+        "speed_mps": speed.astype(np.float64),
+        "command": command.astype(np.float64),
+    }
 
 
 def _lagged(command, share):
@@ -95,15 +101,20 @@ def fit(drives: dict) -> MotionModel:
         pedal_coef, pedal_mse = _least_squares(pedal_features, accel[moving])
         tan = np.tan(actuator[..., 1])
         # WHEELBASE x curvature, weighted by distance (dyaw's noise is per step, so curvature's shrinks with ds)
-        curve_features = np.stack([tan, np.ones_like(tan), tan * v_mid ** 2], -1)[moving] * ds[moving][:, None]
+        curve_features = np.stack([tan, np.ones_like(tan), tan * v_mid**2], -1)[moving] * ds[moving][:, None]
         curve_coef, curve_mse = _least_squares(curve_features, WHEELBASE_M * dyaw[moving])
         score = pedal_mse / np.var(accel[moving]) + curve_mse / np.var(WHEELBASE_M * dyaw[moving])
         if best is None or score < best[0]:
             best = (score, share, pedal_coef, curve_coef)
     _, share, pedal_coef, curve_coef = best
-    model = MotionModel(lag_share=float(share), accel_per_pedal_mps2=float(pedal_coef[0]),
-                        accel_bias_mps2=float(pedal_coef[1]), steer_gain=float(curve_coef[0]),
-                        steer_bias=float(curve_coef[1]), understeer_s2pm2=float(curve_coef[2]))
+    model = MotionModel(
+        lag_share=float(share),
+        accel_per_pedal_mps2=float(pedal_coef[0]),
+        accel_bias_mps2=float(pedal_coef[1]),
+        steer_gain=float(curve_coef[0]),
+        steer_bias=float(curve_coef[1]),
+        understeer_s2pm2=float(curve_coef[2]),
+    )
     return _with_process_noise(model, drives, rear, ds, dyaw)
 
 
@@ -129,8 +140,9 @@ def _with_process_noise(model: MotionModel, drives: dict, rear, ds, dyaw) -> Mot
         keep = dist > 1.0
         heading_ratio = max(heading_ratio, np.mean(heading_err[keep] ** 2) / np.mean(dist[keep]))
         position_ratio = max(position_ratio, 0.5 * np.mean(np.sum(position_err[keep] ** 2, -1)) / np.mean(dist[keep]))
-    return dataclasses.replace(model, heading_noise_rad2pm=float(heading_ratio),
-                               position_noise_m2pm=float(position_ratio))
+    return dataclasses.replace(
+        model, heading_noise_rad2pm=float(heading_ratio), position_noise_m2pm=float(position_ratio)
+    )
 
 
 def calibrate(cfg: Config, **drive_kwargs) -> MotionModel:

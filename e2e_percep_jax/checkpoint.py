@@ -1,6 +1,7 @@
 """A training run's orbax checkpoints ``<workdir>/checkpoints/<step>``: the manager that writes them, their
 listing, the one reader, the resume from the newest intact one, whether a config continues the run, and
 the params restored for inference (no evaluation code, no cv2)."""
+
 import dataclasses
 import os
 import sys
@@ -14,8 +15,7 @@ from e2e_percep_jax.train_state import PERCEPTION, Objective, TrainState, init_s
 
 MAX_CHECKPOINTS_KEPT = 3
 # Fields that may change when a run resumes; anything else would make the checkpoint a different run.
-RESUMABLE_CHANGES = ("train.num_steps", "train.log_every", "train.checkpoint_every",
-                     "train.max_nonfinite_in_a_row")
+RESUMABLE_CHANGES = ("train.num_steps", "train.log_every", "train.checkpoint_every", "train.max_nonfinite_in_a_row")
 
 
 class NoIntactCheckpointError(RuntimeError):
@@ -31,8 +31,10 @@ def manager(workdir: str, remove_temporary: bool = True) -> ocp.CheckpointManage
     manager, whose first save waits for it, removes them."""
     return ocp.CheckpointManager(
         os.path.join(os.path.abspath(workdir), "checkpoints"),
-        options=ocp.CheckpointManagerOptions(max_to_keep=MAX_CHECKPOINTS_KEPT,
-                                             cleanup_tmp_directories=remove_temporary))
+        options=ocp.CheckpointManagerOptions(
+            max_to_keep=MAX_CHECKPOINTS_KEPT, cleanup_tmp_directories=remove_temporary
+        ),
+    )
 
 
 def _restore_failure(error: Exception) -> str:
@@ -66,8 +68,10 @@ def read_checkpoint(workdir: str, step: int, abstract):
         with ocp.StandardCheckpointer() as checkpointer:
             return checkpointer.restore(os.path.join(path, ocp.checkpoint_manager.DEFAULT_ITEM_NAME), abstract)
     except Exception as e:  # orbax raises many types (decode, data loss, tree or shape mismatch): one line
-        raise ValueError(f"{path}: cannot be restored for its config.json (damaged, or written by another "
-                         f"config): {_restore_failure(e)}") from None
+        raise ValueError(
+            f"{path}: cannot be restored for its config.json (damaged, or written by another "
+            f"config): {_restore_failure(e)}"
+        ) from None
 
 
 def restore_newest_intact(checkpoints: ocp.CheckpointManager, state: TrainState, workdir: str) -> tuple:
@@ -90,12 +94,13 @@ def restore_newest_intact(checkpoints: ocp.CheckpointManager, state: TrainState,
             print(f"checkpoint {why}; kept as {path}.damaged", file=sys.stderr, flush=True)
         checkpoints.reload()
         return restored, step
-    raise NoIntactCheckpointError(f"no checkpoint in {workdir}/checkpoints restores, nothing was changed; the newest: "
-                                  f"{failed[0][1] if failed else 'none'}")
+    raise NoIntactCheckpointError(
+        f"no checkpoint in {workdir}/checkpoints restores, nothing was changed; the newest: "
+        f"{failed[0][1] if failed else 'none'}"
+    )
 
 
-def restore_params(workdir: str, cfg: Config | None = None, step: int | None = None,
-                   objective: Objective = PERCEPTION):
+def restore_params(workdir: str, cfg: Config | None = None, step: int | None = None, objective: Objective = PERCEPTION):
     """(cfg, params, step) of the run in ``workdir``: its config.json (unless ``cfg`` is given) and the
     params of checkpoint ``step`` (default: the latest), restored with the same abstract train state
     that ``train.train`` saves for ``objective`` (default: the perception model). Raises
@@ -110,8 +115,10 @@ def restore_params(workdir: str, cfg: Config | None = None, step: int | None = N
         raise ValueError(f"--step={step}: {workdir} has checkpoints at steps {saved}")
     step = saved[-1] if step is None else step
     sharding = jax.sharding.SingleDeviceSharding(jax.devices()[0])
-    abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding),
-                            jax.eval_shape(lambda: init_state(cfg, objective)))
+    abstract = jax.tree.map(
+        lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding),
+        jax.eval_shape(lambda: init_state(cfg, objective)),
+    )
     return cfg, read_checkpoint(workdir, step, abstract).params, step
 
 
@@ -131,6 +138,8 @@ def check_resumable(cfg: Config, workdir: str) -> int | None:
     for name, value in _flat_config(cfg).items():
         if name.startswith("eval.") or name in RESUMABLE_CHANGES or old.get(name) == value:
             continue
-        raise ValueError(f"--{name}={value} differs from the run being resumed in {workdir} ({old.get(name)}); "
-                         f"pass --{name}={config_lib.flag_value(old.get(name))} to resume it, or use a new --workdir")
+        raise ValueError(
+            f"--{name}={value} differs from the run being resumed in {workdir} ({old.get(name)}); "
+            f"pass --{name}={config_lib.flag_value(old.get(name))} to resume it, or use a new --workdir"
+        )
     return latest

@@ -11,6 +11,7 @@ and prints itself. Presets:
 Any field is overridden from the command line as ``--<section>.<field>=value`` (for example
 ``--model.variant=no_roadmap_recon --train.num_steps=500``); see :func:`define_flags`.
 """
+
 import dataclasses
 import json
 import logging
@@ -32,8 +33,15 @@ DEFAULT_TOWN_SEED = 0
 
 
 # The ego plant's fields of WorldConfig (world.EgoPlant): all zero is the exact-action world.
-PLANT_FIELDS = ("ego_lag_s", "ego_steer_offset_deg", "ego_steer_gain_std", "ego_distance_scale_std",
-                "ego_understeer_deg_per_g", "ego_accel_noise_mps2", "ego_curvature_noise_1pm")
+PLANT_FIELDS = (
+    "ego_lag_s",
+    "ego_steer_offset_deg",
+    "ego_steer_gain_std",
+    "ego_distance_scale_std",
+    "ego_understeer_deg_per_g",
+    "ego_accel_noise_mps2",
+    "ego_curvature_noise_1pm",
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -157,7 +165,8 @@ class Config:
             if set(fields) - known:
                 raise ValueError(f"config.json: unknown fields {sorted(set(fields) - known)} in [{section.name}]")
             sections[section.name] = dataclasses.replace(
-                section.default, **{k: tuple(v) if isinstance(v, list) else v for k, v in fields.items()})
+                section.default, **{k: tuple(v) if isinstance(v, list) else v for k, v in fields.items()}
+            )
         return cls(**sections)
 
 
@@ -176,13 +185,16 @@ def run_config(workdir: str) -> Config:
         with open(path) as f:
             return Config.from_json(f.read())
     except (ValueError, TypeError, AttributeError) as e:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
-        raise ValueError(f"{path}: not a config ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})") from None
+        raise ValueError(
+            f"{path}: not a config ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
+        ) from None
 
 
 def replace(cfg: Config, **sections: dict) -> Config:
     """``cfg`` with fields replaced per section: ``replace(cfg, data=dict(image_size=64))``."""
     return dataclasses.replace(
-        cfg, **{name: dataclasses.replace(getattr(cfg, name), **fields) for name, fields in sections.items()})
+        cfg, **{name: dataclasses.replace(getattr(cfg, name), **fields) for name, fields in sections.items()}
+    )
 
 
 # The training presets' stream: 10 batches per drive cost 6-9 % of a `cpu` step against 20-22 % for fresh worlds,
@@ -196,10 +208,12 @@ PRESETS = {
     # the paper's network and batch with the `cpu` preset's recipe: the place stream, a belief head 512 wide,
     # pose weight 16, lr 1e-3 and the clip (lr 1e-4 and no clip are the reference's; see the `cpu` preset);
     # 10 m belief cells, as measured at this size (5 m not yet)
-    "paper": replace(Config(),
-                     data=dict(batch_size=32, batches_per_drive=_BATCHES_PER_DRIVE, place_frames=_PLACE_FRAMES),
-                     model=dict(pose_head="belief", pose_hidden_dim=512),
-                     train=dict(num_steps=3000, learning_rate=1e-3, max_grad_norm=1e6, pose_weight=16.0)),
+    "paper": replace(
+        Config(),
+        data=dict(batch_size=32, batches_per_drive=_BATCHES_PER_DRIVE, place_frames=_PLACE_FRAMES),
+        model=dict(pose_head="belief", pose_hidden_dim=512),
+        train=dict(num_steps=3000, learning_rate=1e-3, max_grad_norm=1e6, pose_weight=16.0),
+    ),
     "cpu": replace(
         Config(),
         data=dict(image_size=64, batch_size=8, batches_per_drive=_BATCHES_PER_DRIVE, place_frames=_PLACE_FRAMES),
@@ -208,29 +222,39 @@ PRESETS = {
         # (BUILD_NOTES, "The `cpu` preset with both levers")
         # 5 m belief cells: 2.2 m at 3,000 steps on both seeds, where 10 m cells flatten at 3.4-3.8 m (a point
         # uniform in a 10 m cell lies 3.8 m from its centre); BUILD_NOTES, "Finer belief cells"
-        model=dict(conv_channels=(16, 32, 64, 128, 128), feature_dim=128, hidden_dim=128, pose_hidden_dim=512,
-                   pose_head="belief", pose_cell_m=5.0),
+        model=dict(
+            conv_channels=(16, 32, 64, 128, 128),
+            feature_dim=128,
+            hidden_dim=128,
+            pose_hidden_dim=512,
+            pose_head="belief",
+            pose_cell_m=5.0,
+        ),
         # lr 1e-3, not the paper's 1e-4: reaches 1e-4's 600-step loss in 200 steps
         # max_grad_norm 1e6: above the steady norms (3e4-6e5), below a spike's (1e13)
         train=dict(num_steps=3000, learning_rate=1e-3, max_grad_norm=1e6, pose_weight=16.0),
-        eval=dict(num_frames=15000)),
+        eval=dict(num_frames=15000),
+    ),
     "demo": replace(
         Config(),
         data=dict(image_size=64, batch_size=8, batches_per_drive=_BATCHES_PER_DRIVE, place_frames=_PLACE_FRAMES),
         # the `cpu` recipe (at R 64 both use four conv widths) on a shorter budget
-        model=dict(conv_channels=(16, 32, 64, 128), feature_dim=128, hidden_dim=128, pose_hidden_dim=512,
-                   pose_head="belief"),
+        model=dict(
+            conv_channels=(16, 32, 64, 128), feature_dim=128, hidden_dim=128, pose_hidden_dim=512, pose_head="belief"
+        ),
         # 1,200 steps: with the clip the network detects from ~800, and boxes fit tightly from ~1,200
         train=dict(num_steps=1200, checkpoint_every=200, learning_rate=1e-3, max_grad_norm=1e6, pose_weight=16.0),
         # drives of 750 frames: a drive finds its place within its first few hundred frames
-        eval=dict(num_frames=3000, num_worlds=4)),
+        eval=dict(num_frames=3000, num_worlds=4),
+    ),
     "tiny": replace(
         Config(),
         world=dict(num_vehicles=20),
         data=dict(image_size=32, batch_size=2, seq_len=3, warmup_steps=20),
         model=dict(conv_channels=(8, 16, 32), feature_dim=32, hidden_dim=32, z1_dim=8, z2_dim=16, pose_head="belief"),
         train=dict(num_steps=20, checkpoint_every=10, log_every=5),
-        eval=dict(num_frames=40, num_worlds=2, chunk_steps=10)),
+        eval=dict(num_frames=40, num_worlds=2, chunk_steps=10),
+    ),
 }
 
 
@@ -247,8 +271,9 @@ def validate(cfg: Config) -> Config:
         raise ValueError(f"--data.image_size={r}: must be a power of two >= 32")
     n_layers = int(math.log2(r // 4))
     if len(cfg.model.conv_channels) < n_layers:
-        raise ValueError(f"--model.conv_channels has {len(cfg.model.conv_channels)} widths; "
-                         f"image_size {r} needs {n_layers}")
+        raise ValueError(
+            f"--model.conv_channels has {len(cfg.model.conv_channels)} widths; image_size {r} needs {n_layers}"
+        )
     if cfg.model.variant not in VARIANTS:
         raise ValueError(f"--model.variant={cfg.model.variant!r}: choose one of {VARIANTS}")
     if cfg.model.pose_head not in POSE_HEADS:
@@ -260,24 +285,35 @@ def validate(cfg: Config) -> Config:
     if not 4 <= cfg.model.pose_heading_bins <= 360:
         raise ValueError(f"--model.pose_heading_bins={cfg.model.pose_heading_bins}: must lie in [4, 360]")
     positive = {
-        "world.num_vehicles": cfg.world.num_vehicles, "data.batch_size": cfg.data.batch_size,
-        "data.seq_len": cfg.data.seq_len, "data.batches_per_drive": cfg.data.batches_per_drive,
+        "world.num_vehicles": cfg.world.num_vehicles,
+        "data.batch_size": cfg.data.batch_size,
+        "data.seq_len": cfg.data.seq_len,
+        "data.batches_per_drive": cfg.data.batches_per_drive,
         "model.feature_dim": cfg.model.feature_dim,
-        "model.hidden_dim": cfg.model.hidden_dim, "model.z1_dim": cfg.model.z1_dim,
-        "model.z2_dim": cfg.model.z2_dim, "train.num_steps": cfg.train.num_steps,
-        "train.learning_rate": cfg.train.learning_rate, "train.perception_weight": cfg.train.perception_weight,
+        "model.hidden_dim": cfg.model.hidden_dim,
+        "model.z1_dim": cfg.model.z1_dim,
+        "model.z2_dim": cfg.model.z2_dim,
+        "train.num_steps": cfg.train.num_steps,
+        "train.learning_rate": cfg.train.learning_rate,
+        "train.perception_weight": cfg.train.perception_weight,
         "train.kl_weight": cfg.train.kl_weight,
         "train.checkpoint_every": cfg.train.checkpoint_every,
-        "train.log_every": cfg.train.log_every, "train.max_nonfinite_in_a_row": cfg.train.max_nonfinite_in_a_row,
-        "eval.num_frames": cfg.eval.num_frames, "eval.num_worlds": cfg.eval.num_worlds,
+        "train.log_every": cfg.train.log_every,
+        "train.max_nonfinite_in_a_row": cfg.train.max_nonfinite_in_a_row,
+        "eval.num_frames": cfg.eval.num_frames,
+        "eval.num_worlds": cfg.eval.num_worlds,
         "eval.chunk_steps": cfg.eval.chunk_steps,
     }
     positive.update({f"model.conv_channels[{i}]": c for i, c in enumerate(cfg.model.conv_channels)})
     for name, value in positive.items():
         if not value > 0:
             raise ValueError(f"--{name}={value}: must be positive")
-    seeds = {"world.town_seed": cfg.world.town_seed, "train.seed": cfg.train.seed, "eval.seed": cfg.eval.seed,
-             "eval.town_seed": cfg.eval.town_seed}
+    seeds = {
+        "world.town_seed": cfg.world.town_seed,
+        "train.seed": cfg.train.seed,
+        "eval.seed": cfg.eval.seed,
+        "eval.town_seed": cfg.eval.town_seed,
+    }
     for name, value in seeds.items():
         if value < 0:
             raise ValueError(f"--{name}={value}: must be >= 0")
@@ -299,14 +335,20 @@ def validate(cfg: Config) -> Config:
     if cfg.data.place_frames < 0:
         raise ValueError(f"--data.place_frames={cfg.data.place_frames}: must be >= 0 (0: no place stream)")
     if cfg.data.place_frames and cfg.model.pose_head != "belief":
-        raise ValueError(f"--data.place_frames={cfg.data.place_frames}: trains the belief pose head; "
-                         f"--model.pose_head={cfg.model.pose_head!r} has none")
+        raise ValueError(
+            f"--data.place_frames={cfg.data.place_frames}: trains the belief pose head; "
+            f"--model.pose_head={cfg.model.pose_head!r} has none"
+        )
     if cfg.data.carry_state and cfg.data.batches_per_drive < 2:
-        raise ValueError(f"--data.carry_state: needs segments to carry across, --data.batches_per_drive >= 2 "
-                         f"(got {cfg.data.batches_per_drive})")
+        raise ValueError(
+            f"--data.carry_state: needs segments to carry across, --data.batches_per_drive >= 2 "
+            f"(got {cfg.data.batches_per_drive})"
+        )
     if cfg.eval.known_start and (cfg.model.pose_head, cfg.model.pose_filter) != ("belief", "histogram"):
-        raise ValueError("--eval.known_start: needs the belief pose head and its filter (--model.pose_head=belief "
-                         "--model.pose_filter=histogram)")
+        raise ValueError(
+            "--eval.known_start: needs the belief pose head and its filter (--model.pose_head=belief "
+            "--model.pose_filter=histogram)"
+        )
     if not 0.0 < cfg.eval.score_threshold < 1.0:
         raise ValueError(f"--eval.score_threshold={cfg.eval.score_threshold}: must lie in (0, 1)")
     return cfg
@@ -331,10 +373,14 @@ def flag_value(value) -> str:
 def as_flags(cfg: Config) -> list[str]:
     """The shortest command line for ``cfg``: ``--config=<the preset it differs least from>`` and a
     ``--<section>.<field>`` flag per field that differs (the inverse of :func:`from_flags`)."""
+
     def overrides(preset):
-        return [f"--{section}.{name}={flag_value(getattr(getattr(cfg, section), name))}"
-                for section, name, _ in fields()
-                if getattr(getattr(cfg, section), name) != getattr(getattr(PRESETS[preset], section), name)]
+        return [
+            f"--{section}.{name}={flag_value(getattr(getattr(cfg, section), name))}"
+            for section, name, _ in fields()
+            if getattr(getattr(cfg, section), name) != getattr(getattr(PRESETS[preset], section), name)
+        ]
+
     preset = min(PRESETS, key=lambda name: len(overrides(name)))
     return [f"--config={preset}", *overrides(preset)]
 
@@ -342,10 +388,15 @@ def as_flags(cfg: Config) -> list[str]:
 def define_flags(flag_values=None) -> None:
     """Defines ``--config`` and one ``--<section>.<field>`` absl flag per config field (default: unset)."""
     from absl import flags
+
     fv = flags.FLAGS if flag_values is None else flag_values
     flags.DEFINE_string("config", "cpu", f"preset, one of {sorted(PRESETS)}", flag_values=fv)
-    definers = {int: flags.DEFINE_integer, float: flags.DEFINE_float, str: flags.DEFINE_string,
-                bool: flags.DEFINE_boolean}
+    definers = {
+        int: flags.DEFINE_integer,
+        float: flags.DEFINE_float,
+        str: flags.DEFINE_string,
+        bool: flags.DEFINE_boolean,
+    }
     for section, name, typ in fields():
         if typ is tuple:
             flags.DEFINE_list(f"{section}.{name}", None, "comma-separated integers", flag_values=fv)
@@ -356,6 +407,7 @@ def define_flags(flag_values=None) -> None:
 def from_flags(flag_values=None) -> Config:
     """The preset named by ``--config`` with every set ``--<section>.<field>`` applied, validated."""
     from absl import flags
+
     fv = flags.FLAGS if flag_values is None else flag_values
     cfg = get_config(fv["config"].value)
     overrides: dict[str, dict[str, Any]] = {}
@@ -375,6 +427,7 @@ def from_flags(flag_values=None) -> Config:
 def parse_flags(argv):
     """The launchers' absl ``flags_parser``: a bad flag exits with one line, not absl's usage text."""
     from absl import flags
+
     try:
         return flags.FLAGS(argv)
     except flags.Error as e:
@@ -391,12 +444,16 @@ def _from_orbax(*texts: str) -> bool:
 
 def _without_abandoned_read_reports(hook):
     """``hook`` (a ``sys.unraisablehook``) less the reports of the reads orbax abandons."""
+
     def filtered(unraisable):
-        closed_loop = isinstance(unraisable.exc_value, RuntimeError) and str(unraisable.exc_value) == "Event loop is closed"
+        closed_loop = (
+            isinstance(unraisable.exc_value, RuntimeError) and str(unraisable.exc_value) == "Event loop is closed"
+        )
         code = getattr(unraisable.object, "cr_code", None)
         trace = traceback.format_exception(unraisable.exc_type, unraisable.exc_value, unraisable.exc_traceback)
         if not (closed_loop or _from_orbax(code.co_filename if code else "", *trace)):
             hook(unraisable)
+
     return filtered
 
 
@@ -414,6 +471,7 @@ def check_launch(argv, required: tuple = ("workdir",)) -> None:
     reports of the reads orbax abandons when a checkpoint fails to restore (the failure is raised)."""
     from absl import flags
     from absl import logging as absl_logging
+
     if not flags.FLAGS["verbosity"].present:
         absl_logging.set_verbosity(absl_logging.WARNING)
     sys.unraisablehook = _without_abandoned_read_reports(sys.unraisablehook)

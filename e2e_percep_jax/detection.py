@@ -17,6 +17,7 @@ same rule that makes a ground truth valid, ``geometry.in_bev_view``) and runs gr
 rotated IoU (``nms_iou``): :func:`frame_detections`. The inference API's ``Perceiver.boxes`` decodes
 whole maps at one score threshold instead: :func:`thresholded_boxes`.
 """
+
 import dataclasses
 
 import jax
@@ -38,6 +39,7 @@ class Settings:
     """How the evaluation turns PIXOR maps into detections: ``top_k`` candidates per frame kept on the
     device, the lowest score accumulated into the PR curves (``score_floor``) and the NMS's rotated-IoU
     threshold (``nms_iou``)."""
+
     top_k: int = TOP_K
     score_floor: float = SCORE_FLOOR
     nms_iou: float = NMS_IOU

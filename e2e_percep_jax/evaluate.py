@@ -33,6 +33,7 @@ Outputs in ``out_dir``: metrics.json, report.md, pr_curves.png, examples.png and
 (:mod:`report`). The host keeps per-frame pose errors and poses (~110 bytes a frame) and at most
 ``num_examples`` pictures.
 """
+
 import dataclasses
 import functools
 import math
@@ -44,9 +45,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from e2e_percep_jax import config as config_lib
-from e2e_percep_jax import detection
+from e2e_percep_jax import detection, report, summary
 from e2e_percep_jax import metrics as metrics_lib
-from e2e_percep_jax import report, summary
 from e2e_percep_jax.api import Perceiver, run_perceiver
 from e2e_percep_jax.config import Config, WorldConfig
 from e2e_percep_jax.sim import rollout, world
@@ -62,8 +62,7 @@ _COMPILED = {}  # compiled chunk programs by everything they depend on
 
 def start_keys(cfg: Config):
     """The E held-out world reset keys."""
-    return jax.random.split(jax.random.fold_in(jax.random.PRNGKey(cfg.eval.seed), RESET_STREAM),
-                            cfg.eval.num_worlds)
+    return jax.random.split(jax.random.fold_in(jax.random.PRNGKey(cfg.eval.seed), RESET_STREAM), cfg.eval.num_worlds)
 
 
 @functools.partial(jax.jit, static_argnames="world_cfg")
@@ -99,33 +98,59 @@ def make_chunk_fn(cfg: Config, town, perceiver, sample: bool, detect: detection.
 
     def perceive(params, pstate, frame, prev_action, key):
         # Known start measures places only in the town the model was trained on (it cannot name others').
-        known = ({"start_pose": frame["pose"], "measure": cfg.eval.town_seed == cfg.world.town_seed}
-                 if cfg.eval.known_start else {})
-        pstate, outputs = perceiver.step(params, pstate, frame["camera"], frame["lidar"], prev_action,
-                                         key if sample else None, **known)
+        known = (
+            {"start_pose": frame["pose"], "measure": cfg.eval.town_seed == cfg.world.town_seed}
+            if cfg.eval.known_start
+            else {}
+        )
+        pstate, outputs = perceiver.step(
+            params, pstate, frame["camera"], frame["lidar"], prev_action, key if sample else None, **known
+        )
         if heads is not None:
             outputs = heads(outputs, frame)
-        cand_boxes, cand_scores, saturated = detection.candidates(outputs["det_cls"], outputs["det_reg"], detect.top_k,
-                                                                detect.score_floor)
+        cand_boxes, cand_scores, saturated = detection.candidates(
+            outputs["det_cls"], outputs["det_reg"], detect.top_k, detect.score_floor
+        )
         nll = jnp.full(frame["pose"].shape[:1], jnp.nan) if pose_nll is None else pose_nll(pstate, frame["pose"])
-        cover = (jnp.zeros(frame["pose"].shape[:1] + (2,), bool) if pose_coverage is None
-                 else pose_coverage(pstate, frame["pose"]))
+        cover = (
+            jnp.zeros(frame["pose"].shape[:1] + (2,), bool)
+            if pose_coverage is None
+            else pose_coverage(pstate, frame["pose"])
+        )
         # World 0 for the video; the most crowded world (first on ties) for the examples.
         pictured = jnp.stack([0, jnp.argmax(jnp.sum(frame["boxes_valid"], -1))]).astype(jnp.int32)
-        out = {"cand_boxes": cand_boxes, "cand_scores": cand_scores, "saturated": saturated,
-               "boxes": frame["boxes"], "boxes_valid": frame["boxes_valid"],
-               "boxes_occluded": frame["boxes_occluded"], "pose": frame["pose"], "pose_pred": outputs["pose"],
-               "pose_nll": nll, "pose_cover": cover, "pictured": pictured}
+        out = {
+            "cand_boxes": cand_boxes,
+            "cand_scores": cand_scores,
+            "saturated": saturated,
+            "boxes": frame["boxes"],
+            "boxes_valid": frame["boxes_valid"],
+            "boxes_occluded": frame["boxes_occluded"],
+            "pose": frame["pose"],
+            "pose_pred": outputs["pose"],
+            "pose_nll": nll,
+            "pose_cover": cover,
+            "pictured": pictured,
+        }
         out.update({k: frame[k][pictured] for k in ("camera", "lidar", "roadmap")})
-        out.update({f"recon_{k}": _to_uint8(outputs[k][pictured]) for k in ("camera", "lidar", "roadmap") if k in outputs})
+        out.update(
+            {f"recon_{k}": _to_uint8(outputs[k][pictured]) for k in ("camera", "lidar", "roadmap") if k in outputs}
+        )
         if "pose_place" in outputs:
             out["pose_place"] = outputs["pose_place"][pictured]
         return pstate, out
 
     def chunk(params, wstate, pstate, key, warm):
         c = cfg.eval.chunk_steps
-        return rollout.drive_perceiving(wstate, pstate, town, cfg.data.image_size, jax.random.split(key, c),
-                                        jnp.arange(c) < warm, functools.partial(perceive, params))
+        return rollout.drive_perceiving(
+            wstate,
+            pstate,
+            town,
+            cfg.data.image_size,
+            jax.random.split(key, c),
+            jnp.arange(c) < warm,
+            functools.partial(perceive, params),
+        )
 
     return jax.jit(chunk)
 
@@ -133,9 +158,23 @@ def make_chunk_fn(cfg: Config, town, perceiver, sample: bool, detect: detection.
 # ----------------------------------------------------------------------------- the evaluation
 
 
-def evaluate(cfg: Config, params, out_dir: str, *, perceiver=None, sample: bool = False, video_frames: int = 300,
-             num_examples: int = 2, detect: detection.Settings = detection.Settings(), workdir: str | None = None,
-             checkpoint_step: int | None = None, heads=None, host_fn=None, label: str | None = None, log=print) -> dict:
+def evaluate(
+    cfg: Config,
+    params,
+    out_dir: str,
+    *,
+    perceiver=None,
+    sample: bool = False,
+    video_frames: int = 300,
+    num_examples: int = 2,
+    detect: detection.Settings = detection.Settings(),
+    workdir: str | None = None,
+    checkpoint_step: int | None = None,
+    heads=None,
+    host_fn=None,
+    label: str | None = None,
+    log=print,
+) -> dict:
     """Runs the online evaluation of ``perceiver`` with ``params`` under ``cfg`` and writes the report into
     ``out_dir``; returns the metrics dict (also written to metrics.json).
 
@@ -174,16 +213,33 @@ def evaluate(cfg: Config, params, out_dir: str, *, perceiver=None, sample: bool 
         key_perceiver = perceiver
     pstate = perceiver.init(e)
     sample_root = jax.random.fold_in(jax.random.PRNGKey(ev.seed), SAMPLE_STREAM)
-    cache_key = (cfg.world, cfg.data.image_size, cfg.model, ev.chunk_steps, e, ev.town_seed, ev.known_start, sample,
-                 detect, heads, key_perceiver, jax.tree.structure(params),
-                 tuple(x.shape for x in jax.tree.leaves(params)))
+    cache_key = (
+        cfg.world,
+        cfg.data.image_size,
+        cfg.model,
+        ev.chunk_steps,
+        e,
+        ev.town_seed,
+        ev.known_start,
+        sample,
+        detect,
+        heads,
+        key_perceiver,
+        jax.tree.structure(params),
+        tuple(x.shape for x in jax.tree.leaves(params)),
+    )
     if cache_key not in _COMPILED:  # one compile per program, reused by later evaluations in the process
-        _COMPILED[cache_key] = make_chunk_fn(cfg, town, perceiver, sample, detect, heads).lower(
-            params, wstate, pstate, sample_root, jnp.int32(0)).compile()
+        _COMPILED[cache_key] = (
+            make_chunk_fn(cfg, town, perceiver, sample, detect, heads)
+            .lower(params, wstate, pstate, sample_root, jnp.int32(0))
+            .compile()
+        )
     compiled = _COMPILED[cache_key]
     compile_s = time.perf_counter() - t0
-    log(f"eval: {ev.num_frames} frames = {e} worlds x {per_world.max()} frames after {warmup} warm-up steps, "
-        f"{num_chunks} chunks of {c}; compiled in {compile_s:.1f} s")
+    log(
+        f"eval: {ev.num_frames} frames = {e} worlds x {per_world.max()} frames after {warmup} warm-up steps, "
+        f"{num_chunks} chunks of {c}; compiled in {compile_s:.1f} s"
+    )
 
     hosts = None if host_fn is None else [host_fn(w) for w in range(e)]
     det_acc = metrics_lib.DetectionAccumulator(IOU_THRESHOLDS)
@@ -191,8 +247,15 @@ def evaluate(cfg: Config, params, out_dir: str, *, perceiver=None, sample: bool 
     true_poses, nll, cover, saturated, done = [], [], [], 0, 0
     # Per world and frame: true and estimated poses, copied out of the chunks' buffers (flat memory).
     drives_true, drives_pred = np.zeros((e, per_world.max(), 5)), np.zeros((e, per_world.max(), 5))
-    pictures = report.Pictures(town, out_dir, drives_true, drives_pred, video_frames=video_frames,
-                               num_examples=num_examples, score_threshold=ev.score_threshold)
+    pictures = report.Pictures(
+        town,
+        out_dir,
+        drives_true,
+        drives_pred,
+        video_frames=video_frames,
+        num_examples=num_examples,
+        score_threshold=ev.score_threshold,
+    )
     tick = time.perf_counter()
 
     def dispatch(i, wstate, pstate):
@@ -213,11 +276,14 @@ def evaluate(cfg: Config, params, out_dir: str, *, perceiver=None, sample: bool 
             for w in range(e):
                 if frame_index >= per_world[w]:
                     continue
-                boxes, scores = detection.frame_detections(out["cand_boxes"][t, w], out["cand_scores"][t, w],
-                                                           detect.score_floor, detect.nms_iou)
+                boxes, scores = detection.frame_detections(
+                    out["cand_boxes"][t, w], out["cand_scores"][t, w], detect.score_floor, detect.nms_iou
+                )
                 if hosts is not None:
                     boxes, scores, pose_pred[t, w] = hosts[w](boxes, scores, pose_pred[t, w], out["pose"][t, w])
-                det_acc.add_frame(boxes, scores, out["boxes"][t, w], out["boxes_valid"][t, w], out["boxes_occluded"][t, w])
+                det_acc.add_frame(
+                    boxes, scores, out["boxes"][t, w], out["boxes_valid"][t, w], out["boxes_occluded"][t, w]
+                )
                 drives_true[w, frame_index], drives_pred[w, frame_index] = out["pose"][t, w], pose_pred[t, w]
                 saturated += bool(out["saturated"][t, w])
                 done += 1
@@ -233,8 +299,10 @@ def evaluate(cfg: Config, params, out_dir: str, *, perceiver=None, sample: bool 
             continue
         now = time.perf_counter()
         rate = done / max(now - tick, 1e-9)
-        log(f"eval: {done}/{ev.num_frames} frames ({100 * done / ev.num_frames:.0f}%)  {rate:.1f} frames/s  "
-            f"ETA {_eta((ev.num_frames - done) / max(rate, 1e-9))}")
+        log(
+            f"eval: {done}/{ev.num_frames} frames ({100 * done / ev.num_frames:.0f}%)  {rate:.1f} frames/s  "
+            f"ETA {_eta((ev.num_frames - done) / max(rate, 1e-9))}"
+        )
     seconds = time.perf_counter() - tick
     examples = pictures.close()
 
@@ -247,41 +315,70 @@ def evaluate(cfg: Config, params, out_dir: str, *, perceiver=None, sample: bool 
     results = det_acc.results()
     key = lambda t: f"{t:g}"
     metrics = {
-        "label": label or cfg.model.variant, "workdir": workdir, "checkpoint_step": checkpoint_step,
+        "label": label or cfg.model.variant,
+        "workdir": workdir,
+        "checkpoint_step": checkpoint_step,
         "config": dataclasses.asdict(cfg),
-        "sample": sample, "num_frames": done, "num_worlds": e, "frames_per_world": int(per_world.max()),
-        "seconds": seconds, "frames_per_s": done / max(seconds, 1e-9), "compile_s": compile_s,
+        "sample": sample,
+        "num_frames": done,
+        "num_worlds": e,
+        "frames_per_world": int(per_world.max()),
+        "seconds": seconds,
+        "frames_per_s": done / max(seconds, 1e-9),
+        "compile_s": compile_s,
         "detection": {
-            "iou_thresholds": list(IOU_THRESHOLDS), "score_threshold": ev.score_threshold,
-            "score_floor": detect.score_floor, "nms_iou": detect.nms_iou, "top_k": detect.top_k,
+            "iou_thresholds": list(IOU_THRESHOLDS),
+            "score_threshold": ev.score_threshold,
+            "score_floor": detect.score_floor,
+            "nms_iou": detect.nms_iou,
+            "top_k": detect.top_k,
             "dedup_cell_m": detection.DEDUP_CELL_M,
             "topk_saturated_frac": saturated / max(done, 1),
             "num_gt": {s: results[IOU_THRESHOLDS[0]][s].num_gt for s in metrics_lib.SUBSETS},
             "ap": {key(t): {s: summary.defined(results[t][s].ap) for s in metrics_lib.SUBSETS} for t in IOU_THRESHOLDS},
-            "at_threshold": {key(t): dict(zip(("precision", "recall"), metrics_lib.at_threshold(results[t]["all"], ev.score_threshold)))
-                             for t in IOU_THRESHOLDS},
-            "pr_curves": {key(t): {s: metrics_lib.curve_summary(results[t][s]) for s in metrics_lib.SUBSETS}
-                          for t in IOU_THRESHOLDS},
+            "at_threshold": {
+                key(t): dict(
+                    zip(("precision", "recall"), metrics_lib.at_threshold(results[t]["all"], ev.score_threshold))
+                )
+                for t in IOU_THRESHOLDS
+            },
+            "pr_curves": {
+                key(t): {s: metrics_lib.curve_summary(results[t][s]) for s in metrics_lib.SUBSETS}
+                for t in IOU_THRESHOLDS
+            },
         },
-        "pose": dict(metrics_lib.pose_summary(pose_acc), **metrics_lib.drive_pose_summary(
-                         [d[:n] for d, n in zip(drives_true, per_world)], [d[:n] for d, n in zip(drives_pred, per_world)]),
-                     nll_mean=summary.defined(float(np.mean(np.concatenate(nll), dtype=np.float64))),
-                     # the share of frames whose true cell (place) and (heading bin, cell) (place_heading)
-                     # lie in the belief's 95 % region: about 0.95 for a calibrated belief
-                     coverage95=dict(zip(("place", "place_heading"), np.concatenate(cover).mean(0).tolist()))
-                     if getattr(perceiver, "pose_coverage", None) else None,
-                     known_start=ev.known_start, pose_filter=cfg.model.pose_filter),
+        "pose": dict(
+            metrics_lib.pose_summary(pose_acc),
+            **metrics_lib.drive_pose_summary(
+                [d[:n] for d, n in zip(drives_true, per_world)], [d[:n] for d, n in zip(drives_pred, per_world)]
+            ),
+            nll_mean=summary.defined(float(np.mean(np.concatenate(nll), dtype=np.float64))),
+            # the share of frames whose true cell (place) and (heading bin, cell) (place_heading)
+            # lie in the belief's 95 % region: about 0.95 for a calibrated belief
+            coverage95=dict(zip(("place", "place_heading"), np.concatenate(cover).mean(0).tolist()))
+            if getattr(perceiver, "pose_coverage", None)
+            else None,
+            known_start=ev.known_start,
+            pose_filter=cfg.model.pose_filter,
+        ),
         "examples": examples,
-        "baseline": {"description": "constant pose = mean of the drive's true poses (circular mean heading); no boxes",
-                     "mean_pose": [float(v) for v in constant], "pose": metrics_lib.pose_summary(base_acc),
-                     "ap": {key(t): 0.0 for t in IOU_THRESHOLDS}},
-        "paper": {"ap_percent": {k: dict(zip(map(key, IOU_THRESHOLDS), v)) for k, v in report.PAPER_AP.items()},
-                  "pose": {k: {"location_m": v[0], "heading_rad": v[1]} for k, v in report.PAPER_POSE.items()}},
+        "baseline": {
+            "description": "constant pose = mean of the drive's true poses (circular mean heading); no boxes",
+            "mean_pose": [float(v) for v in constant],
+            "pose": metrics_lib.pose_summary(base_acc),
+            "ap": {key(t): 0.0 for t in IOU_THRESHOLDS},
+        },
+        "paper": {
+            "ap_percent": {k: dict(zip(map(key, IOU_THRESHOLDS), v)) for k, v in report.PAPER_AP.items()},
+            "pose": {k: {"location_m": v[0], "heading_rad": v[1]} for k, v in report.PAPER_POSE.items()},
+        },
     }
     report.write(out_dir, metrics, results)
-    log(f"eval: wrote {out_dir}: AP@0.5 {report.fmt(metrics['detection']['ap']['0.5']['all'], True)}, "
+    log(
+        f"eval: wrote {out_dir}: AP@0.5 {report.fmt(metrics['detection']['ap']['0.5']['all'], True)}, "
         f"location error {report.fmt(metrics['pose']['location_m']['mean'], digits=2)} m, "
-        f"heading error {report.fmt(metrics['pose']['heading_rad']['mean'], digits=3)} rad")
+        f"heading error {report.fmt(metrics['pose']['heading_rad']['mean'], digits=3)} rad"
+    )
     return metrics
 
 

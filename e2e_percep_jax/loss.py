@@ -25,6 +25,7 @@ its batch of 32 while averaging the ELBO; ``w`` = 32 (the default) keeps the ref
 the two at any batch size. The logged det_cls, det_reg and pose include ``w`` (pose also ``p``), the
 logged kl ``b``.
 """
+
 import functools
 
 import distrax
@@ -92,8 +93,9 @@ def pose_terms(params, filtered: dict, pred: dict, pose, cfg: Config) -> dict:
     ``filtered`` is ``filter_sequence``'s output, ``pred`` the decoders', ``pose`` [B, T+1, 5] the truth."""
     head, weight = cfg.model.pose_head, pose_weight(cfg)
     if head == "belief":
-        parts = pose_belief.loss_terms(model_lib.pose_belief_head(params, filtered, cfg), pose,
-                                       pose_belief.grid_of(cfg.model))
+        parts = pose_belief.loss_terms(
+            model_lib.pose_belief_head(params, filtered, cfg), pose, pose_belief.grid_of(cfg.model)
+        )
         return {k: weight * per_sequence(v, pose.shape[0]) for k, v in parts.items()}
     if head == "reference":
         return {"pose": pose_term(pred["pose_normalised"], pose, REFERENCE_POSE_WEIGHT * weight, raw_metres=True)}

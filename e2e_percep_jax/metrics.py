@@ -19,6 +19,7 @@ Ego pose
 Everything here runs on the host in float64: evaluation calls these per frame with small, varying
 array sizes, where JAX's per-call dispatch (~1 ms) and per-shape compilation (~0.3 s) would dominate.
 """
+
 import dataclasses
 import math
 from typing import NamedTuple
@@ -181,6 +182,7 @@ class PRCurve:
       detections. precision, recall: at each score level (recall is nan when ``num_gt == 0``).
     score: the level's score threshold (lower edge of its score bin). num_gt: ground truths counted.
     """
+
     ap: float
     precision: np.ndarray
     recall: np.ndarray
@@ -237,8 +239,7 @@ class DetectionAccumulator:
 
     def results(self):
         """PR curves: ``{iou_threshold: {"all" | "visible" | "occluded": PRCurve}}``."""
-        num_gt = {"all": int(self._num_gt.sum()), "visible": int(self._num_gt[0]),
-                  "occluded": int(self._num_gt[1])}
+        num_gt = {"all": int(self._num_gt.sum()), "visible": int(self._num_gt[0]), "occluded": int(self._num_gt[1])}
         score = np.arange(self.score_bins)[::-1] / self.score_bins
         out = {}
         for thr, counts in zip(self.iou_thresholds, self._counts[:, :, ::-1]):  # high scores first
@@ -258,6 +259,7 @@ class DetectionAccumulator:
 
 class PoseErrors(NamedTuple):
     """Per-step ego pose errors, each ``[...]``."""
+
     location_m: np.ndarray  # Euclidean distance on (x, y)
     heading_rad: np.ndarray  # in [0, pi]
     speed_mps: np.ndarray  # absolute
@@ -313,7 +315,7 @@ class PoseErrorAccumulator:
         capacity = self._values.shape[1]
         if end > capacity:  # grow at least twofold: amortised O(1) per step
             self._values = np.pad(self._values, ((0, 0), (0, max(capacity, end - capacity))))
-        self._values[:, self._size:end] = [np.ravel(e) for e in errors]
+        self._values[:, self._size : end] = [np.ravel(e) for e in errors]
         self._size = end
         bins = np.searchsorted(self.step_bin_edges, steps, side="right") - 1
         np.add.at(self._bin_sum, bins, location)
@@ -327,17 +329,24 @@ class PoseErrorAccumulator:
         (a NaN error, a missing estimate, counts as outside every bound).
         """
         out = {}
-        for name, values in zip(PoseErrors._fields, self._values[:, :self._size]):
+        for name, values in zip(PoseErrors._fields, self._values[:, : self._size]):
             some = values.size > 0
-            out[name] = {"mean": float(np.mean(values, dtype=np.float64)) if some else float("nan"),
-                         "median": float(np.median(values)) if some else float("nan"),
-                         "p90": float(np.percentile(values, 90)) if some else float("nan"),
-                         "within": {f"{bound:g}": float(np.mean(values <= bound)) if some else float("nan")
-                                    for bound in WITHIN.get(name, ())}}
+            out[name] = {
+                "mean": float(np.mean(values, dtype=np.float64)) if some else float("nan"),
+                "median": float(np.median(values)) if some else float("nan"),
+                "p90": float(np.percentile(values, 90)) if some else float("nan"),
+                "within": {
+                    f"{bound:g}": float(np.mean(values <= bound)) if some else float("nan")
+                    for bound in WITHIN.get(name, ())
+                },
+            }
         with np.errstate(invalid="ignore", divide="ignore"):
             mean = self._bin_sum / self._bin_count
-        out["location_m_by_step"] = {"bin_edges": self.step_bin_edges.copy(), "mean": mean,
-                                     "count": self._bin_count.copy()}
+        out["location_m_by_step"] = {
+            "bin_edges": self.step_bin_edges.copy(),
+            "mean": mean,
+            "count": self._bin_count.copy(),
+        }
         return out
 
 
@@ -349,8 +358,13 @@ def curve_summary(curve, max_points=200):
     n = len(curve.precision)
     idx = np.unique(np.linspace(0, n - 1, min(n, max_points)).round().astype(int)) if n else np.zeros(0, int)
     clean = lambda a: [None if not np.isfinite(v) else round(float(v), 5) for v in a[idx]]
-    return {"ap": None if not np.isfinite(curve.ap) else curve.ap, "num_gt": curve.num_gt,
-            "precision": clean(curve.precision), "recall": clean(curve.recall), "score": clean(curve.score)}
+    return {
+        "ap": None if not np.isfinite(curve.ap) else curve.ap,
+        "num_gt": curve.num_gt,
+        "precision": clean(curve.precision),
+        "recall": clean(curve.recall),
+        "score": clean(curve.score),
+    }
 
 
 def at_threshold(curve, threshold):
@@ -390,17 +404,24 @@ def drive_pose_summary(drives_true, drives_pred) -> dict:
         end_error += error[-1]
         distance += np.sum(np.linalg.norm(np.diff(true[:, :2], axis=0), axis=-1))
     done = [c for c in converged if c is not None]
-    return {"converged_frame": {"per_drive": converged, "within_m": CONVERGED_M,
-                                "share": len(done) / max(len(converged), 1),
-                                "median": float(np.median(done)) if done else None},
-            "drift_per_100m": summary.defined(float(100.0 * end_error / distance)) if distance > 0 else None}
+    return {
+        "converged_frame": {
+            "per_drive": converged,
+            "within_m": CONVERGED_M,
+            "share": len(done) / max(len(converged), 1),
+            "median": float(np.median(done)) if done else None,
+        },
+        "drift_per_100m": summary.defined(float(100.0 * end_error / distance)) if distance > 0 else None,
+    }
 
 
 def pose_summary(acc: PoseErrorAccumulator) -> dict:
     """The accumulator's results as JSON (non-finite means as None)."""
     res = acc.results()
     by_step = res.pop("location_m_by_step")
-    res["location_m_by_step"] = {"bin_edges": [int(v) for v in by_step["bin_edges"]],
-                                 "mean": [None if not np.isfinite(v) else float(v) for v in by_step["mean"]],
-                                 "count": [int(v) for v in by_step["count"]]}
+    res["location_m_by_step"] = {
+        "bin_edges": [int(v) for v in by_step["bin_edges"]],
+        "mean": [None if not np.isfinite(v) else float(v) for v in by_step["mean"]],
+        "count": [int(v) for v in by_step["count"]],
+    }
     return res

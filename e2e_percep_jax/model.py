@@ -23,6 +23,7 @@ Public API (``cfg`` is the full :class:`~e2e_percep_jax.config.Config`; params a
 - :func:`normalise_pose` / :func:`pose_to_metres`: the fixed affine map between the pose head's
   output and the frame contract's pose.
 """
+
 import functools
 import math
 
@@ -57,14 +58,16 @@ def pose_to_metres(pose_normalised):
 
 def conv_widths(model_cfg: ModelConfig, image_size: int) -> tuple:
     """Widths of the encoder's stride-2 convs: the first log2(R / 4), taking R down to 4 x 4."""
-    return tuple(model_cfg.conv_channels[:int(math.log2(image_size // 4))])
+    return tuple(model_cfg.conv_channels[: int(math.log2(image_size // 4))])
 
 
 def reconstructed_images(variant: str) -> tuple:
     """Image keys whose reconstruction the variant's ELBO contains (only these decoders are built)."""
-    return {"full": ("camera", "lidar", "roadmap"),
-            "no_input_recon": ("roadmap",),
-            "no_roadmap_recon": ("camera", "lidar")}[variant]
+    return {
+        "full": ("camera", "lidar", "roadmap"),
+        "no_input_recon": ("roadmap",),
+        "no_roadmap_recon": ("camera", "lidar"),
+    }[variant]
 
 
 def _act(x):
@@ -86,6 +89,7 @@ class Deconv2x(nn.Module):
     with a sub-kernel of taps, so one conv with 4 x features outputs, interleaved, gives the output.
     XLA:CPU runs a transposed conv as a conv over the zero-dilated input, ~10x slower to differentiate.
     """
+
     features: int
     kernel: int
 
@@ -103,8 +107,9 @@ class Deconv2x(nn.Module):
             index[d - d_min, a], used[d - d_min, a] = j, 1.0
         sub = w[index][:, :, index] * (used[:, :, None, None, None, None] * used[None, None, :, :, None, None])
         sub = sub.transpose(0, 2, 4, 1, 3, 5).reshape(n, n, c, 4 * self.features)  # [dy, dx, C, (ay, ax, F)]
-        y = jax.lax.conv_general_dilated(x, sub, (1, 1), ((-d_min, d_max), (-d_min, d_max)),
-                                         dimension_numbers=("NHWC", "HWIO", "NHWC"))
+        y = jax.lax.conv_general_dilated(
+            x, sub, (1, 1), ((-d_min, d_max), (-d_min, d_max)), dimension_numbers=("NHWC", "HWIO", "NHWC")
+        )
         nb, h, wd = x.shape[:3]
         y = y.reshape(nb, h, wd, 2, 2, self.features).transpose(0, 1, 3, 2, 4, 5)
         return y.reshape(nb, 2 * h, 2 * wd, self.features) + b
@@ -114,6 +119,7 @@ class WholeMapConv(nn.Module):
     """flax ``Conv(features, (k, k), padding="VALID")`` on a k x k map, [N, k, k, C] -> [N, features],
     as one matmul with the same parameters (``kernel`` [k, k, C, features], ``bias``): a kernel that
     covers the whole map is a dense layer, and XLA:CPU runs it faster as one."""
+
     features: int
 
     @nn.compact
@@ -128,6 +134,7 @@ class WholeMapConvTranspose(nn.Module):
     """flax ``ConvTranspose(features, (k, k), padding="VALID")`` on a 1 x 1 map, [N, C] -> [N, k, k,
     features], as one matmul with the same parameters. flax does not flip the kernel
     (``transpose_kernel=False``), so output pixel (i, j) is tap (k-1-i, k-1-j)."""
+
     features: int
     kernel: int
 
@@ -142,6 +149,7 @@ class WholeMapConvTranspose(nn.Module):
 
 class Encoder(nn.Module):
     """uint8 image [N, R, R, 3] -> feature [N, feature_dim]."""
+
     widths: tuple
     feature_dim: int
 
@@ -155,6 +163,7 @@ class Encoder(nn.Module):
 
 class Trunk(nn.Module):
     """Latent [N, Z] -> feature map [N, R/2, R/2, widths[0]], the encoder mirrored."""
+
     widths: tuple
     feature_dim: int
 
@@ -168,6 +177,7 @@ class Trunk(nn.Module):
 
 class ImageDecoder(nn.Module):
     """Latent [N, Z] -> Gaussian mean image [N, R, R, 3] (in [0, 1] units; not clipped)."""
+
     widths: tuple
     feature_dim: int
 
@@ -178,6 +188,7 @@ class ImageDecoder(nn.Module):
 
 class PixorDecoder(nn.Module):
     """Latent [N, Z] -> (class logit [N, R, R, 1], regression [N, R, R, 6]); own trunk."""
+
     widths: tuple
     feature_dim: int
 
@@ -189,6 +200,7 @@ class PixorDecoder(nn.Module):
 
 class MLP(nn.Module):
     """x [N, in] -> [N, out] through two leaky hidden layers of ``hidden`` units."""
+
     hidden: int
     out: int
 
@@ -201,6 +213,7 @@ class MLP(nn.Module):
 
 class GaussianMLP(nn.Module):
     """Inputs [N, ...] (concatenated on the last axis) -> (loc, scale) [N, out], scale = softplus + 1e-5."""
+
     hidden: int
     out: int
 
@@ -217,6 +230,7 @@ def _sample(loc, scale, key):
 
 class PerceptionModel(nn.Module):
     """All networks of the paper. ``first`` [N] bool marks frames that start a sequence."""
+
     cfg: ModelConfig
     image_size: int
 
@@ -271,8 +285,16 @@ class PerceptionModel(nn.Module):
         z2_loc, z2_scale = self.z2_prior(z1, z2_prev, prev_action, first)
         z2 = _sample(z2_loc, z2_scale, k2)
         new_state = {"z1": z1, "z2": z2, "first": jnp.zeros_like(first)}
-        outputs = {"z1": z1, "z2": z2, "q_z1_loc": q1_loc, "q_z1_scale": q1_scale, "p_z1_loc": p1_loc,
-                   "p_z1_scale": p1_scale, "z2_loc": z2_loc, "z2_scale": z2_scale}
+        outputs = {
+            "z1": z1,
+            "z2": z2,
+            "q_z1_loc": q1_loc,
+            "q_z1_scale": q1_scale,
+            "p_z1_loc": p1_loc,
+            "p_z1_scale": p1_scale,
+            "z2_loc": z2_loc,
+            "z2_scale": z2_scale,
+        }
         return new_state, outputs
 
     def decode(self, z):
@@ -311,8 +333,11 @@ def init_filter_state(batch_size: int, cfg: Config) -> dict:
     Set ``first`` to True for any row to restart that row's filter (e.g. after a world reset).
     """
     m = cfg.model
-    return {"z1": jnp.zeros((batch_size, m.z1_dim)), "z2": jnp.zeros((batch_size, m.z2_dim)),
-            "first": jnp.ones((batch_size,), bool)}
+    return {
+        "z1": jnp.zeros((batch_size, m.z1_dim)),
+        "z2": jnp.zeros((batch_size, m.z2_dim)),
+        "first": jnp.ones((batch_size,), bool),
+    }
 
 
 @functools.partial(jax.jit, static_argnames="cfg")
@@ -325,8 +350,9 @@ def init_params(key, cfg: Config):
     """
     r, n = cfg.data.image_size, 1
     image = jnp.zeros((n, r, r, 3), jnp.uint8)
-    shapes = jax.eval_shape(lambda k: build_model(cfg).init(k, image, image, jnp.zeros((n, 2)),
-                                                            init_filter_state(n, cfg)), key)
+    shapes = jax.eval_shape(
+        lambda k: build_model(cfg).init(k, image, image, jnp.zeros((n, 2)), init_filter_state(n, cfg)), key
+    )
     leaves, treedef = jax.tree_util.tree_flatten_with_path(shapes)
     is_kernel = [path[-1].key == "kernel" for path, _ in leaves]
     sizes = [math.prod(x.shape) for (_, x), kernel in zip(leaves, is_kernel) if kernel]
@@ -334,8 +360,12 @@ def init_params(key, cfg: Config):
     # a unit normal truncated at +-2, so dividing by it gives the std asked for. (Its own per-layer draws
     # compile ~8x slower and give other values.)
     draws = iter(jnp.split(jax.random.truncated_normal(key, -2.0, 2.0, (sum(sizes),)), np.cumsum(sizes)[:-1]))
-    values = [next(draws).reshape(x.shape) * (math.sqrt(1.0 / math.prod(x.shape[:-1])) / 0.87962566103423978)
-              if kernel else jnp.zeros(x.shape, x.dtype) for (_, x), kernel in zip(leaves, is_kernel)]
+    values = [
+        next(draws).reshape(x.shape) * (math.sqrt(1.0 / math.prod(x.shape[:-1])) / 0.87962566103423978)
+        if kernel
+        else jnp.zeros(x.shape, x.dtype)
+        for (_, x), kernel in zip(leaves, is_kernel)
+    ]
     return jax.tree.unflatten(treedef, values)
 
 
@@ -386,8 +416,10 @@ def filter_sequence(params, camera, lidar, action, key, cfg: Config, start=None)
 def end_state(outputs: dict, action):
     """The ``start`` that continues :func:`filter_sequence`'s sequence into the next frame: (its last
     frame's filter state, the sequence's last action [B, 2])."""
-    return ({"z1": outputs["z1"][:, -1], "z2": outputs["z2"][:, -1],
-             "first": jnp.zeros(outputs["z1"].shape[:1], bool)}, action[:, -1])
+    return (
+        {"z1": outputs["z1"][:, -1], "z2": outputs["z2"][:, -1], "first": jnp.zeros(outputs["z1"].shape[:1], bool)},
+        action[:, -1],
+    )
 
 
 def decode(params, z, cfg: Config) -> dict:
@@ -398,6 +430,7 @@ def decode(params, z, cfg: Config) -> dict:
 def pose_belief_head(params, filtered: dict, cfg: Config) -> dict:
     """The belief head's parts (``pose_belief.split_head``) for :func:`filter_step`'s or
     :func:`filter_sequence`'s outputs ``filtered`` (any leading axes)."""
-    raw = build_model(cfg).apply(params, filtered["features"], filtered["q_z1_loc"], filtered["z2_loc"],
-                                 method=PerceptionModel.pose_belief)
+    raw = build_model(cfg).apply(
+        params, filtered["features"], filtered["q_z1_loc"], filtered["z2_loc"], method=PerceptionModel.pose_belief
+    )
     return pose_belief.split_head(raw, pose_belief.grid_of(cfg.model))

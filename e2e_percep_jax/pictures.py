@@ -8,6 +8,7 @@
 - an evaluation's pictures: the paper's Fig. 6 rows (:func:`example_rows`) and the PR curves
   (:func:`pr_curves_image`), drawn by :func:`line_chart`, as the learning curves are.
 """
+
 import cv2
 import jax.numpy as jnp
 import numpy as np
@@ -24,12 +25,15 @@ ESTIMATE_RGB = (255, 60, 60)  # the estimated ego pose on the map
 _SHIFT = 4  # cv2 fractional bits: sub-pixel box corners
 _TITLES = ("camera", "lidar", "roadmap", "boxes")
 # Display colours per semantic class (RGB); the terrain is greener than the roadmap's black.
-_SEM_VIEW = np.array([[38, 52, 38], [62, 62, 66], [140, 140, 136], [230, 230, 230], [230, 200, 40],
-                      [255, 255, 255]], np.uint8)
-_LIGHT_RGB = {town_lib.LIGHT_RED: (230, 30, 30), town_lib.LIGHT_YELLOW: (250, 200, 0),
-              town_lib.LIGHT_GREEN: (40, 220, 60)}
+_SEM_VIEW = np.array(
+    [[38, 52, 38], [62, 62, 66], [140, 140, 136], [230, 230, 230], [230, 200, 40], [255, 255, 255]], np.uint8
+)
+_LIGHT_RGB = {
+    town_lib.LIGHT_RED: (230, 30, 30),
+    town_lib.LIGHT_YELLOW: (250, 200, 0),
+    town_lib.LIGHT_GREEN: (40, 220, 60),
+}
 _EGO_RGB = (255, 0, 255)
-
 
 
 class TopDown:
@@ -89,12 +93,16 @@ class TopDown:
         boxes, colors = np.asarray(state.veh_box), np.asarray(state.veh_color)
         for i, (box, color) in enumerate(zip(boxes, colors)):
             ego = i == 0
-            self._box(img, box, tuple(int(c) for c in color), outline=_EGO_RGB if ego else (0, 0, 0),
-                      thickness=2 if ego else 1)
+            self._box(
+                img,
+                box,
+                tuple(int(c) for c in color),
+                outline=_EGO_RGB if ego else (0, 0, 0),
+                thickness=2 if ego else 1,
+            )
             nose = box[:2] + 0.4 * box[3] * np.array([np.cos(box[2]), np.sin(box[2])])
             cv2.line(img, tuple(self._px(box[:2])), tuple(self._px(nose)), (0, 0, 0), 1, cv2.LINE_AA, _SHIFT)
         return img
-
 
 
 def draw_boxes(view, boxes, color, thickness=1):
@@ -107,8 +115,9 @@ def draw_boxes(view, boxes, color, thickness=1):
     corners = geo.box_corners(boxes, centre_first=True)  # [M, 4, 2]
     px_per_m = view.shape[0] / geo.BEV_SPAN_M
     down, across = geo.bev_offset_m(corners[..., 0], corners[..., 1])
-    pts = np.round(np.stack([across * px_per_m, down * px_per_m], -1)
-                   * (1 << _SHIFT)).astype(np.int32)  # cv2 wants (x = col, y = row)
+    pts = np.round(np.stack([across * px_per_m, down * px_per_m], -1) * (1 << _SHIFT)).astype(
+        np.int32
+    )  # cv2 wants (x = col, y = row)
     cv2.polylines(view, list(pts), True, color, thickness, cv2.LINE_AA, _SHIFT)
     front, centre = (pts[:, 0] + pts[:, 1]) // 2, (pts[:, 0] + pts[:, 2]) // 2  # front edge's middle
     for a, b in zip(centre, front):
@@ -214,12 +223,13 @@ def example_rows(frame, pred_boxes, pred_scores, panel_px=192):
         recon_frame["roadmap"] = frame["roadmap"]
     bottom = frame_panel(recon_frame, panel_px, pred_boxes, pred_scores, titles=False)
     if "recon_roadmap" not in frame:
-        bottom[:, 2 * panel_px:3 * panel_px] = 0
+        bottom[:, 2 * panel_px : 3 * panel_px] = 0
     for i, name in enumerate(("camera", "lidar", "GT roadmap", "GT boxes")):
-        title(top[:, i * panel_px:(i + 1) * panel_px], name)
-    for i, (key, name) in enumerate((("camera", "recon. camera"), ("lidar", "recon. lidar"),
-                                     ("roadmap", "recon. roadmap"), (None, "decoded boxes"))):
-        view = bottom[:, i * panel_px:(i + 1) * panel_px]
+        title(top[:, i * panel_px : (i + 1) * panel_px], name)
+    for i, (key, name) in enumerate(
+        (("camera", "recon. camera"), ("lidar", "recon. lidar"), ("roadmap", "recon. roadmap"), (None, "decoded boxes"))
+    ):
+        view = bottom[:, i * panel_px : (i + 1) * panel_px]
         title(view, name if key is None or f"recon_{key}" in frame else f"{name}: not decoded")
     return np.concatenate([top, bottom], 0)
 
@@ -235,9 +245,14 @@ def line_chart(series, title, x_label, x_range, y_range, log_y=False, size=360):
     fy = np.log10 if log_y else (lambda v: v)
 
     def px(x, y):
-        return (int(round(left + (x - x0) / (x1 - x0) * size)),
-                int(round(top + (1 - (fy(y) - fy(y0)) / (fy(y1) - fy(y0))) * size)))
-    y_ticks = (10.0 ** np.arange(np.floor(np.log10(y0)), np.ceil(np.log10(y1)) + 1)) if log_y else np.linspace(y0, y1, 6)
+        return (
+            int(round(left + (x - x0) / (x1 - x0) * size)),
+            int(round(top + (1 - (fy(y) - fy(y0)) / (fy(y1) - fy(y0))) * size)),
+        )
+
+    y_ticks = (
+        (10.0 ** np.arange(np.floor(np.log10(y0)), np.ceil(np.log10(y1)) + 1)) if log_y else np.linspace(y0, y1, 6)
+    )
     for v in np.linspace(x0, x1, 6):
         cv2.line(img, px(v, y0), px(v, y1), (225, 225, 225), 1)
         cv2.putText(img, f"{v:g}", (px(v, y0)[0] - 9, px(v, y0)[1] + 14), font, 0.35, black, 1, cv2.LINE_AA)
@@ -269,7 +284,10 @@ def pr_curves_image(results, size=360):
             curve = results[thr][subset]
             rec, prec = [], []
             if curve.num_gt and len(curve.recall):  # from recall 0 at the first level's precision
-                rec, prec = np.concatenate([[0.0], curve.recall]), np.concatenate([[curve.precision[0]], curve.precision])
+                rec, prec = (
+                    np.concatenate([[0.0], curve.recall]),
+                    np.concatenate([[curve.precision[0]], curve.precision]),
+                )
             ap = "n/a" if not np.isfinite(curve.ap) else f"{100 * curve.ap:.1f}%"
             series.append((f"IoU {thr:.1f}: AP {ap}", colours.get(thr, (0, 0, 0)), rec, prec))
         views.append(line_chart(series, f"precision vs recall: {subset} GT", "recall", (0, 1), (0, 1), size=size))

@@ -28,6 +28,7 @@ short of it. Measurement: the head's place and heading probabilities, floored an
 the belief's mode, its position the belief's mean over the 3 x 3 cells around the mode cell, its heading
 the mode bin refined by the head's offset. Pure JAX; it runs inside a ``lax.scan``.
 """
+
 import dataclasses
 import math
 
@@ -67,6 +68,7 @@ RELOCATION_SHARE = 1e-3
 @dataclasses.dataclass(frozen=True)
 class Grid:
     """The belief's cells: ``cell_m`` metres square over the area, ``heading_bins`` headings."""
+
     cell_m: float
     heading_bins: int
 
@@ -106,8 +108,13 @@ def split_head(raw, grid: Grid) -> dict:
     """The belief head's flat output [..., head_size] -> its named parts (module docstring)."""
     g, h = grid.num_cells, grid.heading_bins
     parts = jnp.split(raw, np.cumsum([g, 2 * g, h, h]), axis=-1)
-    return {"place_logit": parts[0], "place_offset": parts[1].reshape(raw.shape[:-1] + (g, 2)),
-            "heading_logit": parts[2], "heading_offset": parts[3], "speed": parts[4][..., 0]}
+    return {
+        "place_logit": parts[0],
+        "place_offset": parts[1].reshape(raw.shape[:-1] + (g, 2)),
+        "heading_logit": parts[2],
+        "heading_offset": parts[3],
+        "speed": parts[4][..., 0],
+    }
 
 
 def true_cell(xy, grid: Grid):
@@ -133,13 +140,14 @@ def place_target(xy, grid: Grid):
 def heading_target(yaw_rad, grid: Grid):
     """Soft heading target [..., H]: a wrapped Gaussian of TARGET_STD_CELLS bins around ``yaw_rad``, normalised."""
     d = wrap_angle(yaw_rad[..., None] - jnp.asarray(grid.bin_centres()))
-    return jax.nn.softmax(-d ** 2 / (2 * (TARGET_STD_CELLS * grid.bin_rad) ** 2), -1)
+    return jax.nn.softmax(-(d**2) / (2 * (TARGET_STD_CELLS * grid.bin_rad) ** 2), -1)
 
 
 def _at(values, index):
     """values [..., N, ...] taken at index [...] along the axis after the prefix."""
-    return jnp.take_along_axis(values, index.reshape(index.shape + (1,) * (values.ndim - index.ndim)),
-                               axis=index.ndim).squeeze(index.ndim)
+    return jnp.take_along_axis(
+        values, index.reshape(index.shape + (1,) * (values.ndim - index.ndim)), axis=index.ndim
+    ).squeeze(index.ndim)
 
 
 def loss_terms(head: dict, pose, grid: Grid) -> dict:
@@ -149,8 +157,10 @@ def loss_terms(head: dict, pose, grid: Grid) -> dict:
     return {
         "pose_place": optax.softmax_cross_entropy(head["place_logit"], place_target(pose[..., :2], grid)),
         "pose_heading": optax.softmax_cross_entropy(head["heading_logit"], heading_target(pose_yaw(pose), grid)),
-        "pose_offset": (jnp.sum(optax.huber_loss(_at(head["place_offset"], cell), offset), -1)
-                        + optax.huber_loss(_at(head["heading_offset"], k), heading_offset)),
+        "pose_offset": (
+            jnp.sum(optax.huber_loss(_at(head["place_offset"], cell), offset), -1)
+            + optax.huber_loss(_at(head["heading_offset"], k), heading_offset)
+        ),
         "pose_speed": optax.huber_loss(head["speed"], pose[..., 4] / SPEED_SCALE_MPS),
     }
 
@@ -164,8 +174,13 @@ def _pose_at(head: dict, cell, k, speed_mps, grid: Grid):
 
 def decode(head: dict, grid: Grid):
     """The head read alone: pose [..., 5] at the mode cell and mode bin, refined by their offsets."""
-    return _pose_at(head, jnp.argmax(head["place_logit"], -1), jnp.argmax(head["heading_logit"], -1),
-                    head["speed"] * SPEED_SCALE_MPS, grid)
+    return _pose_at(
+        head,
+        jnp.argmax(head["place_logit"], -1),
+        jnp.argmax(head["heading_logit"], -1),
+        head["speed"] * SPEED_SCALE_MPS,
+        grid,
+    )
 
 
 # ----------------------------------------------------------------------------- the histogram filter
@@ -177,11 +192,13 @@ def init_state(batch_size: int, grid: Grid) -> dict:
     and the actuators [B, 2] (pedal, steering rad: the commands seen through the model's lag), with whether
     they have been set [B] (from a drive's first logged commands)."""
     shape = (batch_size, grid.heading_bins, grid.n, grid.n)
-    return {"belief": jnp.full(shape, 1.0 / math.prod(shape[1:]), jnp.float32),
-            "speed_mps": jnp.zeros((batch_size,), jnp.float32),
-            "yaw_offset_rad": jnp.zeros((batch_size,), jnp.float32),
-            "actuator": jnp.zeros((batch_size, 2), jnp.float32),
-            "actuator_set": jnp.zeros((batch_size,), bool)}
+    return {
+        "belief": jnp.full(shape, 1.0 / math.prod(shape[1:]), jnp.float32),
+        "speed_mps": jnp.zeros((batch_size,), jnp.float32),
+        "yaw_offset_rad": jnp.zeros((batch_size,), jnp.float32),
+        "actuator": jnp.zeros((batch_size, 2), jnp.float32),
+        "actuator_set": jnp.zeros((batch_size,), bool),
+    }
 
 
 def _shift(x, axis: int, direction: int):
@@ -196,8 +213,11 @@ def _split(x, shift_cells, axis: int):
     """x [H, n, n] moved by ``shift_cells`` [H] (|shift| <= 1) along ``axis``, each cell's mass split
     linearly between its own and the neighbouring cell (the mass's mean moves by exactly the shift)."""
     w = lambda s: s[:, None, None]
-    return (w(1.0 - jnp.abs(shift_cells)) * x + w(jnp.maximum(shift_cells, 0.0)) * _shift(x, axis, 1)
-            + w(jnp.maximum(-shift_cells, 0.0)) * _shift(x, axis, -1))
+    return (
+        w(1.0 - jnp.abs(shift_cells)) * x
+        + w(jnp.maximum(shift_cells, 0.0)) * _shift(x, axis, 1)
+        + w(jnp.maximum(-shift_cells, 0.0)) * _shift(x, axis, -1)
+    )
 
 
 def _diffuse(x, share, axis: int, wrap: bool):
@@ -210,8 +230,15 @@ def _diffuse(x, share, axis: int, wrap: bool):
     return (1.0 - 2.0 * share) * x + share * neighbours
 
 
-def predict(belief, move_m, yaw_offset_rad, ds_m, model: MotionModel, grid: Grid,
-            heading_noise_scale: float = HEADING_NOISE_SCALE):
+def predict(
+    belief,
+    move_m,
+    yaw_offset_rad,
+    ds_m,
+    model: MotionModel,
+    grid: Grid,
+    heading_noise_scale: float = HEADING_NOISE_SCALE,
+):
     """One stream's belief [H, n, n] moved: bin k's mass by ``move_m[k]`` [H, 2] metres (at most one cell
     per step), then the heading by the common yaw change already added to ``yaw_offset_rad`` []: whole
     bins roll the heading axis and the rest stays in the offset (moving the offset does not spread the
@@ -221,11 +248,11 @@ def predict(belief, move_m, yaw_offset_rad, ds_m, model: MotionModel, grid: Grid
     |shift| (1 - |shift|) cells^2) has not already spread. Returns (belief, offset within half a bin)."""
     shift = jnp.clip(move_m / grid.cell_m, -1.0, 1.0)
     belief = _split(_split(belief, shift[:, 0], 2), shift[:, 1], 1)
-    position_var = model.position_noise_m2pm * ds_m / grid.cell_m ** 2  # cells^2 per axis
+    position_var = model.position_noise_m2pm * ds_m / grid.cell_m**2  # cells^2 per axis
     for axis, column in ((2, 0), (1, 1)):
         missing = jnp.maximum(position_var - jnp.abs(shift[:, column]) * (1.0 - jnp.abs(shift[:, column])), 0.0)
         belief = _diffuse(belief, jnp.minimum(0.5 * missing, 0.25)[:, None, None], axis, wrap=False)
-    heading_var = heading_noise_scale * model.heading_noise_rad2pm * ds_m / grid.bin_rad ** 2  # bins^2
+    heading_var = heading_noise_scale * model.heading_noise_rad2pm * ds_m / grid.bin_rad**2  # bins^2
     belief = _diffuse(belief, jnp.minimum(0.5 * heading_var, 0.25), 0, wrap=True)
     whole = jnp.round(yaw_offset_rad / grid.bin_rad)
     return jnp.roll(belief, whole.astype(jnp.int32), 0), yaw_offset_rad - whole * grid.bin_rad
@@ -244,10 +271,23 @@ def _normalised(belief):
     return belief / jnp.sum(belief, axis=(-3, -2, -1), keepdims=True)
 
 
-def filter_step(state: dict, head: dict, prev_action, first, grid: Grid, model: MotionModel, *, start_pose=None,
-                measure: bool = True, floor: float = MEASUREMENT_FLOOR, power: float = MEASUREMENT_POWER,
-                speed_gain: float = SPEED_GAIN, relocation: float = RELOCATION_SHARE,
-                heading_noise_scale: float = HEADING_NOISE_SCALE, position: str = "local_mean"):
+def filter_step(
+    state: dict,
+    head: dict,
+    prev_action,
+    first,
+    grid: Grid,
+    model: MotionModel,
+    *,
+    start_pose=None,
+    measure: bool = True,
+    floor: float = MEASUREMENT_FLOOR,
+    power: float = MEASUREMENT_POWER,
+    speed_gain: float = SPEED_GAIN,
+    relocation: float = RELOCATION_SHARE,
+    heading_noise_scale: float = HEADING_NOISE_SCALE,
+    position: str = "local_mean",
+):
     """One frame for B streams: motion through ``model`` by ``prev_action`` [B, 2] (the commands from the
     last frame to this one) with its process noise (:func:`predict`), then ``relocation`` of each cell's
     mass spread over all headings, then Bayes' rule with this frame's ``head`` outputs. Rows with ``first``
@@ -264,8 +304,10 @@ def filter_step(state: dict, head: dict, prev_action, first, grid: Grid, model: 
         raise ValueError("measure=False: only the known-start protocol (a start_pose) goes without measurements")
     rows = lambda x: first.reshape(first.shape + (1,) * (x.ndim - 1))
     actuator = jnp.where(state["actuator_set"][:, None], state["actuator"], prev_action)
-    started = {"actuator": jnp.where(rows(prev_action), 0.0, motion_lib.actuate(model, actuator, prev_action)),
-               "actuator_set": ~first}
+    started = {
+        "actuator": jnp.where(rows(prev_action), 0.0, motion_lib.actuate(model, actuator, prev_action)),
+        "actuator_set": ~first,
+    }
     if start_pose is not None and not measure:
         _, moved = motion_lib.advance_pose(model, actuator, prev_action, mean_pose(state, grid))
         pose = jnp.where(rows(moved), start_pose, moved)
@@ -274,7 +316,8 @@ def filter_step(state: dict, head: dict, prev_action, first, grid: Grid, model: 
     yaw = jnp.asarray(grid.bin_centres()) + state["yaw_offset_rad"][:, None]
     _, v_new, ds, move, dyaw = motion_lib.step(model, actuator, prev_action, state["speed_mps"], yaw)
     moved, offset = jax.vmap(lambda b, m, o, d: predict(b, m, o, d, model, grid, heading_noise_scale))(
-        state["belief"], move, state["yaw_offset_rad"] + dyaw, ds)
+        state["belief"], move, state["yaw_offset_rad"] + dyaw, ds
+    )
     prior = (1.0 - relocation) * moved + relocation * jnp.mean(moved, axis=-3, keepdims=True)
     head_speed = head["speed"] * SPEED_SCALE_MPS
     if start_pose is None:
@@ -283,18 +326,25 @@ def filter_step(state: dict, head: dict, prev_action, first, grid: Grid, model: 
         first_belief, first_offset = start_at(start_pose, grid)
         first_speed = start_pose[:, 4]
     measured = likelihood(head, grid, floor, power) if measure else 1.0
-    new = dict(started, belief=_normalised(jnp.where(rows(moved), first_belief, prior) * measured),
-               speed_mps=jnp.where(first, first_speed, v_new + speed_gain * (head_speed - v_new)),
-               yaw_offset_rad=jnp.where(first, first_offset, offset))
+    new = dict(
+        started,
+        belief=_normalised(jnp.where(rows(moved), first_belief, prior) * measured),
+        speed_mps=jnp.where(first, first_speed, v_new + speed_gain * (head_speed - v_new)),
+        yaw_offset_rad=jnp.where(first, first_offset, offset),
+    )
     return new, estimate(new["belief"], head, new["speed_mps"], grid, position)
 
 
 def head_state(head: dict, grid: Grid) -> dict:
     """The filter state [B] that is the head's own distribution (place x heading, no filtering), its speed
     and no heading offset: the belief of ``--model.pose_filter=none``."""
-    return {"belief": _normalised(likelihood(head, grid, floor=0.0, power=1.0)),
-            "speed_mps": head["speed"] * SPEED_SCALE_MPS, "yaw_offset_rad": jnp.zeros_like(head["speed"]),
-            "actuator": jnp.zeros(head["speed"].shape + (2,)), "actuator_set": jnp.zeros(head["speed"].shape, bool)}
+    return {
+        "belief": _normalised(likelihood(head, grid, floor=0.0, power=1.0)),
+        "speed_mps": head["speed"] * SPEED_SCALE_MPS,
+        "yaw_offset_rad": jnp.zeros_like(head["speed"]),
+        "actuator": jnp.zeros(head["speed"].shape + (2,)),
+        "actuator_set": jnp.zeros(head["speed"].shape, bool),
+    }
 
 
 POSITIONS = ("local_mean", "head_offset")
@@ -364,7 +414,7 @@ def negative_log_likelihood(state: dict, pose, grid: Grid):
     cell, _ = true_cell(pose[:, :2], grid)
     k, _ = true_bin(pose_yaw(pose) - state["yaw_offset_rad"], grid)
     p = belief.reshape(belief.shape[0], grid.heading_bins, -1)[jnp.arange(belief.shape[0]), k, cell]
-    return -jnp.log(jnp.maximum(p, 1e-30)) + math.log(grid.cell_m ** 2 * grid.bin_rad)
+    return -jnp.log(jnp.maximum(p, 1e-30)) + math.log(grid.cell_m**2 * grid.bin_rad)
 
 
 def in_region(state: dict, pose, grid: Grid, mass: float = 0.95):

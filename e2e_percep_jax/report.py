@@ -7,6 +7,7 @@
 
 The drawing itself is in :mod:`e2e_percep_jax.pictures`.
 """
+
 import json
 import os
 
@@ -27,9 +28,11 @@ PAPER_POSE = {  # location (m), heading (rad)
     "No inputs reconstruction (no_input_recon)": (8.6, 0.17),
     "No roadmap reconstruction (no_roadmap_recon)": (7.1, 0.42),
 }
-PAPER_VARIANT_ROW = {"full": "Inputs and roadmap (full)",
-                     "no_input_recon": "No inputs reconstruction (no_input_recon)",
-                     "no_roadmap_recon": "No roadmap reconstruction (no_roadmap_recon)"}
+PAPER_VARIANT_ROW = {
+    "full": "Inputs and roadmap (full)",
+    "no_input_recon": "No inputs reconstruction (no_input_recon)",
+    "no_roadmap_recon": "No roadmap reconstruction (no_roadmap_recon)",
+}
 
 
 def eval_dir(run: str, cfg: Config) -> str:
@@ -81,15 +84,21 @@ def markdown(m: dict) -> str:
     variant, label = m["config"]["model"]["variant"], m["label"]
     is_variant = label == variant  # else a baseline: it has no model variant, and no paper row is its own
     thr = [f"{t:g}" for t in det["iou_thresholds"]]
-    lines = [f"# Evaluation report: {m['workdir'] or '(library call)'}", "",
-             f"Checkpoint step {m['checkpoint_step']}, {'variant' if is_variant else 'baseline'} `{label}`, image size "
-             f"{m['config']['data']['image_size']}. Online drive: {m['num_frames']} frames "
-             f"({m['num_worlds']} worlds x {m['frames_per_world']} frames, town seed {m['config']['eval']['town_seed']}, "
-             f"start keys from eval.seed {m['config']['eval']['seed']}, {m['config']['data']['warmup_steps']} warm-up steps), "
-             f"latent = {'posterior samples' if m['sample'] else 'posterior mean'}. "
-             f"{m['frames_per_s']:.1f} frames/s ({m['seconds']:.0f} s, compile {m['compile_s']:.0f} s).", "",
-             "## Table I: average precision of surrounding-vehicle boxes", "",
-             "| | " + " | ".join(f"AP<sub>{t}</sub>" for t in thr) + " |", "|---|" + "---|" * len(thr)]
+    lines = [
+        f"# Evaluation report: {m['workdir'] or '(library call)'}",
+        "",
+        f"Checkpoint step {m['checkpoint_step']}, {'variant' if is_variant else 'baseline'} `{label}`, image size "
+        f"{m['config']['data']['image_size']}. Online drive: {m['num_frames']} frames "
+        f"({m['num_worlds']} worlds x {m['frames_per_world']} frames, town seed {m['config']['eval']['town_seed']}, "
+        f"start keys from eval.seed {m['config']['eval']['seed']}, {m['config']['data']['warmup_steps']} warm-up steps), "
+        f"latent = {'posterior samples' if m['sample'] else 'posterior mean'}. "
+        f"{m['frames_per_s']:.1f} frames/s ({m['seconds']:.0f} s, compile {m['compile_s']:.0f} s).",
+        "",
+        "## Table I: average precision of surrounding-vehicle boxes",
+        "",
+        "| | " + " | ".join(f"AP<sub>{t}</sub>" for t in thr) + " |",
+        "|---|" + "---|" * len(thr),
+    ]
     ap = det["ap"]
     lines.append(f"| **this run ({label})** | " + " | ".join(fmt(ap[t]["all"], True) for t in thr) + " |")
     lines.append("| this run, visible GT | " + " | ".join(fmt(ap[t]["visible"], True) for t in thr) + " |")
@@ -98,63 +107,93 @@ def markdown(m: dict) -> str:
     for row, vals in PAPER_AP.items():
         mark = " (same variant)" if is_variant and PAPER_VARIANT_ROW.get(variant) == row else ""
         lines.append(f"| paper: {row}{mark} | " + " | ".join(f"{v:.1f}%" for v in vals) + " |")
-    lines += ["", f"Ground truths: {det['num_gt']['all']} ({det['num_gt']['visible']} visible, "
-              f"{det['num_gt']['occluded']} occluded: no lidar return). Detections: PIXOR class map -> "
-              f"boxes, top {det['top_k']} centre-cell candidates per frame (cut in "
-              f"{100 * det['topk_saturated_frac']:.1f}% of frames), score >= {det['score_floor']} "
-              f"(AP sweeps the score over this range), centre in the BEV view, greedy NMS at rotated IoU "
-              f"{det['nms_iou']}. Greedy matching by score, each ground truth at most once; all-point AP. "
-              "Occluded / visible rows: recall over that subset, a detection matched to the other subset "
-              "ignored, unmatched detections false positives in both.", "",
-              f"At the operating threshold {det['score_threshold']}: " + ", ".join(
-                  f"IoU {t}: precision {fmt(det['at_threshold'][t]['precision'], True)}, recall "
-                  f"{fmt(det['at_threshold'][t]['recall'], True)}" for t in thr) + ".", "",
-              "## Table II: ego global pose error", "",
-              "| | Location (m) | Heading (rad) | Speed (m/s) |", "|---|---|---|---|",
-              f"| **this run ({label}), mean** | {fmt(pose['location_m']['mean'], digits=2)} | "
-              f"{fmt(pose['heading_rad']['mean'], digits=3)} | {fmt(pose['speed_mps']['mean'], digits=2)} |",
-              f"| this run, median | {fmt(pose['location_m']['median'], digits=2)} | "
-              f"{fmt(pose['heading_rad']['median'], digits=3)} | {fmt(pose['speed_mps']['median'], digits=2)} |",
-              f"| baseline: constant mean pose, mean | {fmt(base['pose']['location_m']['mean'], digits=2)} | "
-              f"{fmt(base['pose']['heading_rad']['mean'], digits=3)} | {fmt(base['pose']['speed_mps']['mean'], digits=2)} |"]
+    lines += [
+        "",
+        f"Ground truths: {det['num_gt']['all']} ({det['num_gt']['visible']} visible, "
+        f"{det['num_gt']['occluded']} occluded: no lidar return). Detections: PIXOR class map -> "
+        f"boxes, top {det['top_k']} centre-cell candidates per frame (cut in "
+        f"{100 * det['topk_saturated_frac']:.1f}% of frames), score >= {det['score_floor']} "
+        f"(AP sweeps the score over this range), centre in the BEV view, greedy NMS at rotated IoU "
+        f"{det['nms_iou']}. Greedy matching by score, each ground truth at most once; all-point AP. "
+        "Occluded / visible rows: recall over that subset, a detection matched to the other subset "
+        "ignored, unmatched detections false positives in both.",
+        "",
+        f"At the operating threshold {det['score_threshold']}: "
+        + ", ".join(
+            f"IoU {t}: precision {fmt(det['at_threshold'][t]['precision'], True)}, recall "
+            f"{fmt(det['at_threshold'][t]['recall'], True)}"
+            for t in thr
+        )
+        + ".",
+        "",
+        "## Table II: ego global pose error",
+        "",
+        "| | Location (m) | Heading (rad) | Speed (m/s) |",
+        "|---|---|---|---|",
+        f"| **this run ({label}), mean** | {fmt(pose['location_m']['mean'], digits=2)} | "
+        f"{fmt(pose['heading_rad']['mean'], digits=3)} | {fmt(pose['speed_mps']['mean'], digits=2)} |",
+        f"| this run, median | {fmt(pose['location_m']['median'], digits=2)} | "
+        f"{fmt(pose['heading_rad']['median'], digits=3)} | {fmt(pose['speed_mps']['median'], digits=2)} |",
+        f"| baseline: constant mean pose, mean | {fmt(base['pose']['location_m']['mean'], digits=2)} | "
+        f"{fmt(base['pose']['heading_rad']['mean'], digits=3)} | {fmt(base['pose']['speed_mps']['mean'], digits=2)} |",
+    ]
     for row, (loc, head) in PAPER_POSE.items():
         mark = " (same variant)" if is_variant and PAPER_VARIANT_ROW.get(variant) == row else ""
         lines.append(f"| paper: {row}{mark} | {loc} | {head} | - |")
     loc, head = pose["location_m"], pose["heading_rad"]
     share = lambda d, bound: fmt(d.get("within", {}).get(bound), True)
     conv = pose.get("converged_frame", {})
-    known = ("known start (the belief starts at the true first pose, then follows the commands through the "
-             "calibrated motion model, measuring places in the training town only)")
-    lines += ["", f"Pose protocol: {known if pose.get('known_start') else 'global (no start pose given)'}"
-              f"{'; the belief head read frame by frame (no filter)' if pose.get('pose_filter') == 'none' else ''}.",
-              "", "| location p90 (m) | within 5 / 10 / 50 m | heading p90 (rad) | within 0.1 rad | "
-              f"drives converged (< {conv['within_m']:g} m to the end), median frame | "
-              "belief NLL of the true pose (nats per m² rad) | drift (m per 100 m driven) |",
-              "|---|---|---|---|---|---|---|",
-              f"| {fmt(loc.get('p90'), digits=2)} | {share(loc, '5')} / {share(loc, '10')} / {share(loc, '50')} | "
-              f"{fmt(head.get('p90'), digits=3)} | {share(head, '0.1')} | {fmt(conv.get('share'), True)}, "
-              f"{fmt(conv.get('median'), digits=0)} | {fmt(pose.get('nll_mean'), digits=2)} | "
-              f"{fmt(pose.get('drift_per_100m'), digits=2)} |"]
+    known = (
+        "known start (the belief starts at the true first pose, then follows the commands through the "
+        "calibrated motion model, measuring places in the training town only)"
+    )
+    lines += [
+        "",
+        f"Pose protocol: {known if pose.get('known_start') else 'global (no start pose given)'}"
+        f"{'; the belief head read frame by frame (no filter)' if pose.get('pose_filter') == 'none' else ''}.",
+        "",
+        "| location p90 (m) | within 5 / 10 / 50 m | heading p90 (rad) | within 0.1 rad | "
+        f"drives converged (< {conv['within_m']:g} m to the end), median frame | "
+        "belief NLL of the true pose (nats per m² rad) | drift (m per 100 m driven) |",
+        "|---|---|---|---|---|---|---|",
+        f"| {fmt(loc.get('p90'), digits=2)} | {share(loc, '5')} / {share(loc, '10')} / {share(loc, '50')} | "
+        f"{fmt(head.get('p90'), digits=3)} | {share(head, '0.1')} | {fmt(conv.get('share'), True)}, "
+        f"{fmt(conv.get('median'), digits=0)} | {fmt(pose.get('nll_mean'), digits=2)} | "
+        f"{fmt(pose.get('drift_per_100m'), digits=2)} |",
+    ]
     cover = pose.get("coverage95")
     if cover:
-        lines += ["", f"The belief's 95 % region holds the true cell in {fmt(cover['place'], True)} of frames and the "
-                  f"true (heading bin, cell) in {fmt(cover['place_heading'], True)} (about 95 % when calibrated)."]
+        lines += [
+            "",
+            f"The belief's 95 % region holds the true cell in {fmt(cover['place'], True)} of frames and the "
+            f"true (heading bin, cell) in {fmt(cover['place_heading'], True)} (about 95 % when calibrated).",
+        ]
     by = pose["location_m_by_step"]
     edges = by["bin_edges"] + [None]
-    lines += ["", "Baseline: always the mean of this drive's true poses (x, y, speed averaged; heading the "
-              "circular mean) and no boxes, an oracle constant that knows where the evaluation drove.",
-              "Heading error wrapped to [0, pi]. The paper's best per column: AP 79.4 / 74.4 / 61.0 / 22.1 %, "
-              "location 7.1 m, heading 0.17 rad.", "",
-              "Location error by time since the start of a drive (does filtering converge?):", "",
-              "| steps since start | frames | mean location error (m) |", "|---|---|---|"]
+    lines += [
+        "",
+        "Baseline: always the mean of this drive's true poses (x, y, speed averaged; heading the "
+        "circular mean) and no boxes, an oracle constant that knows where the evaluation drove.",
+        "Heading error wrapped to [0, pi]. The paper's best per column: AP 79.4 / 74.4 / 61.0 / 22.1 %, "
+        "location 7.1 m, heading 0.17 rad.",
+        "",
+        "Location error by time since the start of a drive (does filtering converge?):",
+        "",
+        "| steps since start | frames | mean location error (m) |",
+        "|---|---|---|",
+    ]
     for i, (count, mean) in enumerate(zip(by["count"], by["mean"])):
         if count:
             hi = edges[i + 1]
             lines.append(f"| {edges[i]}-{hi - 1 if hi is not None else ''} | {count} | {fmt(mean, digits=2)} |")
-    pictured = ", ".join(f"world {x['world']} frame {x['frame']} ({x['vehicles_in_view']} vehicles in view)"
-                      for x in m["examples"])
-    lines += ["", "Pictures: `pr_curves.png` (PR curves per IoU; all / visible / occluded), `examples.png` "
-              f"(the paper's Fig. 6 layout: {pictured or 'none'}), `drive.mp4` (the same panels over world 0's drive)."]
+    pictured = ", ".join(
+        f"world {x['world']} frame {x['frame']} ({x['vehicles_in_view']} vehicles in view)" for x in m["examples"]
+    )
+    lines += [
+        "",
+        "Pictures: `pr_curves.png` (PR curves per IoU; all / visible / occluded), `examples.png` "
+        f"(the paper's Fig. 6 layout: {pictured or 'none'}), `drive.mp4` (the same panels over world 0's drive).",
+    ]
     return "\n".join(lines) + "\n"
 
 
@@ -169,8 +208,18 @@ class Pictures:
     poses, filled in as it goes (the map draws each path up to the pictured frame).
     """
 
-    def __init__(self, town, out_dir: str, drives_true, drives_pred, *, video_frames: int, num_examples: int,
-                 score_threshold: float, panel_px: int = 192):
+    def __init__(
+        self,
+        town,
+        out_dir: str,
+        drives_true,
+        drives_pred,
+        *,
+        video_frames: int,
+        num_examples: int,
+        score_threshold: float,
+        panel_px: int = 192,
+    ):
         self.out_dir, self.video_frames, self.num_examples = out_dir, video_frames, num_examples
         self.drives_true, self.drives_pred = drives_true, drives_pred
         self.score_threshold, self.panel_px = score_threshold, panel_px
@@ -180,8 +229,10 @@ class Pictures:
 
     def _with_map(self, frame, boxes, scores, w, frame_index):
         picture = pictures.example_rows(frame, boxes, scores, self.panel_px)
-        path = lambda poses: poses[w, :frame_index + 1, :2]
-        town_map = pictures.map_panel(self.town_view, path(self.drives_true), path(self.drives_pred), frame.get("pose_place"))
+        path = lambda poses: poses[w, : frame_index + 1, :2]
+        town_map = pictures.map_panel(
+            self.town_view, path(self.drives_true), path(self.drives_pred), frame.get("pose_place")
+        )
         return np.concatenate([picture, town_map], 1)
 
     def add(self, out, t: int, w: int, frame_index: int, boxes, scores):
@@ -191,11 +242,23 @@ class Pictures:
         if w == 0 and frame_index < self.video_frames:
             picture = self._with_map(pictured_frame(out, t, 0), boxes[shown], scores[shown], 0, frame_index)
             px = self.panel_px
-            cv2.putText(picture, f"world 0, frame {frame_index}", (4 * px - 150, 2 * px - 8),
-                        cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
+            cv2.putText(
+                picture,
+                f"world 0, frame {frame_index}",
+                (4 * px - 150, 2 * px - 8),
+                cv2.FONT_HERSHEY_SIMPLEX,
+                0.4,
+                (255, 255, 255),
+                1,
+                cv2.LINE_AA,
+            )
             if self.video is None:
-                self.video = cv2.VideoWriter(os.path.join(self.out_dir, "drive.mp4"), cv2.VideoWriter_fourcc(*"mp4v"),
-                                             10, (picture.shape[1], picture.shape[0]))
+                self.video = cv2.VideoWriter(
+                    os.path.join(self.out_dir, "drive.mp4"),
+                    cv2.VideoWriter_fourcc(*"mp4v"),
+                    10,
+                    (picture.shape[1], picture.shape[0]),
+                )
             self.video.write(cv2.cvtColor(picture, cv2.COLOR_RGB2BGR))
         if w == out["pictured"][t, 1] and self.num_examples:
             self.examples.append((frame_index, w, pictured_frame(out, t, 1), boxes[shown], scores[shown]))
@@ -211,17 +274,24 @@ class Pictures:
             rows = []
             for frame_index, w, frame, boxes, scores in chosen:
                 rows += [self._with_map(frame, boxes, scores, w, frame_index), sep]
-            cv2.imwrite(os.path.join(self.out_dir, "examples.png"),
-                        cv2.cvtColor(np.concatenate(rows[:-1], 0), cv2.COLOR_RGB2BGR))
-        return [{"world": int(w), "frame": int(i), "vehicles_in_view": int(np.sum(frame["boxes_valid"]))}
-                for i, w, frame, _, _ in chosen]
+            cv2.imwrite(
+                os.path.join(self.out_dir, "examples.png"),
+                cv2.cvtColor(np.concatenate(rows[:-1], 0), cv2.COLOR_RGB2BGR),
+            )
+        return [
+            {"world": int(w), "frame": int(i), "vehicles_in_view": int(np.sum(frame["boxes_valid"]))}
+            for i, w, frame, _, _ in chosen
+        ]
 
 
 def pictured_frame(out, t, slot):
     """Frame t of a chunk's ``out`` as seen in pictured slot ``slot`` (0: world 0, 1: the most crowded
     world): its images, reconstructions and ground-truth boxes, as NumPy, for :func:`example_rows`."""
-    frame = {k: np.array(out[k][t, slot]) for k in out
-             if k in ("camera", "lidar", "roadmap", "pose_place") or k.startswith("recon_")}
+    frame = {
+        k: np.array(out[k][t, slot])
+        for k in out
+        if k in ("camera", "lidar", "roadmap", "pose_place") or k.startswith("recon_")
+    }
     w = out["pictured"][t, slot]
     frame.update({k: np.array(out[k][t, w]) for k in ("boxes", "boxes_valid", "boxes_occluded")})
     return frame

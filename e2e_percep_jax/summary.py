@@ -3,6 +3,7 @@
 Used by ``experiments/sweep.py`` (variants x seeds) and ``experiments/compare.py`` (the end-to-end
 variants against the modular baselines, per town). Plain NumPy: it reads JSON and compiles nothing.
 """
+
 import math
 
 import numpy as np

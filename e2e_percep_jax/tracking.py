@@ -32,6 +32,7 @@ Dead reckoning (:func:`dead_reckon`, :class:`DeadReckoner`)
 Everything is float64 NumPy: per-frame host logic with small varying sizes, where JAX dispatch and
 per-shape compilation would dominate (as in ``metrics``).
 """
+
 import dataclasses
 from typing import NamedTuple
 
@@ -173,8 +174,11 @@ def associate(track_boxes, det_boxes, iou_threshold, method="hungarian"):
     else:
         rows = cols = np.zeros(0, np.int64)
     matches = np.stack([rows, cols], axis=1)
-    return (matches, np.setdiff1d(np.arange(num_tracks), rows).astype(np.int64),
-            np.setdiff1d(np.arange(num_dets), cols).astype(np.int64))
+    return (
+        matches,
+        np.setdiff1d(np.arange(num_tracks), rows).astype(np.int64),
+        np.setdiff1d(np.arange(num_dets), cols).astype(np.int64),
+    )
 
 
 def associate_by_centre(track_xy, track_cov_xy, det_xy, meas_cov_xy, gate, method="hungarian"):
@@ -241,6 +245,7 @@ class TrackerConfig:
       at 0.3 m noise) carries the prediction off its car (IoU 0); their wide covariance gives a wide gate,
       while a settled track's gate is tight, so it rarely takes a neighbour's detection.
     """
+
     dt_s: float = DT_S
     accel_std_mps2: float = 3.0
     yaw_rate_std_rps: float = 1.0
@@ -267,20 +272,24 @@ def transition_matrix(dt_s):
 def process_noise(cfg: TrackerConfig):
     """Process noise covariance ``Q [7, 7]`` per step (see :class:`TrackerConfig`)."""
     dt, q = cfg.dt_s, np.zeros((STATE_DIM, STATE_DIM))
-    var_a = cfg.accel_std_mps2 ** 2
+    var_a = cfg.accel_std_mps2**2
     for p, vel in ((0, 5), (1, 6)):
-        q[p, p] = var_a * dt ** 4 / 4
-        q[p, vel] = q[vel, p] = var_a * dt ** 3 / 2
-        q[vel, vel] = var_a * dt ** 2
+        q[p, p] = var_a * dt**4 / 4
+        q[p, vel] = q[vel, p] = var_a * dt**3 / 2
+        q[vel, vel] = var_a * dt**2
     q[2, 2] = (cfg.yaw_rate_std_rps * dt) ** 2
-    q[3, 3] = q[4, 4] = cfg.size_std_m ** 2
+    q[3, 3] = q[4, 4] = cfg.size_std_m**2
     return q
 
 
 def measurement_noise(cfg: TrackerConfig):
     """Detection noise covariance ``R [5, 5]`` of a box (x, y, yaw, length, width)."""
-    return np.diag([cfg.meas_pos_std_m, cfg.meas_pos_std_m, cfg.meas_yaw_std_rad, cfg.meas_size_std_m,
-                    cfg.meas_size_std_m]).astype(np.float64) ** 2
+    return (
+        np.diag(
+            [cfg.meas_pos_std_m, cfg.meas_pos_std_m, cfg.meas_yaw_std_rad, cfg.meas_size_std_m, cfg.meas_size_std_m]
+        ).astype(np.float64)
+        ** 2
+    )
 
 
 def initial_state(det_boxes, cfg: TrackerConfig):
@@ -290,7 +299,7 @@ def initial_state(det_boxes, cfg: TrackerConfig):
     mean = np.concatenate([det_boxes, np.zeros((len(det_boxes), 2))], axis=1)
     cov0 = np.zeros((STATE_DIM, STATE_DIM))
     cov0[:5, :5] = measurement_noise(cfg)
-    cov0[5, 5] = cov0[6, 6] = cfg.init_speed_std_mps ** 2
+    cov0[5, 5] = cov0[6, 6] = cfg.init_speed_std_mps**2
     return mean, np.broadcast_to(cov0, (len(det_boxes), STATE_DIM, STATE_DIM)).copy()
 
 
@@ -320,6 +329,7 @@ def kf_update(mean, cov, boxes, r):
 class TrackerOutput(NamedTuple):
     """Reported (confirmed) tracks of one frame: boxes float64 ``[M, 5]`` in that frame's ego frame, scores
     ``[M]`` in [0, 1] (the AP score), track_ids int64 ``[M]``; ordered by track id."""
+
     boxes: np.ndarray
     scores: np.ndarray
     track_ids: np.ndarray
@@ -380,13 +390,20 @@ class Tracker:
         self.num_frames += 1
 
         matches, unmatched_tracks, unmatched_dets = associate(
-            self.mean[:, :5], det_town, cfg.iou_threshold, cfg.association)
-        second = associate_by_centre(self.mean[unmatched_tracks, :2], self.cov[unmatched_tracks, :2, :2],
-                                     det_town[unmatched_dets, :2], self._r[:2, :2], cfg.centre_gate,
-                                     cfg.association)
+            self.mean[:, :5], det_town, cfg.iou_threshold, cfg.association
+        )
+        second = associate_by_centre(
+            self.mean[unmatched_tracks, :2],
+            self.cov[unmatched_tracks, :2, :2],
+            det_town[unmatched_dets, :2],
+            self._r[:2, :2],
+            cfg.centre_gate,
+            cfg.association,
+        )
         if len(second):
-            matches = np.concatenate([matches, np.stack([unmatched_tracks[second[:, 0]],
-                                                         unmatched_dets[second[:, 1]]], axis=1)])
+            matches = np.concatenate(
+                [matches, np.stack([unmatched_tracks[second[:, 0]], unmatched_dets[second[:, 1]]], axis=1)]
+            )
             unmatched_tracks = np.setdiff1d(unmatched_tracks, matches[:, 0])
             unmatched_dets = np.setdiff1d(unmatched_dets, matches[:, 1])
         t_idx, d_idx = matches[:, 0], matches[:, 1]
@@ -438,8 +455,10 @@ def noisy_odometry(poses, speed_noise_std_mps, yaw_rate_noise_std_rps, rng: np.r
     """:func:`odometry_from_poses` plus independent zero-mean Gaussian noise of the given stds per sample
     (unclipped: a noisy speed may be negative, so the noise stays unbiased at standstill)."""
     speed, yaw_rate = odometry_from_poses(poses, dt_s)
-    return (speed + speed_noise_std_mps * rng.standard_normal(speed.shape),
-            yaw_rate + yaw_rate_noise_std_rps * rng.standard_normal(yaw_rate.shape))
+    return (
+        speed + speed_noise_std_mps * rng.standard_normal(speed.shape),
+        yaw_rate + yaw_rate_noise_std_rps * rng.standard_normal(yaw_rate.shape),
+    )
 
 
 def dead_reckon(start_pose, speed_mps, yaw_rate_rps, dt_s=DT_S, wheelbase_m=WHEELBASE_M):

@@ -26,6 +26,7 @@ counters), ``checkpoints/<step>`` (orbax; every ``checkpoint_every`` steps and a
 tensorboardX installed TensorBoard event files of the same records and of reconstructions and the pose
 belief at every checkpoint (:mod:`e2e_percep_jax.board`).
 """
+
 import contextlib
 import dataclasses
 import functools
@@ -35,7 +36,7 @@ import signal
 import sys
 import threading
 import time
-from typing import Callable, Iterator
+from collections.abc import Callable, Iterator
 
 import jax
 import jax.numpy as jnp
@@ -53,8 +54,15 @@ from e2e_percep_jax.sim import batch as batch_lib
 from e2e_percep_jax.sim import town as town_lib
 from e2e_percep_jax.sim import world
 from e2e_percep_jax.sim.motion import MotionModel
-from e2e_percep_jax.train_state import (PERCEPTION, CarriedTrainState, Objective, TrainState, init_state, model_keys,
-                                        optimizer)
+from e2e_percep_jax.train_state import (
+    PERCEPTION,
+    CarriedTrainState,
+    Objective,
+    TrainState,
+    init_state,
+    model_keys,
+    optimizer,
+)
 
 Batches = Callable[[int], Iterator[tuple[int, dict]]]  # start_step -> (step, batch) from start_step on
 
@@ -67,8 +75,10 @@ class TrainingInterrupted(Exception):
     """SIGTERM / SIGINT arrived; a checkpoint of the last completed step was written."""
 
     def __init__(self, signum: int, step: int):
-        super().__init__(f"interrupted by {signal.Signals(signum).name} at step {step}; checkpoint saved, "
-                         "rerun the same command to resume")
+        super().__init__(
+            f"interrupted by {signal.Signals(signum).name} at step {step}; checkpoint saved, "
+            "rerun the same command to resume"
+        )
         self.signum, self.step = signum, step
 
 
@@ -96,15 +106,17 @@ def _carried_loss(state: CarriedTrainState, batch: dict, key: jax.Array, cfg: Co
     first = jnp.full(carried["action"].shape[:1], segment == 0)
     start = ({"z1": carried["z1"], "z2": carried["z2"], "first": first}, carried["action"])
     (total, (metrics, (end, action))), grads = jax.value_and_grad(loss_lib.sequence_loss, has_aux=True)(
-        state.params, batch, key, cfg, start)
+        state.params, batch, key, cfg, start
+    )
     ended = {"z1": end["z1"], "z2": end["z2"], "action": action}
     # A non-finite end (a skipped step's) would poison the chain: its rows restart from zeros.
     carry = jax.tree.map(lambda c, e: c.at[slot].set(jnp.where(jnp.isfinite(e), e, 0.0)), state.carry, ended)
     return ((total, metrics), grads), carry
 
 
-def train_step(state: TrainState, batch: dict, key: jax.Array, cfg: Config,
-               objective: Objective = PERCEPTION) -> tuple[TrainState, dict]:
+def train_step(
+    state: TrainState, batch: dict, key: jax.Array, cfg: Config, objective: Objective = PERCEPTION
+) -> tuple[TrainState, dict]:
     """One Adam step of ``objective`` on ``batch`` ([B, T+1, ...] frame contract) with latent noise ``key``.
 
     A non-finite loss or gradient norm skips the update (params and optimizer state unchanged) and
@@ -121,13 +133,14 @@ def train_step(state: TrainState, batch: dict, key: jax.Array, cfg: Config,
     apply = finite & ~halted
     updates, opt_state = optimizer(cfg).update(grads, state.opt_state, state.params)
     in_a_row = jnp.where(halted, state.nonfinite_in_a_row, jnp.where(finite, 0, state.nonfinite_in_a_row + 1))
-    state = state.replace(step=state.step + 1,
-                          params=optax.tree.where(apply, optax.apply_updates(state.params, updates), state.params),
-                          opt_state=optax.tree.where(apply, opt_state, state.opt_state),
-                          nonfinite_in_a_row=in_a_row,
-                          nonfinite_total=state.nonfinite_total + (~finite).astype(jnp.int32))
-    return state, dict(metrics, grad_norm=grad_norm, nonfinite_in_a_row=in_a_row,
-                       nonfinite_total=state.nonfinite_total)
+    state = state.replace(
+        step=state.step + 1,
+        params=optax.tree.where(apply, optax.apply_updates(state.params, updates), state.params),
+        opt_state=optax.tree.where(apply, opt_state, state.opt_state),
+        nonfinite_in_a_row=in_a_row,
+        nonfinite_total=state.nonfinite_total + (~finite).astype(jnp.int32),
+    )
+    return state, dict(metrics, grad_norm=grad_norm, nonfinite_in_a_row=in_a_row, nonfinite_total=state.nonfinite_total)
 
 
 def make_mesh(devices=None) -> Mesh:
@@ -160,8 +173,12 @@ def step_config(cfg: Config) -> Config:
     data = {"image_size": cfg.data.image_size}
     if cfg.data.carry_state:  # the step picks the batch's drive slot and segment
         data.update(carry_state=True, batches_per_drive=cfg.data.batches_per_drive)
-    return dataclasses.replace(Config(), model=cfg.model, data=dataclasses.replace(Config().data, **data),
-                               train=dataclasses.replace(cfg.train, **unread))
+    return dataclasses.replace(
+        Config(),
+        model=cfg.model,
+        data=dataclasses.replace(Config().data, **data),
+        train=dataclasses.replace(cfg.train, **unread),
+    )
 
 
 def make_train_step(cfg: Config, mesh: Mesh, objective: Objective = PERCEPTION):
@@ -172,9 +189,12 @@ def make_train_step(cfg: Config, mesh: Mesh, objective: Objective = PERCEPTION):
 @functools.cache  # the same jitted object for the same (step config, mesh, objective): compiled once
 def _jitted_train_step(cfg: Config, mesh: Mesh, objective: Objective):
     replicated, sharded = NamedSharding(mesh, PartitionSpec()), NamedSharding(mesh, PartitionSpec("data"))
-    return jax.jit(lambda state, batch, key: train_step(state, batch, key, cfg, objective),
-                   in_shardings=(replicated, sharded, replicated), out_shardings=replicated,
-                   donate_argnums=0)
+    return jax.jit(
+        lambda state, batch, key: train_step(state, batch, key, cfg, objective),
+        in_shardings=(replicated, sharded, replicated),
+        out_shardings=replicated,
+        donate_argnums=0,
+    )
 
 
 def world_batches(cfg: Config) -> Batches:
@@ -196,11 +216,13 @@ def check_run(cfg: Config, workdir: str, objective: Objective = PERCEPTION) -> i
         raise ValueError("--data.carry_state: only the perception model carries a filter state across segments")
     n_devices = jax.device_count()
     if cfg.data.batch_size % n_devices:
-        raise ValueError(f"--data.batch_size={cfg.data.batch_size} must be a multiple of the number of "
-                         f"devices ({n_devices})")
+        raise ValueError(
+            f"--data.batch_size={cfg.data.batch_size} must be a multiple of the number of devices ({n_devices})"
+        )
     if cfg.data.place_frames % n_devices:
-        raise ValueError(f"--data.place_frames={cfg.data.place_frames} must be a multiple of the number of "
-                         f"devices ({n_devices})")
+        raise ValueError(
+            f"--data.place_frames={cfg.data.place_frames} must be a multiple of the number of devices ({n_devices})"
+        )
     return checkpoint.check_resumable(cfg, workdir)
 
 
@@ -266,8 +288,7 @@ def ensure_motion_model(cfg: Config, workdir: str) -> MotionModel:
         return model
 
 
-def train(cfg: Config, workdir: str, batches: Batches | None = None,
-          objective: Objective = PERCEPTION) -> TrainState:
+def train(cfg: Config, workdir: str, batches: Batches | None = None, objective: Objective = PERCEPTION) -> TrainState:
     """Trains ``objective`` (default: the perception model) under ``cfg`` in ``workdir`` up to
     ``cfg.train.num_steps``, resuming from its latest checkpoint.
 
@@ -312,7 +333,8 @@ def train(cfg: Config, workdir: str, batches: Batches | None = None,
             raise NonFiniteLossError(
                 f"stopping at step {step}: {in_a_row} non-finite losses in a row "
                 f"(--train.max_nonfinite_in_a_row={t.max_nonfinite_in_a_row}); they updated nothing; "
-                f"last checkpoint kept: step {manager.latest_step()}")
+                f"last checkpoint kept: step {manager.latest_step()}"
+            )
 
     with _StopSignals() as stop, manager:  # closing the manager waits for pending saves
         for step, batch in stream:
@@ -332,15 +354,22 @@ def train(cfg: Config, workdir: str, batches: Batches | None = None,
                 records = _host(pending)
                 now = time.perf_counter()
                 steps_per_s = len(pending) / (now - tick)
-                record = {"step": done, **{k: float(np.mean([r[k] for r in records])) for k in records[0]},
-                          "nonfinite_in_a_row": int(records[-1]["nonfinite_in_a_row"]),
-                          "nonfinite_total": int(records[-1]["nonfinite_total"]), "steps_per_s": steps_per_s}
+                record = {
+                    "step": done,
+                    **{k: float(np.mean([r[k] for r in records])) for k in records[0]},
+                    "nonfinite_in_a_row": int(records[-1]["nonfinite_in_a_row"]),
+                    "nonfinite_total": int(records[-1]["nonfinite_total"]),
+                    "steps_per_s": steps_per_s,
+                }
                 board.scalars(record, t.learning_rate)
                 if main_process:
                     with open(metrics_path, "a") as f:
                         f.write(json.dumps(record) + "\n")
-                    print(f"step {done}/{t.num_steps}  loss {record['total']:.6g}  {steps_per_s:.2f} steps/s  "
-                          f"ETA {_eta((t.num_steps - done) / steps_per_s)}", flush=True)
+                    print(
+                        f"step {done}/{t.num_steps}  loss {record['total']:.6g}  {steps_per_s:.2f} steps/s  "
+                        f"ETA {_eta((t.num_steps - done) / steps_per_s)}",
+                        flush=True,
+                    )
                 pending, tick = [], now
                 check_finite(done)
             if done % t.checkpoint_every == 0:
@@ -348,8 +377,14 @@ def train(cfg: Config, workdir: str, batches: Batches | None = None,
                 save(done)
                 # (single-process runs only: the preview is a computation every process would have to run)
                 if board.writer is not None and objective is PERCEPTION and jax.process_count() == 1:
-                    board.images(done, jax.device_get(board_lib.preview(
-                        state.params, *(batch[k] for k in ("camera", "lidar", "roadmap", "action", "pose")), cfg)))
+                    board.images(
+                        done,
+                        jax.device_get(
+                            board_lib.preview(
+                                state.params, *(batch[k] for k in ("camera", "lidar", "roadmap", "action", "pose")), cfg
+                            )
+                        ),
+                    )
         final_step = int(_host(state.step))
         check_finite(final_step)
         save(final_step)

@@ -3,7 +3,9 @@
 Shared by :mod:`~e2e_percep_jax.train` (which steps the state) and :mod:`~e2e_percep_jax.checkpoint`
 (which restores it, and so needs its structure).
 """
-from typing import Any, Callable, NamedTuple
+
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import flax.struct
 import jax
@@ -21,6 +23,7 @@ class Objective(NamedTuple):
     """What is trained: ``init_params(key, cfg) -> params`` and ``loss_fn(params, batch, key, cfg) ->
     (total, metrics)`` (metrics hold ``total``). Hashable (module-level functions), so a train step is
     compiled once per objective; the baselines plug their own in."""
+
     init_params: Callable
     loss_fn: Callable
 
@@ -35,6 +38,7 @@ class TrainState(flax.struct.PyTreeNode):
     nonfinite_in_a_row / nonfinite_total: int32 [], skipped updates. Once ``nonfinite_in_a_row``
     reaches ``max_nonfinite_in_a_row`` it stays there and no further update is applied.
     """
+
     step: jax.Array
     params: Any
     opt_state: Any
@@ -47,6 +51,7 @@ class CarriedTrainState(TrainState):
     ``batches_per_drive``), where its drive's last segment left the latent filter: carry = {z1 [K, B,
     z1_dim], z2 [K, B, z2_dim] (the last frame's samples), action [K, B, 2] (from that frame to the
     next segment's first)}. Saved with the rest, so a resumed run continues its chains exactly."""
+
     carry: Any
 
 
@@ -72,6 +77,11 @@ def model_keys(seed: int) -> tuple[jax.Array, jax.Array]:
 def init_state(cfg: Config, objective: Objective = PERCEPTION) -> TrainState:
     params = objective.init_params(model_keys(cfg.train.seed)[0], cfg)
     zero = lambda: jnp.zeros((), jnp.int32)  # distinct buffers: the state is donated to the step
-    fields = dict(step=zero(), params=params, opt_state=optimizer(cfg).init(params), nonfinite_in_a_row=zero(),
-                  nonfinite_total=zero())
+    fields = dict(
+        step=zero(),
+        params=params,
+        opt_state=optimizer(cfg).init(params),
+        nonfinite_in_a_row=zero(),
+        nonfinite_total=zero(),
+    )
     return CarriedTrainState(**fields, carry=_empty_carry(cfg)) if cfg.data.carry_state else TrainState(**fields)

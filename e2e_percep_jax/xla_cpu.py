@@ -14,6 +14,7 @@ never overrides a choice already made: if ``XLA_FLAGS`` names the flag, it is le
 An XLA that does not know the flag aborts at start-up, so it is set only for the jaxlib versions where
 it was measured (:data:`MEASURED_JAXLIB`).
 """
+
 import os
 
 FLAG = "--xla_cpu_experimental_ynn_fusion_type"
@@ -27,6 +28,7 @@ def jaxlib_measured() -> bool:
     """Whether the installed jaxlib is in :data:`MEASURED_JAXLIB` (reads a version string only:
     importing ``jaxlib.version`` starts no backend)."""
     from jaxlib import version
+
     first, past_last = MEASURED_JAXLIB
     return first <= tuple(version.__version_info__[:2]) < past_last
 
@@ -50,6 +52,7 @@ def convolution_path() -> str:
     the backend), else the backend's name."""
     import jax
     import jax.numpy as jnp
+
     if jax.default_backend() != "cpu":
         return jax.default_backend()
     x = jax.ShapeDtypeStruct((8, 32, 32, 32), jnp.float32)

@@ -11,13 +11,13 @@ tracker evaluates the detector's run (trained first if needed); the odometry bas
 metrics.json, pr_curves.png, examples.png, drive.mp4. A bad flag prints one line naming it and exits
 with status 1 before anything is compiled.
 """
+
 import os
 import sys
 
 from absl import app, flags
 
-from e2e_percep_jax import allocator, xla_cpu
-from e2e_percep_jax import baselines, report
+from e2e_percep_jax import allocator, baselines, report, xla_cpu
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import train as train_lib
 

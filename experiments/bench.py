@@ -12,6 +12,7 @@ frames/s over the peer's. ``frames_parts`` and ``train_parts`` are the profiles 
 ``train``: the same work split into its parts; ``train_profile`` is the step's per-op profile beside the
 peer's. ``--noeigen_convolutions`` measures XLA's default convolution path instead of the launchers'.
 """
+
 import bisect
 import collections
 import glob
@@ -42,28 +43,58 @@ from e2e_percep_jax.sim import geometry as geo
 from e2e_percep_jax.sim import pixor, rollout, sensors, world
 from e2e_percep_jax.sim.town import build_town
 
-BENCHMARKS = ("world", "frames", "frames_parts", "batch", "loop", "train", "place", "train_parts", "train_profile", "deconv", "infer", "compile", "eval", "memory")
+BENCHMARKS = (
+    "world",
+    "frames",
+    "frames_parts",
+    "batch",
+    "loop",
+    "train",
+    "place",
+    "train_parts",
+    "train_profile",
+    "deconv",
+    "infer",
+    "compile",
+    "eval",
+    "memory",
+)
 _REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PEER_SCRIPT = os.path.join(_REPO, "..", "shared", "peer", "torch_peer_bench.py")
 
 flags.DEFINE_list("what", list(BENCHMARKS), f"benchmarks to run, any of {BENCHMARKS}")
 flags.DEFINE_string("out_dir", "runs/bench", "one <benchmark>.json per figure goes here")
-flags.DEFINE_integer("repeats", 5, "timed runs per figure, at least (short figures get more, to fill 1 s); the median is reported")
+flags.DEFINE_integer(
+    "repeats", 5, "timed runs per figure, at least (short figures get more, to fill 1 s); the median is reported"
+)
 flags.DEFINE_list("train_sizes", ["8x10x64", "4x10x128"], "BxTxR of the training-step figures")
 flags.DEFINE_integer("peer_rounds", 3, "train: rounds of (ours, the peer) alternated, each of --repeats steps")
-flags.DEFINE_string("peer_python", os.path.join(_REPO, ".venv-peer", "bin", "python"),
-                    "python with torch for the peer benchmark; empty: skip the peer")
+flags.DEFINE_string(
+    "peer_python",
+    os.path.join(_REPO, ".venv-peer", "bin", "python"),
+    "python with torch for the peer benchmark; empty: skip the peer",
+)
 flags.DEFINE_integer("num_worlds", 32, "worlds stepped in parallel (world) / frames observed at once (frames)")
 flags.DEFINE_integer("frames_image_size", 128, "R of the frames benchmark")
 flags.DEFINE_list("compile_seq_lens", ["10", "50"], "T values of the paper-config compile-time figure")
 flags.DEFINE_integer("infer_batch", 64, "batch of the inference throughput figure (latency is at batch 1)")
-flags.DEFINE_integer("batches_per_drive", None, "K of the batch figure's stream (drives feed K batches each); default: the cpu preset's")
+flags.DEFINE_integer(
+    "batches_per_drive", None, "K of the batch figure's stream (drives feed K batches each); default: the cpu preset's"
+)
 flags.DEFINE_list("place_frames", ["32"], "place: P of the place stream's figures, beside P = 0")
 flags.DEFINE_integer("memory_steps", 300, "training steps of the cpu-config run whose resident memory is sampled")
-flags.DEFINE_boolean("keep_freed_buffers", True, "reuse freed buffers as the launchers do (allocator.py), "
-                     "here and in the peer; --nokeep_freed_buffers measures glibc's default")
-flags.DEFINE_boolean("eigen_convolutions", True, "run convolutions on XLA:CPU's Eigen path as the launchers do "
-                     "(xla_cpu.py); --noeigen_convolutions measures XLA's default")
+flags.DEFINE_boolean(
+    "keep_freed_buffers",
+    True,
+    "reuse freed buffers as the launchers do (allocator.py), "
+    "here and in the peer; --nokeep_freed_buffers measures glibc's default",
+)
+flags.DEFINE_boolean(
+    "eigen_convolutions",
+    True,
+    "run convolutions on XLA:CPU's Eigen path as the launchers do "
+    "(xla_cpu.py); --noeigen_convolutions measures XLA's default",
+)
 FLAGS = flags.FLAGS
 
 
@@ -92,9 +123,12 @@ def _size(spec: str) -> tuple:
 def _paper_config(batch_size, seq_len, image_size):
     """The paper's network (default widths) at the given (B, T, R), without the place stream: the peer's
     model and batch (``--what=place`` adds the stream)."""
-    return config_lib.validate(config_lib.replace(
-        config_lib.get_config("paper"),
-        data=dict(batch_size=batch_size, seq_len=seq_len, image_size=image_size, place_frames=0)))
+    return config_lib.validate(
+        config_lib.replace(
+            config_lib.get_config("paper"),
+            data=dict(batch_size=batch_size, seq_len=seq_len, image_size=image_size, place_frames=0),
+        )
+    )
 
 
 def _warm_worlds(town, num_worlds, cfg):
@@ -109,8 +143,12 @@ def bench_world(town, repeats):
     states = _warm_worlds(town, FLAGS.num_worlds, cfg)
     run = jax.jit(jax.vmap(lambda s: rollout.advance(s, town, steps)))
     median = _median_s(lambda: run(states), repeats)
-    return {"num_worlds": FLAGS.num_worlds, "num_vehicles": cfg.world.num_vehicles, "steps_per_run": steps,
-            "world_steps_per_s": FLAGS.num_worlds * steps / median}
+    return {
+        "num_worlds": FLAGS.num_worlds,
+        "num_vehicles": cfg.world.num_vehicles,
+        "steps_per_run": steps,
+        "world_steps_per_s": FLAGS.num_worlds * steps / median,
+    }
 
 
 FRAMES_SECONDS = 6  # the frames figure's one-second blocks
@@ -127,8 +165,13 @@ def bench_frames(town, repeats):
     observe = jax.jit(jax.vmap(lambda s: sensors.observe(s, town, r)))
     blocks_s = [_median_s(lambda: observe(states), repeats) for _ in range(FRAMES_SECONDS)]
     per_s = lambda seconds: FLAGS.num_worlds / seconds
-    return {"image_size": r, "frames_at_once": FLAGS.num_worlds, "frames_per_s": per_s(statistics.median(blocks_s)),
-            "slowest_second_frames_per_s": per_s(max(blocks_s)), "fastest_second_frames_per_s": per_s(min(blocks_s))}
+    return {
+        "image_size": r,
+        "frames_at_once": FLAGS.num_worlds,
+        "frames_per_s": per_s(statistics.median(blocks_s)),
+        "slowest_second_frames_per_s": per_s(max(blocks_s)),
+        "fastest_second_frames_per_s": per_s(min(blocks_s)),
+    }
 
 
 def bench_frames_parts(town, repeats):
@@ -140,8 +183,11 @@ def bench_frames_parts(town, repeats):
 
     def in_ego_frame(state):
         ego = state.veh_box[world.EGO]
-        return (ego, geo.box_to_ego(state.veh_box[1:], ego[:2], ego[2]),
-                geo.box_to_ego(town_j.building_box, ego[:2], ego[2]))
+        return (
+            ego,
+            geo.box_to_ego(state.veh_box[1:], ego[:2], ego[2]),
+            geo.box_to_ego(town_j.building_box, ego[:2], ego[2]),
+        )
 
     def lidar(state):
         _, boxes, buildings = in_ego_frame(state)
@@ -149,19 +195,26 @@ def bench_frames_parts(town, repeats):
 
     def camera(state):
         ego, boxes, buildings = in_ego_frame(state)
-        return sensors.render_camera(sensors.camera_obstacles(state, town_j, buildings, boxes), town_j,
-                                     ego[:2], ego[2], r)
+        return sensors.render_camera(
+            sensors.camera_obstacles(state, town_j, buildings, boxes), town_j, ego[:2], ego[2], r
+        )
 
     def roadmap(state):
         ego = state.veh_box[world.EGO]
         return sensors.render_roadmap(town_j, ego[:2], ego[2], ego[3], ego[4], r)
 
-    parts = {"lidar": lidar, "camera": camera, "roadmap": roadmap,
-             "pixor_targets": lambda state: pixor.targets(in_ego_frame(state)[1], r)}
+    parts = {
+        "lidar": lidar,
+        "camera": camera,
+        "roadmap": roadmap,
+        "pixor_targets": lambda state: pixor.targets(in_ego_frame(state)[1], r),
+    }
     figure = {"image_size": r, "frames_at_once": FLAGS.num_worlds}
     for name, fn in parts.items():
         run = jax.jit(jax.vmap(fn))
-        figure[f"{name}_core_us_per_frame"] = 1e6 * os.cpu_count() * _median_s(lambda: run(states), repeats) / FLAGS.num_worlds
+        figure[f"{name}_core_us_per_frame"] = (
+            1e6 * os.cpu_count() * _median_s(lambda: run(states), repeats) / FLAGS.num_worlds
+        )
     return figure
 
 
@@ -199,16 +252,23 @@ def bench_batch(town, repeats):
     fresh_batch_s = _median_s(lambda: batch_lib.make_batch(key, town, cfg), repeats)
     _, run, _ = _train_step_runner(cfg, batch_lib.make_batch(key, town, cfg))
     step_s = _median_s(run, repeats)
+
     # The stream's first K batches are K warm-ups: time a whole cycle (K^2 batches: K drives, each its
     # warm-up and K segments, served in turn).
     def cycle():
         stream = batch_lib.batch_stream(town, cfg, seed=0)
-        return [b["camera"] for _, b in itertools.islice(stream, per_drive ** 2)]
+        return [b["camera"] for _, b in itertools.islice(stream, per_drive**2)]
 
-    stream_batch_s = _median_s(cycle, repeats) / per_drive ** 2
-    return {"config": "cpu", "train_step_s": step_s, "batches_per_drive": per_drive,
-            "stream_batch_s": stream_batch_s, "stream_batch_over_step": stream_batch_s / step_s,
-            "fresh_batch_s": fresh_batch_s, "fresh_batch_over_step": fresh_batch_s / step_s}
+    stream_batch_s = _median_s(cycle, repeats) / per_drive**2
+    return {
+        "config": "cpu",
+        "train_step_s": step_s,
+        "batches_per_drive": per_drive,
+        "stream_batch_s": stream_batch_s,
+        "stream_batch_over_step": stream_batch_s / step_s,
+        "fresh_batch_s": fresh_batch_s,
+        "fresh_batch_over_step": fresh_batch_s / step_s,
+    }
 
 
 def bench_loop(town, repeats):
@@ -220,12 +280,13 @@ def bench_loop(town, repeats):
     per_drive = cfg.data.batches_per_drive
     fixed = batch_lib.make_batch(jax.random.PRNGKey(0), town, cfg)
     _, train_step, _ = _train_step_runner(cfg, fixed)
-    steps, mesh = per_drive ** 2, train_lib.make_mesh()
+    steps, mesh = per_drive**2, train_lib.make_mesh()
 
     def run(batches):
         start = time.perf_counter()
-        jax.block_until_ready([train_step(train_lib.shard_batch(batch, mesh))
-                               for _, batch in itertools.islice(batches, steps)])
+        jax.block_until_ready(
+            [train_step(train_lib.shard_batch(batch, mesh)) for _, batch in itertools.islice(batches, steps)]
+        )
         return (time.perf_counter() - start) / steps
 
     run(batch_lib.batch_stream(town, cfg, seed=0))  # compiles the stream's functions
@@ -234,8 +295,14 @@ def bench_loop(town, repeats):
         fixed_s.append(run(itertools.repeat((None, fixed))))
         stream_s.append(run(batch_lib.batch_stream(town, cfg, seed=0, start_step=(pair + 1) * steps)))
     fixed_s, stream_s = statistics.median(fixed_s), statistics.median(stream_s)
-    return {"config": "cpu", "batches_per_drive": per_drive, "steps_per_run": steps, "fixed_batch_step_s": fixed_s,
-            "stream_step_s": stream_s, "stream_overhead": stream_s / fixed_s - 1}
+    return {
+        "config": "cpu",
+        "batches_per_drive": per_drive,
+        "steps_per_run": steps,
+        "fixed_batch_step_s": fixed_s,
+        "stream_step_s": stream_s,
+        "stream_overhead": stream_s / fixed_s - 1,
+    }
 
 
 def _run_peer(script, *args):
@@ -243,14 +310,20 @@ def _run_peer(script, *args):
     if not FLAGS.peer_python or not os.path.exists(FLAGS.peer_python):
         return None
     # The peer's allocator keeps freed buffers as ours does (allocator.py), so neither pays page faults the other does not.
-    out = subprocess.run([FLAGS.peer_python, script, *map(str, args)], check=True, capture_output=True, text=True,
-                         env={**os.environ, "GLIBC_TUNABLES": allocator.GLIBC_TUNABLES if FLAGS.keep_freed_buffers else ""}).stdout
+    out = subprocess.run(
+        [FLAGS.peer_python, script, *map(str, args)],
+        check=True,
+        capture_output=True,
+        text=True,
+        env={**os.environ, "GLIBC_TUNABLES": allocator.GLIBC_TUNABLES if FLAGS.keep_freed_buffers else ""},
+    ).stdout
     return json.loads(out.strip().splitlines()[-1])
 
 
 def _peer(batch_size, seq_len, image_size, repeats):
-    return _run_peer(PEER_SCRIPT, "--batch", batch_size, "--seq-len", seq_len, "--image-size", image_size,
-                     "--steps", repeats)
+    return _run_peer(
+        PEER_SCRIPT, "--batch", batch_size, "--seq-len", seq_len, "--image-size", image_size, "--steps", repeats
+    )
 
 
 def bench_train(town, repeats):
@@ -268,14 +341,27 @@ def bench_train(town, repeats):
             peers.append(_peer(b, t, r, repeats))
         step_s = statistics.median(ours_s)
         params = sum(x.size for x in jax.tree.leaves(jax.eval_shape(model_lib.init_params, jax.random.PRNGKey(0), cfg)))
-        figure = {"batch": b, "seq_len": t, "image_size": r, "params": params, "compile_s": compile_s,
-                  "step_s_median": step_s, "step_s_rounds": ours_s, "frames_per_s": b * (t + 1) / step_s}
+        figure = {
+            "batch": b,
+            "seq_len": t,
+            "image_size": r,
+            "params": params,
+            "compile_s": compile_s,
+            "step_s_median": step_s,
+            "step_s_rounds": ours_s,
+            "frames_per_s": b * (t + 1) / step_s,
+        }
         if peers[0] is not None:
             peer_s = [peer["step_s_median"] for peer in peers]
-            figure.update(peer_step_s_median=statistics.median(peer_s), peer_step_s_rounds=peer_s,
-                          peer_frames_per_s=b * (t + 1) / statistics.median(peer_s), peer_params=peers[0]["params"],
-                          peer_threads=peers[0]["threads"], ratio_vs_peer=statistics.median(peer_s) / step_s,
-                          ratio_vs_peer_rounds=[p / o for p, o in zip(peer_s, ours_s)])
+            figure.update(
+                peer_step_s_median=statistics.median(peer_s),
+                peer_step_s_rounds=peer_s,
+                peer_frames_per_s=b * (t + 1) / statistics.median(peer_s),
+                peer_params=peers[0]["params"],
+                peer_threads=peers[0]["threads"],
+                ratio_vs_peer=statistics.median(peer_s) / step_s,
+                ratio_vs_peer_rounds=[p / o for p, o in zip(peer_s, ours_s)],
+            )
         figures.append(figure)
     return {"sizes": figures}
 
@@ -318,7 +404,8 @@ def bench_place(town, repeats):
             figure["peer_step_s_median"] = statistics.median(peer["step_s_median"] for peer in peers)
             for p, times in rounds.items():
                 figure[f"ratio_vs_peer_place{p}"] = statistics.median(
-                    [peer["step_s_median"] / x for peer, x in zip(peers, times)])
+                    [peer["step_s_median"] / x for peer, x in zip(peers, times)]
+                )
         figures.append(figure)
     return {"sizes": figures}
 
@@ -337,7 +424,8 @@ def bench_train_parts(town, repeats):
     parts = {
         "loss": lambda p: train_lib.loss_lib.loss_fn(p, batch, key, cfg)[0],
         "encoders_and_scan": lambda p: total(
-            model_lib.filter_sequence(p, batch["camera"], batch["lidar"], batch["action"], key, cfg)),
+            model_lib.filter_sequence(p, batch["camera"], batch["lidar"], batch["action"], key, cfg)
+        ),
         "decoders": lambda p: total(model_lib.decode(p, z, cfg)),
     }
     figure = {"batch": b, "seq_len": t, "image_size": r}
@@ -351,8 +439,13 @@ def bench_train_parts(town, repeats):
 # they were traced in) contains; the first match wins. An op with op_name but no match is the optimizer's
 # (the update after the gradient: Adam, clipping, the finite-step guard); one without op_name was made by
 # XLA itself ("made by XLA": layout-changing copies and transposes, convolutions it rewrote).
-PROFILE_PARTS = (("encoders", "_encoder/"), ("latent scan", "while/body"), ("decoders", "PerceptionModel.decode"),
-                 ("pose belief", "pose_belief"), ("losses", "loss_fn"))
+PROFILE_PARTS = (
+    ("encoders", "_encoder/"),
+    ("latent scan", "while/body"),
+    ("decoders", "PerceptionModel.decode"),
+    ("pose belief", "pose_belief"),
+    ("losses", "loss_fn"),
+)
 
 
 def _op_parts(hlo_text):
@@ -362,8 +455,11 @@ def _op_parts(hlo_text):
         name = re.match(r"\s*(?:ROOT )?%([\w.-]+) = ", line)
         if name:
             op_name = re.search(r'op_name="([^"]*)"', line)
-            parts[name.group(1)] = ("made by XLA" if op_name is None else
-                                    next((part for part, scope in PROFILE_PARTS if scope in op_name.group(1)), "optimizer"))
+            parts[name.group(1)] = (
+                "made by XLA"
+                if op_name is None
+                else next((part for part, scope in PROFILE_PARTS if scope in op_name.group(1)), "optimizer")
+            )
     return parts
 
 
@@ -436,7 +532,7 @@ def bench_train_profile(town, repeats):
             jax.block_until_ready(run())
         step_s = (time.perf_counter() - start) / repeats
         jax.profiler.stop_trace()
-        trace, = glob.glob(os.path.join(trace_dir, "**", "*.xplane.pb"), recursive=True)
+        (trace,) = glob.glob(os.path.join(trace_dir, "**", "*.xplane.pb"), recursive=True)
         core_ns = _op_core_ns(jax.profiler.ProfileData.from_file(trace))
     part_ns, kind_ns = collections.Counter(), collections.Counter()
     for op, ns in core_ns.items():
@@ -444,13 +540,31 @@ def bench_train_profile(town, repeats):
         part_ns[part] += ns
         kind_ns[(part, re.sub(r"\.\d+$", "", op or ""))] += ns  # fusion.12 and fusion.31 are one kind
     ms = lambda ns: ns / 1e6 / repeats
-    figure = {"batch": b, "seq_len": t, "image_size": r, "step_s_traced": step_s,
-              "part_core_ms": {part: ms(ns) for part, ns in part_ns.most_common()},
-              "top_op_kinds": [[part, kind, ms(ns)] for (part, kind), ns in kind_ns.most_common(25)]}
-    peer = _run_peer(os.path.join(_REPO, "experiments", "torch_profile.py"), "--peer", PEER_SCRIPT,
-                     "--batch", b, "--seq-len", t, "--image-size", r, "--steps", repeats)
+    figure = {
+        "batch": b,
+        "seq_len": t,
+        "image_size": r,
+        "step_s_traced": step_s,
+        "part_core_ms": {part: ms(ns) for part, ns in part_ns.most_common()},
+        "top_op_kinds": [[part, kind, ms(ns)] for (part, kind), ns in kind_ns.most_common(25)],
+    }
+    peer = _run_peer(
+        os.path.join(_REPO, "experiments", "torch_profile.py"),
+        "--peer",
+        PEER_SCRIPT,
+        "--batch",
+        b,
+        "--seq-len",
+        t,
+        "--image-size",
+        r,
+        "--steps",
+        repeats,
+    )
     if peer is not None:
-        figure.update(peer_step_s_traced=peer["step_s_median"], peer_part_ms=peer["part_ms"], peer_top_ops=peer["top_ops"])
+        figure.update(
+            peer_step_s_traced=peer["step_s_median"], peer_part_ms=peer["part_ms"], peer_top_ops=peer["top_ops"]
+        )
     return figure
 
 
@@ -467,10 +581,16 @@ def bench_deconv(town, repeats):
     n = b * (t + 1)
     # (input side, C in, C out, kernel) of each Deconv2x of one image decoder, as Trunk + ImageDecoder build them
     ins = (cfg.model.feature_dim,) + tuple(reversed(widths[:-1]))
-    layers = [(4 * 2 ** i, c_in, c_out, 3) for i, (c_in, c_out) in enumerate(zip(ins, ins[1:]))]
+    layers = [(4 * 2**i, c_in, c_out, 3) for i, (c_in, c_out) in enumerate(zip(ins, ins[1:]))]
     layers.append((r // 2, widths[0], 3, 5))
-    figure = {"batch": b, "seq_len": t, "image_size": r, "layers": [list(layer) for layer in layers],
-              "subpixel_layer_s": [], "plain_layer_s": []}
+    figure = {
+        "batch": b,
+        "seq_len": t,
+        "image_size": r,
+        "layers": [list(layer) for layer in layers],
+        "subpixel_layer_s": [],
+        "plain_layer_s": [],
+    }
     for side, c_in, c_out, k in layers:
         x = jax.random.normal(jax.random.PRNGKey(0), (n, side, side, c_in))
         lo = k - 1 - k // 2
@@ -482,8 +602,13 @@ def bench_deconv(town, repeats):
             figure[f"{name}_layer_s"].append(_median_s(lambda: grad(params, x), repeats))
     figure.update(subpixel_s=sum(figure["subpixel_layer_s"]), plain_s=sum(figure["plain_layer_s"]))
     figure["plain_over_subpixel"] = figure["plain_s"] / figure["subpixel_s"]
-    peer = _run_peer(os.path.join(_REPO, "experiments", "torch_layers.py"), "--repeats", repeats,
-                     "--layers", json.dumps([[n, *layer] for layer in layers]))
+    peer = _run_peer(
+        os.path.join(_REPO, "experiments", "torch_layers.py"),
+        "--repeats",
+        repeats,
+        "--layers",
+        json.dumps([[n, *layer] for layer in layers]),
+    )
     if peer is not None:
         figure.update(torch_layer_s=peer["layer_s"], torch_s=sum(peer["layer_s"]), torch_threads=peer["threads"])
         figure["subpixel_over_torch"] = figure["subpixel_s"] / figure["torch_s"]
@@ -550,8 +675,13 @@ def bench_memory(town, repeats):
     the peak, and the mean over each quarter of the run after compilation, which should stay flat."""
     del town, repeats
     with tempfile.TemporaryDirectory() as workdir:
-        cmd = [sys.executable, os.path.join(_REPO, "experiments", "train.py"), "--config=cpu",
-               f"--workdir={workdir}", f"--train.num_steps={FLAGS.memory_steps}"]
+        cmd = [
+            sys.executable,
+            os.path.join(_REPO, "experiments", "train.py"),
+            "--config=cpu",
+            f"--workdir={workdir}",
+            f"--train.num_steps={FLAGS.memory_steps}",
+        ]
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         samples = []  # (seconds since start, RSS MiB)
         start = time.perf_counter()
@@ -564,9 +694,14 @@ def bench_memory(town, repeats):
         if proc.wait() != 0:
             raise RuntimeError(f"{' '.join(cmd)} failed with exit code {proc.returncode}")
     rss = np.array([m for _, m in samples])
-    steady = np.array_split(rss[len(rss) // 5:], 4)  # skip start-up and compilation (the first fifth)
-    return {"config": "cpu", "train_steps": FLAGS.memory_steps, "wall_s": samples[-1][0],
-            "peak_rss_mib": float(rss.max()), "quarter_mean_rss_mib": [float(q.mean()) for q in steady]}
+    steady = np.array_split(rss[len(rss) // 5 :], 4)  # skip start-up and compilation (the first fifth)
+    return {
+        "config": "cpu",
+        "train_steps": FLAGS.memory_steps,
+        "wall_s": samples[-1][0],
+        "peak_rss_mib": float(rss.max()),
+        "quarter_mean_rss_mib": [float(q.mean()) for q in steady],
+    }
 
 
 def main(argv):
@@ -592,8 +727,13 @@ def main(argv):
         allocator.keep_freed_buffers()
     if FLAGS.eigen_convolutions:
         xla_cpu.prefer_eigen_convolutions()
-    context = {"jax": jax.__version__, "backend": jax.default_backend(), "devices": jax.device_count(),
-               "cpu_count": os.cpu_count(), "convolution_path": xla_cpu.convolution_path()}
+    context = {
+        "jax": jax.__version__,
+        "backend": jax.default_backend(),
+        "devices": jax.device_count(),
+        "cpu_count": os.cpu_count(),
+        "convolution_path": xla_cpu.convolution_path(),
+    }
     town = build_town(config_lib.DEFAULT_TOWN_SEED)
     results = {}
     for name in FLAGS.what:

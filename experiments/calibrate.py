@@ -7,6 +7,7 @@ Training fits it at the start of a run with the belief pose head; this launcher 
 has none, or again with ``--refit``. Prints the fitted model. A bad flag prints one line and exits with
 status 1.
 """
+
 import dataclasses
 import os
 import sys

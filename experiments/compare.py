@@ -9,6 +9,7 @@ several). The last column is the oracle constant pose of the same evaluations (n
 must share one evaluation protocol (frames, worlds, start keys) and one training budget (world, data,
 steps): a mismatch is an error naming the two runs, since their numbers would not be comparable.
 """
+
 import dataclasses
 import glob
 import json
@@ -57,8 +58,12 @@ def _protocol(m):
     """What must match for two evaluations of one town to be compared: eval protocol and training budget
     (the place stream aside: it trains the belief head alone, which the modular pipeline lacks)."""
     c = config_lib.Config.from_dict(m["config"])  # a field added since takes its default
-    return {"eval": c.eval, "world": c.world, "data": dataclasses.replace(c.data, place_frames=0),
-            "train.num_steps": c.train.num_steps}
+    return {
+        "eval": c.eval,
+        "world": c.world,
+        "data": dataclasses.replace(c.data, place_frames=0),
+        "train.num_steps": c.train.num_steps,
+    }
 
 
 def check_comparable(found: dict) -> None:
@@ -78,8 +83,10 @@ def table(found: dict) -> str:
     """The markdown table (see the module docstring)."""
     methods = [m for m in (*config_lib.VARIANTS, *BASELINES) if m in found]
     if not methods:
-        raise ValueError("no evaluations found (expected SWEEP_DIR/<variant>-seed<s>/eval*/metrics.json or "
-                         "BASELINES_DIR/<baseline>/eval*/metrics.json)")
+        raise ValueError(
+            "no evaluations found (expected SWEEP_DIR/<variant>-seed<s>/eval*/metrics.json or "
+            "BASELINES_DIR/<baseline>/eval*/metrics.json)"
+        )
     training_town = next(iter(found[methods[0]].values()))[0][1]["config"]["world"]["town_seed"]
     towns = sorted({t for m in methods for t in found[m]}, key=lambda t: (t != training_town, t))
     # one evaluation per town for what all of that town's share: its worlds, boxes and oracle constant
@@ -99,16 +106,26 @@ def table(found: dict) -> str:
             cells.setdefault((row, CONSTANT), []).append(constant[row])
     fmt = lambda row, v: "n/a" if v is None else f"{v:.1f}" if row.startswith("AP") or abs(v) >= 10 else f"{v:.3g}"
     columns = [*methods, CONSTANT]
-    header = [f"Towns {' / '.join(map(str, towns))} (town {training_town} trained on); each cell lists "
-              "them in that order. Mean over seeds; runs (seeds) per method and town: "
-              + ", ".join(f"{m} {'/'.join(str(len(found[m].get(t, []))) for t in towns)}" for m in methods) + ".", "",
-              "Ground-truth boxes (all / occluded): " + "; ".join(
-                  f"town {t} {any_eval[t]['detection']['num_gt']['all']} / {any_eval[t]['detection']['num_gt']['occluded']}"
-                  for t in towns)
-              + ".", "",
-              "| metric | " + " | ".join(columns) + " |", "|---" * (len(columns) + 1) + "|"]
-    body = [f"| {row} | " + " | ".join(" / ".join(fmt(row, v) for v in cells[(row, c)]) for c in columns) + " |"
-            for row in rows]
+    header = [
+        f"Towns {' / '.join(map(str, towns))} (town {training_town} trained on); each cell lists "
+        "them in that order. Mean over seeds; runs (seeds) per method and town: "
+        + ", ".join(f"{m} {'/'.join(str(len(found[m].get(t, []))) for t in towns)}" for m in methods)
+        + ".",
+        "",
+        "Ground-truth boxes (all / occluded): "
+        + "; ".join(
+            f"town {t} {any_eval[t]['detection']['num_gt']['all']} / {any_eval[t]['detection']['num_gt']['occluded']}"
+            for t in towns
+        )
+        + ".",
+        "",
+        "| metric | " + " | ".join(columns) + " |",
+        "|---" * (len(columns) + 1) + "|",
+    ]
+    body = [
+        f"| {row} | " + " | ".join(" / ".join(fmt(row, v) for v in cells[(row, c)]) for c in columns) + " |"
+        for row in rows
+    ]
     return "\n".join(header + body) + "\n"
 
 

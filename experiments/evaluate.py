@@ -10,6 +10,7 @@ The run's config.json is the config; ``--eval.<field>`` flags override its evalu
 ``--model.pose_filter`` (``none``: the belief head read frame by frame, without the histogram filter).
 Other fields are the trained model's and cannot change. A bad flag prints one line and exits with status 1.
 """
+
 import os
 import sys
 
@@ -22,9 +23,13 @@ from e2e_percep_jax.sim import world
 
 config_lib.define_flags()
 flags.DEFINE_string("workdir", None, "run directory holding config.json and checkpoints/")
-flags.DEFINE_string("out_dir", None, "where the report goes (default: WORKDIR/eval, or WORKDIR/eval_town<seed> "
-                    "with a held-out --eval.town_seed; _known_start appended under --eval.known_start, "
-                    "_no_pose_filter under --model.pose_filter=none)")
+flags.DEFINE_string(
+    "out_dir",
+    None,
+    "where the report goes (default: WORKDIR/eval, or WORKDIR/eval_town<seed> "
+    "with a held-out --eval.town_seed; _known_start appended under --eval.known_start, "
+    "_no_pose_filter under --model.pose_filter=none)",
+)
 flags.DEFINE_integer("step", None, "checkpoint step to evaluate (default: the latest)")
 flags.DEFINE_boolean("sample", False, "filter with posterior samples instead of the posterior mean")
 flags.DEFINE_integer("video_frames", 300, "frames of world 0 in drive.mp4 (0: no video)")
@@ -50,27 +55,40 @@ def main(argv):
             if not FLAGS[flag].present:
                 continue
             if section != "eval" and flag not in INFERENCE_FIELDS:
-                raise ValueError(f"--{flag}: only --eval.*, --model.pose_filter and the plant's --world.ego_* "
-                                 f"may change at evaluation (the model is trained)")
+                raise ValueError(
+                    f"--{flag}: only --eval.*, --model.pose_filter and the plant's --world.ego_* "
+                    f"may change at evaluation (the model is trained)"
+                )
             overrides.setdefault(section, {})[name] = FLAGS[flag].value
         cfg = config_lib.validate(config_lib.replace(config_lib.run_config(FLAGS.workdir), **overrides))
         if FLAGS.video_frames < 0 or FLAGS.num_examples < 0:
             raise ValueError("--video_frames and --num_examples must be >= 0")
-        for name, ok, bounds in (("top_k", lambda v: v > 0, "must be positive"),
-                                 ("score_floor", lambda v: 0.0 <= v < 1.0, "must lie in [0, 1)"),
-                                 ("nms_iou", lambda v: 0.0 < v <= 1.0, "must lie in (0, 1]")):
+        for name, ok, bounds in (
+            ("top_k", lambda v: v > 0, "must be positive"),
+            ("score_floor", lambda v: 0.0 <= v < 1.0, "must lie in [0, 1)"),
+            ("nms_iou", lambda v: 0.0 < v <= 1.0, "must lie in (0, 1]"),
+        ):
             if FLAGS[name].value is not None and not ok(FLAGS[name].value):
                 raise ValueError(f"--{name}={FLAGS[name].value}: {bounds}")
         world.check_vehicle_count(cfg.world, cfg.eval.town_seed)
         cfg, params, step = checkpoint.restore_params(FLAGS.workdir, cfg, FLAGS.step)
     except (ValueError, FileNotFoundError) as e:
         sys.exit(f"error: {e}")
-    detect = detection.Settings(**{k: FLAGS[k].value for k in ("top_k", "score_floor", "nms_iou")
-                                   if FLAGS[k].value is not None})
-    eval_lib.evaluate(cfg, params, FLAGS.out_dir or report.eval_dir(FLAGS.workdir, cfg), sample=FLAGS.sample,
-                      video_frames=FLAGS.video_frames, num_examples=FLAGS.num_examples,
-                      workdir=os.path.abspath(FLAGS.workdir), checkpoint_step=step,
-                      detect=detect, log=lambda s: print(s, flush=True))
+    detect = detection.Settings(
+        **{k: FLAGS[k].value for k in ("top_k", "score_floor", "nms_iou") if FLAGS[k].value is not None}
+    )
+    eval_lib.evaluate(
+        cfg,
+        params,
+        FLAGS.out_dir or report.eval_dir(FLAGS.workdir, cfg),
+        sample=FLAGS.sample,
+        video_frames=FLAGS.video_frames,
+        num_examples=FLAGS.num_examples,
+        workdir=os.path.abspath(FLAGS.workdir),
+        checkpoint_step=step,
+        detect=detect,
+        log=lambda s: print(s, flush=True),
+    )
 
 
 if __name__ == "__main__":

@@ -8,6 +8,7 @@ Writes into ``--workdir``: ``config.json``, ``metrics.jsonl``, ``checkpoints/`` 
 training and skips an evaluation that already matches the final checkpoint and the config. Any
 ``--<section>.<field>`` flag overrides the preset (see ``config.py``).
 """
+
 import os
 import sys
 
@@ -36,8 +37,9 @@ def run(cfg: config_lib.Config, workdir: str, video_frames: int = 300, log=print
         log(f"{out_dir} already evaluates step {step} under this config; nothing to do")
         return done
     cfg, params, step = checkpoint.restore_params(workdir, cfg, step)
-    return eval_lib.evaluate(cfg, params, out_dir, video_frames=video_frames, workdir=os.path.abspath(workdir),
-                             checkpoint_step=step, log=log)
+    return eval_lib.evaluate(
+        cfg, params, out_dir, video_frames=video_frames, workdir=os.path.abspath(workdir), checkpoint_step=step, log=log
+    )
 
 
 def main(argv):

@@ -12,6 +12,7 @@ with both ways of reading a position off the belief (``pose_belief.POSITIONS``) 
 motion model's heading process noise, and the location / heading errors (mean, median, over every frame,
 and over frames 100 on) and how often the truth lies in the belief's 95 % region are printed as a table.
 """
+
 import functools
 import itertools
 import sys
@@ -21,8 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 from absl import app, flags
 
-from e2e_percep_jax import allocator, xla_cpu
-from e2e_percep_jax import checkpoint, metrics, pose_belief
+from e2e_percep_jax import allocator, checkpoint, metrics, pose_belief, xla_cpu
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import model as model_lib
 from e2e_percep_jax.sim import batch as batch_lib
@@ -38,10 +38,14 @@ flags.DEFINE_integer("frames", 500, "frames per drive")
 flags.DEFINE_list("floors", ["0.01", "0.05", "0.2"], "measurement floors to try")
 flags.DEFINE_list("powers", ["0.125", "0.25", "0.5"], "measurement powers to try")
 flags.DEFINE_list("speed_gains", ["0.2"], "speed gains to try")
-flags.DEFINE_list("relocations", ["0.001"], "shares of each cell's mass spread over all headings after each "
-                  "motion step, to try")
-flags.DEFINE_list("heading_noise_scales", [f"{pose_belief.HEADING_NOISE_SCALE:g}"],
-                  "factors on the calibrated motion model's heading process noise, to try")
+flags.DEFINE_list(
+    "relocations", ["0.001"], "shares of each cell's mass spread over all headings after each motion step, to try"
+)
+flags.DEFINE_list(
+    "heading_noise_scales",
+    [f"{pose_belief.HEADING_NOISE_SCALE:g}"],
+    "factors on the calibrated motion model's heading process noise, to try",
+)
 FLAGS = flags.FLAGS
 
 
@@ -50,8 +54,12 @@ def main(argv):
     xla_cpu.prefer_eigen_convolutions()
     try:
         config_lib.check_launch(argv)
-        settings = [tuple(map(float, s)) for s in itertools.product(FLAGS.floors, FLAGS.powers, FLAGS.speed_gains,
-                                                                    FLAGS.relocations, FLAGS.heading_noise_scales)]
+        settings = [
+            tuple(map(float, s))
+            for s in itertools.product(
+                FLAGS.floors, FLAGS.powers, FLAGS.speed_gains, FLAGS.relocations, FLAGS.heading_noise_scales
+            )
+        ]
         settings = [s + (position,) for s in settings for position in pose_belief.POSITIONS]
         if FLAGS.worlds < 1 or FLAGS.frames < 1:
             raise ValueError("--worlds and --frames must be positive")
@@ -75,6 +83,7 @@ def main(argv):
             camera, lidar, action = xs
             state, latent = model_lib.filter_step(params, state, camera, lidar, action, None, cfg)
             return state, model_lib.pose_belief_head(params, latent, cfg)
+
         xs = tuple(map(time_major, (frames["camera"], frames["lidar"], prev_action)))
         return jax.lax.scan(body, model_lib.init_filter_state(FLAGS.worlds, cfg), xs)[1]
 
@@ -85,32 +94,52 @@ def main(argv):
     def track(floor, power, gain, relocation, heading_noise_scale, position):
         def body(state, xs):
             h, action, is_first, pose = xs
-            state, estimate = pose_belief.filter_step(state, h, action, jnp.full(FLAGS.worlds, is_first), grid,
-                                                      motion_model, floor=floor, power=power, speed_gain=gain,
-                                                      relocation=relocation, heading_noise_scale=heading_noise_scale,
-                                                      position=position)
+            state, estimate = pose_belief.filter_step(
+                state,
+                h,
+                action,
+                jnp.full(FLAGS.worlds, is_first),
+                grid,
+                motion_model,
+                floor=floor,
+                power=power,
+                speed_gain=gain,
+                relocation=relocation,
+                heading_noise_scale=heading_noise_scale,
+                position=position,
+            )
             return state, (estimate, pose_belief.in_region(state, pose, grid))
+
         xs = (head, time_major(prev_action), first, time_major(frames["pose"]))
         return jax.lax.scan(body, pose_belief.init_state(FLAGS.worlds, grid), xs)[1]
 
     truth = np.asarray(time_major(frames["pose"]))
     no_region = np.full(truth.shape[:2] + (2,), np.nan)
     rows = [("head alone (no filter)", (np.asarray(pose_belief.decode(head, grid)), no_region))]
-    rows += [(f"floor {f:g}, power {p:g}, speed gain {g:g}, relocation {r:g}, heading noise x{k:g}, {position}",
-              jax.tree.map(np.asarray, track(f, p, g, r, k, position=position)))
-             for f, p, g, r, k, position in settings]
+    rows += [
+        (
+            f"floor {f:g}, power {p:g}, speed gain {g:g}, relocation {r:g}, heading noise x{k:g}, {position}",
+            jax.tree.map(np.asarray, track(f, p, g, r, k, position=position)),
+        )
+        for f, p, g, r, k, position in settings
+    ]
     print(f"{FLAGS.workdir} step {step}: {FLAGS.worlds} drives x {FLAGS.frames} frames from PRNGKey({FLAGS.eval_seed})")
-    print("| filter | location mean / median (m) | from frame 100: mean / median (m) | heading mean (rad) | "
-          "within 10 m | drives ending within 10 m | truth in 95 % region: place / + heading |")
+    print(
+        "| filter | location mean / median (m) | from frame 100: mean / median (m) | heading mean (rad) | "
+        "within 10 m | drives ending within 10 m | truth in 95 % region: place / + heading |"
+    )
     print("|---|---|---|---|---|---|---|")
     for name, (pred, inside) in rows:
         err = metrics.pose_errors(pred, truth)
         late = err.location_m[100:]
         place, joint = 100 * inside.reshape(-1, 2).mean(0)
-        print(f"| {name} | {err.location_m.mean():.1f} / {np.median(err.location_m):.1f} | "
-              f"{late.mean():.1f} / {np.median(late):.1f} | {err.heading_rad.mean():.3f} | "
-              f"{100 * np.mean(err.location_m <= 10):.1f} % | {np.sum(err.location_m[-1] <= 10)} / {FLAGS.worlds} | "
-              f"{place:.1f} / {joint:.1f} % |", flush=True)
+        print(
+            f"| {name} | {err.location_m.mean():.1f} / {np.median(err.location_m):.1f} | "
+            f"{late.mean():.1f} / {np.median(late):.1f} | {err.heading_rad.mean():.3f} | "
+            f"{100 * np.mean(err.location_m <= 10):.1f} % | {np.sum(err.location_m[-1] <= 10)} / {FLAGS.worlds} | "
+            f"{place:.1f} / {joint:.1f} % |",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":

@@ -14,6 +14,7 @@ writes to ``--out_dir``:
   occluded), in the reference's layout, of the video's frame where the lidar sees the most vehicles;
 - ``sensors_R<R>.mp4``: those four views while the ego drives, frame for frame with ``traffic.mp4``.
 """
+
 import os
 
 import cv2

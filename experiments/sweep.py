@@ -19,6 +19,7 @@ on a 2-core machine 1 is fastest). Writes ``SWEEP_DIR/summary<protocol>.json`` a
 metric per method. With a held-out ``--eval.town_seed`` instead, every run is evaluated there alone.
 The README's tables come from these runs through ``experiments/tables.py --collect``.
 """
+
 import json
 import os
 import subprocess
@@ -54,10 +55,13 @@ def table_markdown(summary: dict, seeds) -> str:
     methods = list(summary)
     keys = list(dict.fromkeys(k for rows in summary.values() for k in rows))  # a baseline may lack a head
     cell = lambda m, s, n: "n/a" if m is None else f"{m:.3g} ± {s:.2g}"
-    lines = [f"Mean ± std over seeds {', '.join(map(str, seeds))} (population std).", "",
-             "| metric | " + " | ".join(methods) + " |", "|---" * (len(methods) + 1) + "|"]
-    lines += [f"| {k} | " + " | ".join(cell(*summary[m].get(k, (None, None, 0))) for m in methods) + " |"
-              for k in keys]
+    lines = [
+        f"Mean ± std over seeds {', '.join(map(str, seeds))} (population std).",
+        "",
+        "| metric | " + " | ".join(methods) + " |",
+        "|---" * (len(methods) + 1) + "|",
+    ]
+    lines += [f"| {k} | " + " | ".join(cell(*summary[m].get(k, (None, None, 0))) for m in methods) + " |" for k in keys]
     return "\n".join(lines) + "\n"
 
 
@@ -93,8 +97,10 @@ def _check(base: config_lib.Config) -> tuple[list[int], list[int]]:
         if b not in baselines_lib.BASELINES:
             raise ValueError(f"--baselines: {b!r} is not one of {baselines_lib.BASELINES}")
     if base.world.town_seed in towns:
-        raise ValueError(f"--held_out_towns={','.join(FLAGS.held_out_towns)}: town {base.world.town_seed} "
-                         "is the training town (--world.town_seed)")
+        raise ValueError(
+            f"--held_out_towns={','.join(FLAGS.held_out_towns)}: town {base.world.town_seed} "
+            "is the training town (--world.town_seed)"
+        )
     if towns and base.eval.town_seed != base.world.town_seed:
         raise ValueError("--held_out_towns: give held-out towns here or in --eval.town_seed, not both")
     if FLAGS.parallel < 1:
@@ -133,8 +139,15 @@ def main(argv):
                 out_dir = report.eval_dir(workdir(run_name(v, s)), cfg)
                 evaluations.append((v, out_dir))
                 if report.finished_evaluation(out_dir, v, base.train.num_steps, cfg) is None:
-                    todo.append([MAIN, f"--workdir={workdir(run_name(v, s))}", f"--train.seed={s}",
-                                 f"--model.variant={v}", *_protocol_flags(cfg, base)])
+                    todo.append(
+                        [
+                            MAIN,
+                            f"--workdir={workdir(run_name(v, s))}",
+                            f"--train.seed={s}",
+                            f"--model.variant={v}",
+                            *_protocol_flags(cfg, base),
+                        ]
+                    )
             jobs.append((run_name(v, s), todo))
         if FLAGS.baselines:
             name = run_name("baselines", s)
@@ -142,11 +155,19 @@ def main(argv):
             for cfg in _protocols(base, towns):
                 chosen = [b for b in FLAGS.baselines if cfg.eval == base.eval or b != "pose"]
                 for b in chosen:
-                    evaluations.append((b, report.eval_dir(os.path.join(workdir(name), b),
-                                                           baselines_lib.eval_config(b, cfg))))
+                    evaluations.append(
+                        (b, report.eval_dir(os.path.join(workdir(name), b), baselines_lib.eval_config(b, cfg)))
+                    )
                 if chosen:  # baselines.py itself skips what is already trained and evaluated
-                    todo.append([BASELINES, f"--workdir={workdir(name)}", f"--train.seed={s}",
-                                 f"--baseline={','.join(chosen)}", *_protocol_flags(cfg, base)])
+                    todo.append(
+                        [
+                            BASELINES,
+                            f"--workdir={workdir(name)}",
+                            f"--train.seed={s}",
+                            f"--baseline={','.join(chosen)}",
+                            *_protocol_flags(cfg, base),
+                        ]
+                    )
             jobs.append((name, todo))
 
     model_runs = [todo for name, todo in jobs if not name.startswith("baselines-")]
@@ -188,7 +209,7 @@ def main(argv):
             by_protocol.setdefault(os.path.basename(out_dir), {}).setdefault(method, []).append(json.load(f))
     for protocol, methods in by_protocol.items():
         summary = {m: mean_std([summary_metrics(x) for x in runs]) for m, runs in methods.items()}
-        name = "summary" + protocol[len("eval"):]
+        name = "summary" + protocol[len("eval") :]
         with open(os.path.join(FLAGS.sweep_dir, f"{name}.json"), "w") as f:
             json.dump({"seeds": seeds, "config": json.loads(base.to_json()), "summary": summary}, f, indent=1)
         table = table_markdown(summary, seeds)

@@ -16,6 +16,7 @@ a held-out town; ``_known_start``: the belief starts at the true pose). Each cel
 method's runs; each method's row names the command that trained it. Beside them, ``training.jsonl``
 keeps every 100th record of the run's ``metrics.jsonl`` for the learning curves' figure.
 """
+
 import glob
 import json
 import os
@@ -26,9 +27,8 @@ import cv2
 import numpy as np
 from absl import app, flags
 
-from e2e_percep_jax import baselines, checkpoint
+from e2e_percep_jax import baselines, checkpoint, pictures
 from e2e_percep_jax import config as config_lib
-from e2e_percep_jax import pictures
 from e2e_percep_jax.summary import mean_std, summary_metrics
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -36,8 +36,20 @@ DROPPED = {"detection": ("pr_curves", "at_threshold"), "": ("examples", "sample"
 HELD_OUT_TOWNS = (7, 8)
 TRAINING_EVERY = 100  # steps between the kept training records (a 9,000-step run: 90 lines)
 # BGR, one per method in the learning curves' figure
-COLOURS = ((200, 120, 30), (30, 110, 230), (40, 160, 40), (160, 40, 160), (40, 40, 200), (120, 120, 120),
-           (0, 170, 200), (140, 90, 60), (20, 20, 20), (200, 200, 0), (120, 60, 220), (90, 200, 140))
+COLOURS = (
+    (200, 120, 30),
+    (30, 110, 230),
+    (40, 160, 40),
+    (160, 40, 160),
+    (40, 40, 200),
+    (120, 120, 120),
+    (0, 170, 200),
+    (140, 90, 60),
+    (20, 20, 20),
+    (200, 200, 0),
+    (120, 60, 220),
+    (90, 200, 140),
+)
 
 flags.DEFINE_multi_string("collect", [], "METHOD=RUN_DIR[,RUN_DIR...]: keep these runs' evaluations as METHOD")
 flags.DEFINE_string("results", os.path.join(HERE, "results"), "directory of the kept evaluations")
@@ -106,7 +118,8 @@ def load_training(results_dir: str) -> dict:
     for path in sorted(glob.glob(os.path.join(results_dir, "*", "*", "training.jsonl"))):
         with open(path) as f:
             found.setdefault(os.path.basename(os.path.dirname(os.path.dirname(path))), []).append(
-                [json.loads(line) for line in f])
+                [json.loads(line) for line in f]
+            )
     return found
 
 
@@ -119,7 +132,8 @@ def load(results_dir: str) -> dict:
         with open(path) as f:
             metrics = dict(json.load(f), run=os.path.basename(run_dir))
         found.setdefault(os.path.basename(os.path.dirname(run_dir)), {}).setdefault(
-            os.path.basename(path)[:-5], []).append(metrics)
+            os.path.basename(path)[:-5], []
+        ).append(metrics)
     return found
 
 
@@ -131,8 +145,9 @@ def _trained_steps(metrics: dict) -> int:
 
 def _checkpoint_evaluations(evaluations: dict) -> dict:
     """{step: [metrics per run]} of a method's ``eval_step<N>`` evaluations (its checkpoints')."""
-    return {int(name[len("eval_step"):]): runs for name, runs in evaluations.items()
-            if re.fullmatch(r"eval_step\d+", name)}
+    return {
+        int(name[len("eval_step") :]): runs for name, runs in evaluations.items() if re.fullmatch(r"eval_step\d+", name)
+    }
 
 
 def _main_runs(evaluations: dict) -> list[dict]:
@@ -147,13 +162,15 @@ def command(evaluations: dict) -> str:
 
     def trained(m):  # the learning rate is constant, so a run's checkpoint is a run of that many steps
         return config_lib.replace(config_lib.Config.from_dict(m["config"]), train=dict(num_steps=_trained_steps(m)))
+
     # left out: the evaluation's flags, and those a run may change on resuming (they leave its weights as they are)
     unsaid = ("--eval.", *(f"--{name}=" for name in checkpoint.RESUMABLE_CHANGES if name != "train.num_steps"))
     lines = {" ".join(f for f in config_lib.as_flags(trained(m)) if not f.startswith(unsaid)) for m in runs}
     seeds = sorted({m["config"]["train"]["seed"] for m in runs})
     if len(seeds) > 1:
-        lines = {re.sub(r" --train\.seed=\d+", "", line) + f" --train.seed={{{','.join(map(str, seeds))}}}"
-                 for line in lines}
+        lines = {
+            re.sub(r" --train\.seed=\d+", "", line) + f" --train.seed={{{','.join(map(str, seeds))}}}" for line in lines
+        }
     if len(lines) != 1:
         raise ValueError(f"a method's runs differ in more than their seed: {sorted(lines)}")
     if runs[0]["label"] in config_lib.VARIANTS:
@@ -244,10 +261,16 @@ def localisation(found: dict) -> str:
     """The paper's Table II: town 0 under the global protocol, each variant beside the paper's row, then the
     modular pipeline; with what the paper lacks: the frames within 5 and 10 m, the belief's coverage, and
     the known-start protocol's error and drift on towns 0, 7 and 8 beside dead reckoning's."""
-    header = ["method", "location mean / p90 (m)", "heading (rad)", "within 5 / 10 m (%)",
-              "truth in 95 % region: place / + heading (%)", "known start: error at frames 100-999 / 1,000+ (m)",
-              "known-start drift per 100 m: town 0 / " + " / ".join(map(str, HELD_OUT_TOWNS)) + " (m)",
-              "against the paper's row: location / heading"]
+    header = [
+        "method",
+        "location mean / p90 (m)",
+        "heading (rad)",
+        "within 5 / 10 m (%)",
+        "truth in 95 % region: place / + heading (%)",
+        "known start: error at frames 100-999 / 1,000+ (m)",
+        "known-start drift per 100 m: town 0 / " + " / ".join(map(str, HELD_OUT_TOWNS)) + " (m)",
+        "against the paper's row: location / heading",
+    ]
     rows, shown, constant, paper = [], [], None, _paper_figures(found, "pose")
     for method, variant in _paper_rows(found):
         if method is None:
@@ -257,8 +280,10 @@ def localisation(found: dict) -> str:
             continue
         ev = found[method]
         known = ev.get("eval_known_start")
-        drift = [_cell(ev.get(name), "drift per 100 m (m)", digits=2)
-                 for name in ("eval_known_start", *(f"eval_town{t}_known_start" for t in HELD_OUT_TOWNS))]
+        drift = [
+            _cell(ev.get(name), "drift per 100 m (m)", digits=2)
+            for name in ("eval_known_start", *(f"eval_town{t}_known_start" for t in HELD_OUT_TOWNS))
+        ]
         glob_ = ev.get("eval")
         against = ""
         if glob_ and variant in paper:
@@ -266,14 +291,24 @@ def localisation(found: dict) -> str:
             p = paper[variant][1]
             pairs = (("location mean (m)", "location_m"), ("heading mean (rad)", "heading_rad"))
             against = " / ".join("better" if mean[k][0] <= p[f] else "worse" for k, f in pairs)
-        row = [f"`{method}`",
-               " / ".join(filter(None, [_cell(glob_, "location mean (m)"), _cell(glob_, "location p90 (m)")])),
-               _cell(glob_, "heading mean (rad)", digits=3),
-               " / ".join(filter(None, [_cell(glob_, f"location within {m} m (%)") for m in (5, 10)])),
-               " / ".join(filter(None, [_cell(glob_, "truth in the 95 % region, place (%)"),
-                                        _cell(glob_, "truth in the 95 % region, place + heading (%)")])),
-               " / ".join(filter(None, [_frames_cell(known, 100, 1000), _frames_cell(known, 1000, 10**9)])),
-               " / ".join(d or "-" for d in drift) if any(drift) else "", against]
+        row = [
+            f"`{method}`",
+            " / ".join(filter(None, [_cell(glob_, "location mean (m)"), _cell(glob_, "location p90 (m)")])),
+            _cell(glob_, "heading mean (rad)", digits=3),
+            " / ".join(filter(None, [_cell(glob_, f"location within {m} m (%)") for m in (5, 10)])),
+            " / ".join(
+                filter(
+                    None,
+                    [
+                        _cell(glob_, "truth in the 95 % region, place (%)"),
+                        _cell(glob_, "truth in the 95 % region, place + heading (%)"),
+                    ],
+                )
+            ),
+            " / ".join(filter(None, [_frames_cell(known, 100, 1000), _frames_cell(known, 1000, 10**9)])),
+            " / ".join(d or "-" for d in drift) if any(drift) else "",
+            against,
+        ]
         if not any(row[1:]):
             continue  # a method without a pose (a detector, a tracker)
         shown.append(method)
@@ -281,8 +316,14 @@ def localisation(found: dict) -> str:
         if glob_ and constant is None:
             constant = glob_[0]["baseline"]["pose"]
     if constant is not None:
-        rows.append(["constant pose (the drive's mean pose)", f"{constant['location_m']['mean']:.1f} / "
-                     f"{constant['location_m']['p90']:.1f}", f"{constant['heading_rad']['mean']:.3f}", *[""] * 5])
+        rows.append(
+            [
+                "constant pose (the drive's mean pose)",
+                f"{constant['location_m']['mean']:.1f} / {constant['location_m']['p90']:.1f}",
+                f"{constant['heading_rad']['mean']:.3f}",
+                *[""] * 5,
+            ]
+        )
     return _markdown(header, rows) + "\n\n" + _runs_note(found, shown) + "\n"
 
 
@@ -290,8 +331,14 @@ def detection(found: dict) -> str:
     """The paper's Table I: AP on town 0 at every IoU, each variant beside the paper's row, then the modular
     pipeline; with what the paper lacks: visible and occluded AP, and AP@0.5 on the held-out towns."""
     ious = ("0.1", "0.3", "0.5", "0.7")
-    header = ["method", *(f"AP@{iou} (%)" for iou in ious), "visible AP@0.5 (%)", "occluded AP@0.1 / 0.5 (%)",
-              "AP@0.5 town " + " / ".join(map(str, HELD_OUT_TOWNS)) + " (%)", "against the paper's row"]
+    header = [
+        "method",
+        *(f"AP@{iou} (%)" for iou in ious),
+        "visible AP@0.5 (%)",
+        "occluded AP@0.1 / 0.5 (%)",
+        "AP@0.5 town " + " / ".join(map(str, HELD_OUT_TOWNS)) + " (%)",
+        "against the paper's row",
+    ]
     methods, rows, paper = [], [], _paper_figures(found, "ap_percent")
     for method, variant in _paper_rows(found):
         if method is None:
@@ -304,18 +351,26 @@ def detection(found: dict) -> str:
         if town0 is None or not mean_std([summary_metrics(m) for m in town0])["AP@0.5 all (%)"][0]:
             continue  # a method without boxes (an odometry, the pose regressor)
         # detection is the same under either protocol: a run's held-out town counts under whichever it has
-        held_out = [_cell(ev.get(f"eval_town{t}", []) + ev.get(f"eval_town{t}_known_start", []), "AP@0.5 all (%)")
-                    for t in HELD_OUT_TOWNS]
+        held_out = [
+            _cell(ev.get(f"eval_town{t}", []) + ev.get(f"eval_town{t}_known_start", []), "AP@0.5 all (%)")
+            for t in HELD_OUT_TOWNS
+        ]
         against = ""
         if variant in paper:
             mean = mean_std([summary_metrics(m) for m in town0])
             below = [iou for iou in ious if mean[f"AP@{iou} all (%)"][0] < paper[variant][1][iou]]
             against = f"below at IoU {', '.join(below)}" if below else "at or above at every IoU"
         methods.append(method)
-        rows.append([f"`{method}`", *(_cell(town0, f"AP@{iou} all (%)") for iou in ious),
-                     _cell(town0, "AP@0.5 visible (%)"),
-                     " / ".join([_cell(town0, "AP@0.1 occluded (%)"), _cell(town0, "AP@0.5 occluded (%)")]),
-                     " / ".join(h or "-" for h in held_out), against])
+        rows.append(
+            [
+                f"`{method}`",
+                *(_cell(town0, f"AP@{iou} all (%)") for iou in ious),
+                _cell(town0, "AP@0.5 visible (%)"),
+                " / ".join([_cell(town0, "AP@0.1 occluded (%)"), _cell(town0, "AP@0.5 occluded (%)")]),
+                " / ".join(h or "-" for h in held_out),
+                against,
+            ]
+        )
     return _markdown(header, rows) + "\n\n" + _runs_note(found, methods) + "\n"
 
 
@@ -329,10 +384,25 @@ def learning_curve(found: dict) -> str:
     if not curves:
         return "(no run keeps evaluations of its checkpoints)\n"
     header = ["training steps", *(f"`{m}`: location (m) / heading (rad) / AP@0.5 (%)" for m in curves)]
-    rows = [[f"{step:,}", *(" / ".join(filter(None, [_cell(c.get(step), "location mean (m)"),
-                                                     _cell(c.get(step), "heading mean (rad)", digits=3),
-                                                     _cell(c.get(step), "AP@0.5 all (%)")])) for c in curves.values())]
-            for step in sorted(set().union(*curves.values()))]
+    rows = [
+        [
+            f"{step:,}",
+            *(
+                " / ".join(
+                    filter(
+                        None,
+                        [
+                            _cell(c.get(step), "location mean (m)"),
+                            _cell(c.get(step), "heading mean (rad)", digits=3),
+                            _cell(c.get(step), "AP@0.5 all (%)"),
+                        ],
+                    )
+                )
+                for c in curves.values()
+            ),
+        ]
+        for step in sorted(set().union(*curves.values()))
+    ]
     # the runs trained to the last kept step, evaluated at each checkpoint on the way
     last = {m: {"eval": c[max(c)]} for m, c in curves.items()}
     return _markdown(header, rows) + "\n\n" + _runs_note(last, list(curves)) + "\n"
@@ -374,21 +444,25 @@ def figure(results_dir: str):
             means = [mean_std([summary_metrics(x) for x in by_step[s]])[row][0] for s in sorted(by_step)]
             series.append((m, sorted(by_step), [np.nan if v is None else v for v in means]))
         return series
+
     elbo = lambda r, w: sum(v for k, v in r.items() if k.startswith("recon_") or k == "kl")  # a variant's own terms
-    charts = [(trained(elbo), "training: -ELBO (reconstructions + KL)", None),
-              (trained(lambda r, w: r.get("pose_place", np.nan) / w), "training: place term / pose weight", None),
-              (evaluated("location mean (m)"), "town 0: location error (m)", None),
-              (evaluated("AP@0.5 all (%)"), "town 0: AP@0.5 (%)", (0.0, 100.0))]
+    charts = [
+        (trained(elbo), "training: -ELBO (reconstructions + KL)", None),
+        (trained(lambda r, w: r.get("pose_place", np.nan) / w), "training: place term / pose weight", None),
+        (evaluated("location mean (m)"), "town 0: location error (m)", None),
+        (evaluated("AP@0.5 all (%)"), "town 0: AP@0.5 (%)", (0.0, 100.0)),
+    ]
     last = max([s for series, _, _ in charts for _, steps, _ in series for s in steps], default=1)
     views = []
     for series, title, y_range in charts:
-        shown = [(m, colour[m], steps, ys) for m, steps, ys in series
-                 if np.isfinite(ys).any() and np.nanmax(np.abs(ys)) > 0]  # NaN or AP 0: no such output
+        shown = [
+            (m, colour[m], steps, ys) for m, steps, ys in series if np.isfinite(ys).any() and np.nanmax(np.abs(ys)) > 0
+        ]  # NaN or AP 0: no such output
         log = y_range is None
         if log:  # whole decades around the values
             values = np.array([v for *_, ys in shown for v in ys if np.isfinite(v) and v > 0]) if shown else np.ones(1)
             lo = np.floor(np.log10(values.min()))
-            y_range = 10.0 ** lo, 10.0 ** max(np.ceil(np.log10(values.max())), lo + 1)
+            y_range = 10.0**lo, 10.0 ** max(np.ceil(np.log10(values.max())), lo + 1)
         views.append(pictures.line_chart(shown, title, "training steps", (0, last), y_range, log_y=log))
     height = max(v.shape[0] for v in views)  # legends of more rows make taller charts
     views = [np.pad(v, ((0, height - v.shape[0]), (0, 0), (0, 0)), constant_values=255) for v in views]
@@ -413,7 +487,7 @@ def fill(text: str, tables: dict) -> str:
         if text.count(begin) != 1 or text.count(end) != 1:
             raise ValueError(f"--readme: expected one {begin} ... {end} block")
         head, rest = text.split(begin)
-        text = head + begin + "\n" + table + rest[rest.index(end):]
+        text = head + begin + "\n" + table + rest[rest.index(end) :]
     return text
 
 
@@ -441,8 +515,12 @@ def main(argv):
     except (ValueError, OSError) as e:
         sys.exit(f"error: {e}")
     if FLAGS.check:
-        sys.exit(0 if filled == text else f"{FLAGS.readme}: its tables differ from those of {FLAGS.results}; "
-                 f"run python experiments/tables.py --readme={FLAGS.readme}")
+        sys.exit(
+            0
+            if filled == text
+            else f"{FLAGS.readme}: its tables differ from those of {FLAGS.results}; "
+            f"run python experiments/tables.py --readme={FLAGS.readme}"
+        )
     with open(FLAGS.readme, "w") as f:
         f.write(filled)
     print(f"wrote {len(tables)} tables into {FLAGS.readme}")

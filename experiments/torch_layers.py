@@ -9,6 +9,7 @@ stride 2, padding kernel // 2, output_padding 1)``, the layer ``model.Deconv2x``
 gradient of sum(y²) wrt input and weights (the same work as the JAX side). Prints one JSON line:
 {"torch": version, "threads": n, "layer_s": [median seconds per layer]}.
 """
+
 import argparse
 import json
 import statistics
@@ -41,8 +42,15 @@ def main():
     ap.add_argument("--repeats", type=int, default=5)
     a = ap.parse_args()
     layers = json.loads(a.layers)
-    print(json.dumps({"torch": torch.__version__, "threads": torch.get_num_threads(),
-                      "layer_s": [layer_seconds(*layer, a.repeats) for layer in layers]}))
+    print(
+        json.dumps(
+            {
+                "torch": torch.__version__,
+                "threads": torch.get_num_threads(),
+                "layer_s": [layer_seconds(*layer, a.repeats) for layer in layers],
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

@@ -12,6 +12,7 @@ part of the forward op it differentiates (autograd's sequence number links them)
 "optimizer"; the rest of the loss's forward and backward to "losses". Prints one JSON line:
 {"torch", "threads", "step_s_median", "part_ms": {part: ms per step}, "top_ops": [[part, op, ms per step], ...]}.
 """
+
 import argparse
 import collections
 import importlib.util
@@ -23,9 +24,11 @@ import torch
 from torch.profiler import ProfilerActivity, profile, record_function
 
 # part -> the peer model's attributes whose forward belongs to it
-PARTS = {"encoders": ("enc_cam", "enc_lidar"),
-         "latent scan": ("p_z2_first", "p_z1", "p_z2", "q_z1_first", "q_z1"),
-         "decoders": ("dec", "pixor", "pose")}
+PARTS = {
+    "encoders": ("enc_cam", "enc_lidar"),
+    "latent scan": ("p_z2_first", "p_z1", "p_z2", "q_z1_first", "q_z1"),
+    "decoders": ("dec", "pixor", "pose"),
+}
 
 
 def load_peer(path):
@@ -40,7 +43,7 @@ def tag_parts(model):
     for part, names in PARTS.items():
         for name in names:
             module = getattr(model, name)
-            for sub in (module if isinstance(module, torch.nn.ModuleList) else [module]):
+            for sub in module if isinstance(module, torch.nn.ModuleList) else [module]:
                 sub.forward = (lambda forward, part: lambda *a: _in_range(part, forward, *a))(sub.forward, part)
 
 
@@ -54,7 +57,7 @@ def part_of(event, forward_part=None):
     ``forward_part``, a backward node's, which is the part of the forward op it differentiates."""
     while event is not None:
         if event.name.startswith("part:"):
-            return event.name[len("part:"):]
+            return event.name[len("part:") :]
         if forward_part is not None and event.name.startswith("autograd::engine::evaluate_function"):
             return forward_part.get(event.sequence_nr)
         event = event.cpu_parent
@@ -113,10 +116,17 @@ def main():
         part_us[part] += event.self_cpu_time_total
         op_us[(part, event.name)] += event.self_cpu_time_total
     per_step_ms = lambda us: us / 1e3 / a.steps
-    print(json.dumps({"torch": torch.__version__, "threads": torch.get_num_threads(),
-                      "step_s_median": statistics.median(times),
-                      "part_ms": {part: per_step_ms(us) for part, us in part_us.most_common()},
-                      "top_ops": [[part, op, per_step_ms(us)] for (part, op), us in op_us.most_common(a.top)]}))
+    print(
+        json.dumps(
+            {
+                "torch": torch.__version__,
+                "threads": torch.get_num_threads(),
+                "step_s_median": statistics.median(times),
+                "part_ms": {part: per_step_ms(us) for part, us in part_us.most_common()},
+                "top_ops": [[part, op, per_step_ms(us)] for (part, op), us in op_us.most_common(a.top)],
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

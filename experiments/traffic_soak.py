@@ -17,6 +17,7 @@ measures, for every 10 s window (100 steps):
 Writes ``<out>/soak.json`` (per-window arrays and a summary) and ``<out>/soak.png`` (moving share over
 time, one line per seed) and prints the summary.
 """
+
 import functools
 import json
 import os
@@ -45,8 +46,7 @@ WINDOW_STEPS = 100  # 10 s
 MOVING_MPS = 0.1
 _NEIGHBOURS = 6  # nearest vehicles per vehicle whose bodies are tested against it
 _WINDOWS_PER_CALL = 500
-_DRIVABLE = np.array([town_lib.SEM_ROAD, town_lib.SEM_LANE_WHITE, town_lib.SEM_CENTRE_YELLOW,
-                      town_lib.SEM_STOP_LINE])
+_DRIVABLE = np.array([town_lib.SEM_ROAD, town_lib.SEM_LANE_WHITE, town_lib.SEM_CENTRE_YELLOW, town_lib.SEM_STOP_LINE])
 
 
 def _body_checks(state, town):
@@ -70,19 +70,33 @@ def _body_checks(state, town):
 @functools.partial(jax.jit, static_argnames="num_windows")
 def _windows(states, town, num_windows):
     """``num_windows`` windows of every world: (states, per-window stats [windows, worlds])."""
+
     def one_window(states, _):
         def body(carry, _):
             states, moved, overlaps, unchecked, off_road = carry
             states = jax.vmap(lambda s: world.step(s, town))(states)
             o, u, r = jax.vmap(lambda s: _body_checks(s, town))(states)
-            return (states, moved | (states.veh_speed_mps > MOVING_MPS), overlaps + o, unchecked + u,
-                    off_road + r), None
+            return (
+                states,
+                moved | (states.veh_speed_mps > MOVING_MPS),
+                overlaps + o,
+                unchecked + u,
+                off_road + r,
+            ), None
+
         zeros = jnp.zeros(states.step.shape, jnp.int32)
         moved = jnp.zeros(states.veh_speed_mps.shape, bool)
         (states, moved, overlaps, unchecked, off_road), _ = jax.lax.scan(
-            body, (states, moved, zeros, zeros, zeros), None, length=WINDOW_STEPS)
-        return states, dict(moving_share=moved.mean(-1), overlaps=overlaps, unchecked=unchecked, off_road=off_road,
-                            longest_standing=states.veh_standing_steps.max(-1))
+            body, (states, moved, zeros, zeros, zeros), None, length=WINDOW_STEPS
+        )
+        return states, dict(
+            moving_share=moved.mean(-1),
+            overlaps=overlaps,
+            unchecked=unchecked,
+            off_road=off_road,
+            longest_standing=states.veh_standing_steps.max(-1),
+        )
+
     return jax.lax.scan(one_window, states, None, length=num_windows)
 
 
@@ -102,11 +116,19 @@ def _plot(moving_share, labels, path):
     for w, label in enumerate(labels):
         points = np.array([[x(i * stride), y(v)] for i, v in enumerate(lows[:, w])], np.int32)
         cv2.polylines(canvas, [points], False, colours[w % len(colours)], 1, cv2.LINE_AA)
-        cv2.putText(canvas, label, (width - 130, 20 + 16 * w), cv2.FONT_HERSHEY_SIMPLEX, 0.45,
-                    colours[w % len(colours)], 1)
+        cv2.putText(
+            canvas, label, (width - 130, 20 + 16 * w), cv2.FONT_HERSHEY_SIMPLEX, 0.45, colours[w % len(colours)], 1
+        )
     hours = len(moving_share) * WINDOW_STEPS * world.DT_S / 3600
-    cv2.putText(canvas, f"share of vehicles moving per 10 s window (min per {stride} windows), {hours:.1f} h of "
-                "driving", (margin, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1)
+    cv2.putText(
+        canvas,
+        f"share of vehicles moving per 10 s window (min per {stride} windows), {hours:.1f} h of driving",
+        (margin, 20),
+        cv2.FONT_HERSHEY_SIMPLEX,
+        0.45,
+        (0, 0, 0),
+        1,
+    )
     cv2.imwrite(path, canvas)
 
 
@@ -138,20 +160,31 @@ def main(argv):
         states, chunk = _windows(states, town, num_windows)
         stats.append(jax.tree.map(np.asarray, chunk))
         done += num_windows * WINDOW_STEPS
-        print(f"{done:,} steps  min moving share so far {min(s['moving_share'].min() for s in stats):.2f}  "
-              f"{done * len(labels) / (time.time() - start):,.0f} world steps/s", flush=True)
+        print(
+            f"{done:,} steps  min moving share so far {min(s['moving_share'].min() for s in stats):.2f}  "
+            f"{done * len(labels) / (time.time() - start):,.0f} world steps/s",
+            flush=True,
+        )
     stats = {k: np.concatenate([s[k] for s in stats]) for k in stats[0]}  # [windows, worlds]
-    summary = dict(worlds=labels, town_seed=town_seed, num_vehicles=cfg.world.num_vehicles,
-                   num_steps=FLAGS.num_steps, window_steps=WINDOW_STEPS,
-                   min_moving_share=stats["moving_share"].min(0).round(3).tolist(),
-                   first_window_below_half=[int(np.argmax(col < 0.5)) if (col < 0.5).any() else None
-                                            for col in stats["moving_share"].T],
-                   overlaps=stats["overlaps"].sum(0).tolist(), unchecked=stats["unchecked"].sum(0).tolist(),
-                   off_road_corners=stats["off_road"].sum(0).tolist(),
-                   longest_standing_steps=stats["longest_standing"].max(0).tolist(),
-                   reroute_after_steps=int(world.REROUTE_AFTER_S / world.DT_S),
-                   windows_past_reroute_time=(stats["longest_standing"] >= int(world.REROUTE_AFTER_S / world.DT_S))
-                   .sum(0).tolist())
+    summary = dict(
+        worlds=labels,
+        town_seed=town_seed,
+        num_vehicles=cfg.world.num_vehicles,
+        num_steps=FLAGS.num_steps,
+        window_steps=WINDOW_STEPS,
+        min_moving_share=stats["moving_share"].min(0).round(3).tolist(),
+        first_window_below_half=[
+            int(np.argmax(col < 0.5)) if (col < 0.5).any() else None for col in stats["moving_share"].T
+        ],
+        overlaps=stats["overlaps"].sum(0).tolist(),
+        unchecked=stats["unchecked"].sum(0).tolist(),
+        off_road_corners=stats["off_road"].sum(0).tolist(),
+        longest_standing_steps=stats["longest_standing"].max(0).tolist(),
+        reroute_after_steps=int(world.REROUTE_AFTER_S / world.DT_S),
+        windows_past_reroute_time=(stats["longest_standing"] >= int(world.REROUTE_AFTER_S / world.DT_S))
+        .sum(0)
+        .tolist(),
+    )
     with open(os.path.join(FLAGS.out, "soak.json"), "w") as f:
         json.dump(dict(summary=summary, moving_share=stats["moving_share"].round(3).T.tolist()), f)
     _plot(stats["moving_share"], labels, os.path.join(FLAGS.out, "soak.png"))

@@ -8,6 +8,7 @@ Flags: ``--config`` (a preset) and ``--<section>.<field>`` overrides (see ``e2e_
 one line naming the flag and exits with status 1 before anything is compiled; SIGTERM / Ctrl-C
 write a checkpoint and exit with 128 + the signal number.
 """
+
 import sys
 
 import jax
@@ -32,6 +33,7 @@ def main(argv):
         cfg = config_lib.from_flags()
         # Imported once the flags are valid: a bad flag exits in ~1.2 s instead of ~3.3 s (orbax, distrax, flax).
         from e2e_percep_jax import train as train_lib
+
         if FLAGS.coordinator_address:
             jax.distributed.initialize(FLAGS.coordinator_address, FLAGS.num_processes, FLAGS.process_id)
         train_lib.check_run(cfg, FLAGS.workdir)

@@ -8,6 +8,7 @@ ego. A fresh reset spawns vehicles on evenly spaced slots at random safe speeds;
 junctions form over the first light cycle, and a batch should be recorded only once these figures
 have levelled off.
 """
+
 import sys
 
 import jax
@@ -46,8 +47,11 @@ def main(argv):
     for step in range(0, FLAGS.max_steps + 1, FLAGS.every):
         speed_mps = np.asarray(state.veh_speed_mps)  # [worlds, N + 1], the ego is row world.EGO
         npc, ego = np.delete(speed_mps, world.EGO, axis=1), speed_mps[:, world.EGO]
-        print(f"| {step} | {npc.mean():.2f} | {(npc < STOPPED_MPS).mean():.3f} | {ego.mean():.2f} "
-              f"| {(ego < STOPPED_MPS).mean():.3f} |", flush=True)
+        print(
+            f"| {step} | {npc.mean():.2f} | {(npc < STOPPED_MPS).mean():.3f} | {ego.mean():.2f} "
+            f"| {(ego < STOPPED_MPS).mean():.3f} |",
+            flush=True,
+        )
         if step < FLAGS.max_steps:
             state = advance(state, town)
 

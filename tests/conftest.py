@@ -1,4 +1,5 @@
 """Fixtures for every test module. Plain helpers that test modules import are in helpers.py."""
+
 import atexit
 import os
 import shutil

@@ -6,6 +6,7 @@ does code that the training tests run in a fresh ``python -c`` subprocess, which
 ``pythonpath = ["tests"]`` in pyproject.toml puts this folder on ``sys.path``, whatever the import mode.
 Fixtures shared by test modules belong in conftest.py.
 """
+
 import functools
 import importlib.util
 import json
@@ -42,15 +43,28 @@ def synthetic_batch(seed, cfg, batch_size=None):
     rng = np.random.default_rng(seed)
     image = lambda: rng.integers(0, 256, (b, t1, r, r, 3), np.uint8)
     heading = rng.uniform(0, 2 * np.pi, (b, t1))
-    pose = np.stack([rng.uniform(0, 400, (b, t1)), rng.uniform(0, 400, (b, t1)), np.cos(heading), np.sin(heading),
-                     rng.uniform(0, 12, (b, t1))], -1)
+    pose = np.stack(
+        [
+            rng.uniform(0, 400, (b, t1)),
+            rng.uniform(0, 400, (b, t1)),
+            np.cos(heading),
+            np.sin(heading),
+            rng.uniform(0, 12, (b, t1)),
+        ],
+        -1,
+    )
     det_cls = (rng.uniform(size=(b, t1, r, r, 1)) > 0.9).astype(np.float32)
     # Regression targets exist at positive pixels only; elsewhere anything, here NaN / inf as a worst case.
     det_reg = np.where(det_cls > 0.5, rng.normal(size=(b, t1, r, r, 6)), rng.choice([np.nan, np.inf], (b, t1, r, r, 6)))
-    return {"camera": image(), "lidar": image(), "roadmap": image(), "det_cls": det_cls,
-            "det_reg": det_reg.astype(np.float32),
-            "pose": pose.astype(np.float32),
-            "action": rng.uniform(-0.3, 0.3, (b, t1, 2)).astype(np.float32)}
+    return {
+        "camera": image(),
+        "lidar": image(),
+        "roadmap": image(),
+        "det_cls": det_cls,
+        "det_reg": det_reg.astype(np.float32),
+        "pose": pose.astype(np.float32),
+        "action": rng.uniform(-0.3, 0.3, (b, t1, 2)).astype(np.float32),
+    }
 
 
 @functools.partial(jax.jit, static_argnames="cfg")
@@ -67,7 +81,7 @@ def np_focal(logit, y):
 
 
 def np_smooth_l1(d):
-    return np.where(np.abs(d) < 1, 0.5 * d ** 2, np.abs(d) - 0.5)
+    return np.where(np.abs(d) < 1, 0.5 * d**2, np.abs(d) - 0.5)
 
 
 # ----------------------------------------------------------------------------- training runs and their files
@@ -80,13 +94,20 @@ def tiny(**train_fields):
     # learning rate 1e-3 for every run, so that the world run's KL is past its rise within a few hundred
     # steps (at initialisation q and p are alike, the KL is small; it peaks once the posterior encodes
     # the frames); 100 vehicles so the 32 m view often holds one (det_reg is non-zero only then).
-    return config.replace(TINY, world=dict(num_vehicles=100),
-                          train=dict(dict(learning_rate=1e-3, max_nonfinite_in_a_row=3), **train_fields))
+    return config.replace(
+        TINY,
+        world=dict(num_vehicles=100),
+        train=dict(dict(learning_rate=1e-3, max_nonfinite_in_a_row=3), **train_fields),
+    )
 
 
 # The same run from the launcher: flags on top of --config=tiny.
-TINY_FLAGS = ["--config=tiny", "--world.num_vehicles=100", "--train.learning_rate=1e-3",
-              "--train.max_nonfinite_in_a_row=3"]
+TINY_FLAGS = [
+    "--config=tiny",
+    "--world.num_vehicles=100",
+    "--train.learning_rate=1e-3",
+    "--train.max_nonfinite_in_a_row=3",
+]
 
 
 def read_jsonl(path):

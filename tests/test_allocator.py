@@ -1,4 +1,5 @@
 """allocator.keep_freed_buffers: counted page faults, in a fresh process (the setting is process-wide)."""
+
 import ctypes.util
 import os
 import subprocess
@@ -23,11 +24,17 @@ print(before, applied, faults())
 """
 
 
-@pytest.mark.skipif(not sys.platform.startswith("linux") or "libc.so.6" not in str(ctypes.util.find_library("c")),
-                    reason="glibc only")
+@pytest.mark.skipif(
+    not sys.platform.startswith("linux") or "libc.so.6" not in str(ctypes.util.find_library("c")), reason="glibc only"
+)
 def test_freed_buffers_are_reused_without_new_page_faults():
-    out = subprocess.run([sys.executable, "-c", _FAULTS_PER_CYCLE], capture_output=True, text=True, check=True,
-                         env={**os.environ, "GLIBC_TUNABLES": ""}).stdout.split()
+    out = subprocess.run(
+        [sys.executable, "-c", _FAULTS_PER_CYCLE],
+        capture_output=True,
+        text=True,
+        check=True,
+        env={**os.environ, "GLIBC_TUNABLES": ""},
+    ).stdout.split()
     before, applied, after = float(out[0]), out[1], float(out[2])
     # 48 MiB in pages of at most 2 MiB (transparent huge pages): >= 24 faults a cycle while each buffer is
     # mapped afresh; none once freed buffers are kept.

@@ -1,5 +1,6 @@
 """The public inference API: batching, streaming vs the training-time scan, jit/scan inside user code,
 and loading a trained run. (Bad arguments and damaged runs are rows of test_bad_input.py.)"""
+
 import os
 import subprocess
 import sys
@@ -39,8 +40,9 @@ def _stream(perceiver, params, camera, lidar, prev_action, keys=None):
     state, outs = perceiver.init(camera.shape[0]), []
     step = jax.jit(perceiver.step)
     for t in range(camera.shape[1]):
-        state, out = step(params, state, camera[:, t], lidar[:, t], prev_action[:, t],
-                          None if keys is None else keys[t])
+        state, out = step(
+            params, state, camera[:, t], lidar[:, t], prev_action[:, t], None if keys is None else keys[t]
+        )
         outs.append(out)
     return jax.tree.map(lambda *x: jnp.stack(x, 1), *outs)
 
@@ -51,9 +53,9 @@ def test_batch_of_streams_equals_each_stream_alone(params):
     camera, lidar, action = _inputs(3, 4)
     together = _stream(perceiver, params, camera, lidar, action)
     for i in range(3):
-        alone = _stream(perceiver, params, camera[i:i + 1], lidar[i:i + 1], action[i:i + 1])
+        alone = _stream(perceiver, params, camera[i : i + 1], lidar[i : i + 1], action[i : i + 1])
         for k in ("det_cls", "det_reg", "pose", "z", "roadmap"):
-            np.testing.assert_allclose(together[k][i:i + 1], alone[k], rtol=1e-5, atol=1e-5, err_msg=k)
+            np.testing.assert_allclose(together[k][i : i + 1], alone[k], rtol=1e-5, atol=1e-5, err_msg=k)
 
 
 @pytest.mark.slow
@@ -80,6 +82,7 @@ def test_step_inside_a_users_jit_and_scan(params):
         def body(state, xs):
             state, out = perceiver.step(params, state, *xs)
             return state, out["pose"]
+
         xs = tuple(jnp.swapaxes(x, 0, 1) for x in (camera, lidar, action))
         return jax.lax.scan(body, perceiver.init(camera.shape[0]), xs)[1]
 
@@ -91,8 +94,16 @@ def test_step_inside_a_users_jit_and_scan(params):
 
 # A motion model unlike the exact bicycle in every part (lag, pedal gain and bias, steering gain and bias,
 # understeer), so that a test of the odometry fails if any of them is ignored.
-MODEL = MotionModel(lag_share=0.6, accel_per_pedal_mps2=2.5, accel_bias_mps2=0.1, steer_gain=1.1, steer_bias=0.02,
-                    understeer_s2pm2=-0.002, heading_noise_rad2pm=1e-4, position_noise_m2pm=1e-3)
+MODEL = MotionModel(
+    lag_share=0.6,
+    accel_per_pedal_mps2=2.5,
+    accel_bias_mps2=0.1,
+    steer_gain=1.1,
+    steer_bias=0.02,
+    understeer_s2pm2=-0.002,
+    heading_noise_rad2pm=1e-4,
+    position_noise_m2pm=1e-3,
+)
 
 
 def _odometry(start, commands):
@@ -105,7 +116,7 @@ def _odometry(start, commands):
         v_new = max(v + (MODEL.accel_per_pedal_mps2 * actuator[0] + MODEL.accel_bias_mps2) * 0.1, 0.0)
         ds, v_mid = 0.5 * (v + v_new) * 0.1, 0.5 * (v + v_new)
         tan = np.tan(actuator[1])
-        dyaw = ds * (MODEL.steer_gain * tan + MODEL.steer_bias + MODEL.understeer_s2pm2 * tan * v_mid ** 2) / 2.7
+        dyaw = ds * (MODEL.steer_gain * tan + MODEL.steer_bias + MODEL.understeer_s2pm2 * tan * v_mid**2) / 2.7
         rear = np.array([x, y]) - 1.35 * np.array([np.cos(yaw), np.sin(yaw)])
         rear = rear + ds * np.array([np.cos(yaw + dyaw / 2), np.sin(yaw + dyaw / 2)])
         yaw, v = yaw + dyaw, v_new
@@ -129,14 +140,14 @@ def test_pose_belief_through_the_api_known_start_and_global(params):
     odometry, measured, global_state = perceiver.init(2), perceiver.init(2), perceiver.init(2)
     for t in range(6):
         odometry, out = step(params, odometry, camera[:, t], lidar[:, t], action[:, t], start_pose=start, measure=False)
-        want = np.stack([_odometry(np.asarray(start[b]), np.asarray(action[b, :t + 1]))[-1] for b in range(2)])
+        want = np.stack([_odometry(np.asarray(start[b]), np.asarray(action[b, : t + 1]))[-1] for b in range(2)])
         np.testing.assert_allclose(out["pose"], want, rtol=1e-5, atol=2e-4)
         measured, m_out = step(params, measured, camera[:, t], lidar[:, t], action[:, t], start_pose=start)
         if t == 0:
             cell = np.floor((np.asarray(start[:, :2]) - pose_belief.AREA_ORIGIN_M) / grid.cell_m).astype(int)
             for b in range(2):  # the start's bilinear cells only: the measurement cannot add mass elsewhere
                 place = np.asarray(m_out["pose_place"][b])
-                near = place[max(cell[b, 1] - 1, 0):cell[b, 1] + 2, max(cell[b, 0] - 1, 0):cell[b, 0] + 2]
+                near = place[max(cell[b, 1] - 1, 0) : cell[b, 1] + 2, max(cell[b, 0] - 1, 0) : cell[b, 0] + 2]
                 np.testing.assert_allclose(near.sum(), 1.0, rtol=1e-5)
         global_state, global_out = step(params, global_state, camera[:, t], lidar[:, t], action[:, t])
         np.testing.assert_allclose(jnp.sum(global_out["pose_place"], (1, 2)), 1.0, rtol=1e-5)
@@ -155,8 +166,9 @@ def test_pose_filter_none_reads_the_head_frame_by_frame(params):
     latent_state = model_lib.init_filter_state(2, cfg)
     for t in range(3):
         state, out = jax.jit(perceiver.step)(params, state, camera[:, t], lidar[:, t], action[:, t])
-        latent_state, latent = model_lib.filter_step(params, latent_state, camera[:, t], lidar[:, t], action[:, t],
-                                                     None, cfg)
+        latent_state, latent = model_lib.filter_step(
+            params, latent_state, camera[:, t], lidar[:, t], action[:, t], None, cfg
+        )
         head = model_lib.pose_belief_head(params, latent, cfg)
         np.testing.assert_allclose(out["pose"], pose_belief.decode(head, grid), rtol=1e-5, atol=1e-4)
         place = np.asarray(jax.nn.softmax(head["place_logit"], -1)).reshape(2, grid.n, grid.n)
@@ -179,8 +191,9 @@ def test_load_returns_the_trained_params_and_boxes_decode(trained_run):
     # the run's motion model, fitted when training started: not the exact bicycle of a world without a plant
     assert perceiver.motion_model == MotionModel.load(str(tmp_path)) != MotionModel()
     assert 0.2 < perceiver.motion_model.lag_share < 0.8 and perceiver.motion_model.heading_noise_rad2pm > 0
-    jax.tree.map(lambda a, b: np.testing.assert_array_equal(np.asarray(a), np.asarray(b)),
-                 params, jax.device_get(trained.params))
+    jax.tree.map(
+        lambda a, b: np.testing.assert_array_equal(np.asarray(a), np.asarray(b)), params, jax.device_get(trained.params)
+    )
     camera, lidar, action = _inputs(2, 1, seed=3)
     _, out = perceiver.step(params, perceiver.init(2), camera[:, 0], lidar[:, 0], action[:, 0])
     assert out["det_cls"].shape == (2, R, R, 1) and out["pose"].shape == (2, 5)
@@ -202,13 +215,21 @@ def test_boxes_recover_the_cars_behind_pixor_maps():
 def test_load_imports_no_evaluation_world_or_cv2():
     """``e2e_percep_jax.load`` needs only the model and the checkpoint reader: in a fresh process, touching it
     imports neither cv2 nor the world, the town, the sensors or the evaluation."""
-    script = ("import sys, e2e_percep_jax; e2e_percep_jax.load; "
-              "print(' '.join(m for m in sys.modules if m.split('.')[0] in ('e2e_percep_jax', 'cv2')))")
+    script = (
+        "import sys, e2e_percep_jax; e2e_percep_jax.load; "
+        "print(' '.join(m for m in sys.modules if m.split('.')[0] in ('e2e_percep_jax', 'cv2')))"
+    )
     env = dict(os.environ, PYTHONPATH=ROOT)
     loaded = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, check=True)
     modules = loaded.stdout.split()
     assert "e2e_percep_jax.api" in modules, modules
-    heavy = ("cv2", "e2e_percep_jax.sim.world", "e2e_percep_jax.sim.town", "e2e_percep_jax.sim.sensors", "e2e_percep_jax.evaluate")
+    heavy = (
+        "cv2",
+        "e2e_percep_jax.sim.world",
+        "e2e_percep_jax.sim.town",
+        "e2e_percep_jax.sim.sensors",
+        "e2e_percep_jax.evaluate",
+    )
     assert not [m for m in modules if m in heavy or m.startswith("cv2.")], modules
 
 
@@ -218,9 +239,24 @@ def test_filter_sweep_reports_the_regions_coverage_under_each_heading_noise(trai
     in the belief's 95 % regions, as percentages; a heading noise scaled 10,000-fold changes the joint
     (heading, place) region's share, so the scale reaches the filter."""
     workdir, _, _ = trained_run
-    sweep = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "experiments", "pose_filter_sweep.py")
-    result = subprocess.run([sys.executable, sweep, f"--workdir={workdir}", "--frames=30", "--worlds=2", "--floors=0.05",
-                             "--powers=0.25", "--heading_noise_scales=1,10000"], capture_output=True, text=True, timeout=600)
+    sweep = os.path.join(
+        os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "experiments", "pose_filter_sweep.py"
+    )
+    result = subprocess.run(
+        [
+            sys.executable,
+            sweep,
+            f"--workdir={workdir}",
+            "--frames=30",
+            "--worlds=2",
+            "--floors=0.05",
+            "--powers=0.25",
+            "--heading_noise_scales=1,10000",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert result.returncode == 0, result.stderr[-2000:]
     rows = [line for line in result.stdout.splitlines() if "heading noise x" in line and "local_mean" in line]
     coverage = [tuple(map(float, row.split("|")[-2].strip(" %").split(" / "))) for row in rows]  # the last column

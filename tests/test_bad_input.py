@@ -10,6 +10,7 @@ The damaged runs are copies of ONE tiny run trained here (2 steps, a checkpoint 
 training past a damaged latest checkpoint is not a failure: it sets that one aside as ``<step>.damaged``
 and goes on from the one before; :func:`test_a_resume_sets_a_damaged_latest_checkpoint_aside` checks it.
 """
+
 import concurrent.futures
 import contextlib
 import hashlib
@@ -47,6 +48,7 @@ class Case(NamedTuple):
     step on float32 arrays). ``expect``: how the error message starts, or with a leading "…" a part of
     it. ``damage``: what is done to the run copied for the row (:func:`damage`); launcher rows without it
     get a fresh --workdir (train) or an intact copy (evaluate). ``env``: more environment for a launcher."""
+
     target: str
     args: Any
     expect: str = ""
@@ -60,9 +62,9 @@ def _state(**parts):
     for name, value in parts.items():
         if name.startswith("pose_"):
             if value is None:
-                state["pose"].pop(name[len("pose_"):])
+                state["pose"].pop(name[len("pose_") :])
             else:
-                state["pose"][name[len("pose_"):]] = value
+                state["pose"][name[len("pose_") :]] = value
         else:
             state[name] = value
     return state
@@ -73,61 +75,87 @@ _images = lambda b=2, r=R, dtype=_U8: np.zeros((b, r, r, 3), dtype)
 
 CASES = {
     # ---------------------------------------------------------------- experiments/train.py, a fresh --workdir
-    "train image_size not a power of two": Case("train", ["--data.image_size=48"],
-                                                "--data.image_size=48: must be a power of two >= 32"),
-    "train image_size too small": Case("train", ["--data.image_size=16"],
-                                       "--data.image_size=16: must be a power of two >= 32"),
-    "train image_size beyond the conv widths": Case("train", ["--data.image_size=256"],
-                                                    "--model.conv_channels has 3 widths; image_size 256 needs 6"),
+    "train image_size not a power of two": Case(
+        "train", ["--data.image_size=48"], "--data.image_size=48: must be a power of two >= 32"
+    ),
+    "train image_size too small": Case(
+        "train", ["--data.image_size=16"], "--data.image_size=16: must be a power of two >= 32"
+    ),
+    "train image_size beyond the conv widths": Case(
+        "train", ["--data.image_size=256"], "--model.conv_channels has 3 widths; image_size 256 needs 6"
+    ),
     "train variant": Case("train", ["--model.variant=both"], "--model.variant='both': choose one of"),
     "train batch_size zero": Case("train", ["--data.batch_size=0"], "--data.batch_size=0: must be positive"),
     "train batch_size not a multiple of the devices": Case(
-        "train", ["--data.batch_size=3"], "--data.batch_size=3 must be a multiple of the number of devices (4)",
-        env=FOUR_DEVICES),
-    "train conv_channels zero": Case("train", ["--model.conv_channels=8,0,32"],
-                                     "--model.conv_channels[1]=0: must be positive"),
-    "train conv_channels negative": Case("train", ["--model.conv_channels=8,-16,32"],
-                                         "--model.conv_channels[1]=-16: must be positive"),
-    "train conv_channels not integers": Case("train", ["--model.conv_channels=8,x"],
-                                             "--model.conv_channels=8,x: expected comma-separated integers"),
+        "train",
+        ["--data.batch_size=3"],
+        "--data.batch_size=3 must be a multiple of the number of devices (4)",
+        env=FOUR_DEVICES,
+    ),
+    "train conv_channels zero": Case(
+        "train", ["--model.conv_channels=8,0,32"], "--model.conv_channels[1]=0: must be positive"
+    ),
+    "train conv_channels negative": Case(
+        "train", ["--model.conv_channels=8,-16,32"], "--model.conv_channels[1]=-16: must be positive"
+    ),
+    "train conv_channels not integers": Case(
+        "train", ["--model.conv_channels=8,x"], "--model.conv_channels=8,x: expected comma-separated integers"
+    ),
     "train unknown field": Case("train", ["--data.nonsense=1"], "Unknown command line flag 'data.nonsense'"),
     "train unknown preset": Case("train", ["--config=nope"], "--config='nope' is not a preset"),
-    "train vehicles beyond the town": Case("train", ["--world.num_vehicles=100000"],
-                                           "--world.num_vehicles=100000: at most"),
+    "train vehicles beyond the town": Case(
+        "train", ["--world.num_vehicles=100000"], "--world.num_vehicles=100000: at most"
+    ),
     "train negative town seed": Case("train", ["--world.town_seed=-1"], "--world.town_seed=-1: must be >= 0"),
     "train negative seed": Case("train", ["--train.seed=-1"], "--train.seed=-1: must be >= 0"),
     "train negative warm-up": Case("train", ["--data.warmup_steps=-1"], "--data.warmup_steps=-1: must be >= 0"),
-    "train batches_per_drive zero": Case("train", ["--data.batches_per_drive=0"],
-                                         "--data.batches_per_drive=0: must be positive"),
-    "train carry_state with one batch per drive": Case("train", ["--data.carry_state"],
-                                                       "--data.carry_state: needs segments to carry across"),
-    "train negative max_grad_norm": Case("train", ["--train.max_grad_norm=-1"],
-                                         "--train.max_grad_norm=-1.0: must be >= 0"),
-    "train negative actuator lag": Case("train", ["--world.ego_lag_s=-0.1"], "--world.ego_lag_s=-0.1: must lie in [0, 1]"),
-    "train steering gain spread too wide": Case("train", ["--world.ego_steer_gain_std=0.5"],
-                                                "--world.ego_steer_gain_std=0.5: must lie in [0, 0.2]"),
+    "train batches_per_drive zero": Case(
+        "train", ["--data.batches_per_drive=0"], "--data.batches_per_drive=0: must be positive"
+    ),
+    "train carry_state with one batch per drive": Case(
+        "train", ["--data.carry_state"], "--data.carry_state: needs segments to carry across"
+    ),
+    "train negative max_grad_norm": Case(
+        "train", ["--train.max_grad_norm=-1"], "--train.max_grad_norm=-1.0: must be >= 0"
+    ),
+    "train negative actuator lag": Case(
+        "train", ["--world.ego_lag_s=-0.1"], "--world.ego_lag_s=-0.1: must lie in [0, 1]"
+    ),
+    "train steering gain spread too wide": Case(
+        "train", ["--world.ego_steer_gain_std=0.5"], "--world.ego_steer_gain_std=0.5: must lie in [0, 0.2]"
+    ),
     "train negative pose_weight": Case("train", ["--train.pose_weight=-1"], "--train.pose_weight=-1.0: must be >= 0"),
-    "train negative pose_hidden_dim": Case("train", ["--model.pose_hidden_dim=-1"],
-                                           "--model.pose_hidden_dim=-1: must be >= 0"),
+    "train negative pose_hidden_dim": Case(
+        "train", ["--model.pose_hidden_dim=-1"], "--model.pose_hidden_dim=-1: must be >= 0"
+    ),
     "train kl_weight zero": Case("train", ["--train.kl_weight=0"], "--train.kl_weight=0.0: must be positive"),
     "train pose_filter": Case("train", ["--model.pose_filter=kalman"], "--model.pose_filter='kalman': choose one of"),
-    "train known_start without the filter": Case("train", ["--eval.known_start", "--model.pose_filter=none"],
-                                                 "--eval.known_start: needs the belief pose head and its filter"),
-    "train score_threshold": Case("train", ["--eval.score_threshold=1.5"],
-                                  "--eval.score_threshold=1.5: must lie in (0, 1)"),
+    "train known_start without the filter": Case(
+        "train",
+        ["--eval.known_start", "--model.pose_filter=none"],
+        "--eval.known_start: needs the belief pose head and its filter",
+    ),
+    "train score_threshold": Case(
+        "train", ["--eval.score_threshold=1.5"], "--eval.score_threshold=1.5: must lie in (0, 1)"
+    ),
     "train a positional argument": Case("train", ["extra"], "unexpected arguments ['extra']"),
     "train no workdir": Case("train", ["--workdir="], "--workdir is required"),
     # ---------------------------------------------------------------- experiments/train.py resuming the run
-    "train resume with another z1_dim": Case("train", ["--model.z1_dim=4"],
-                                             "--model.z1_dim=4 differs from the run being resumed", damage="none"),
-    "train resume with other conv widths": Case("train", ["--model.conv_channels=8,16,64"],
-                                                "…pass --model.conv_channels=8,16,32 to resume it", damage="none"),
-    "train resume, config.json not JSON": Case("train", [], "…/config.json: not a config (JSONDecodeError",
-                                               damage="config.json not JSON"),
-    "train resume, config.json with an unknown field": Case("train", [], "…/config.json: not a config",
-                                                            damage="config.json with an unknown field"),
-    "train resume, config.json of another model": Case("train", [], f"--model.z1_dim={Z1} differs",
-                                                       damage="config.json of another model"),
+    "train resume with another z1_dim": Case(
+        "train", ["--model.z1_dim=4"], "--model.z1_dim=4 differs from the run being resumed", damage="none"
+    ),
+    "train resume with other conv widths": Case(
+        "train", ["--model.conv_channels=8,16,64"], "…pass --model.conv_channels=8,16,32 to resume it", damage="none"
+    ),
+    "train resume, config.json not JSON": Case(
+        "train", [], "…/config.json: not a config (JSONDecodeError", damage="config.json not JSON"
+    ),
+    "train resume, config.json with an unknown field": Case(
+        "train", [], "…/config.json: not a config", damage="config.json with an unknown field"
+    ),
+    "train resume, config.json of another model": Case(
+        "train", [], f"--model.z1_dim={Z1} differs", damage="config.json of another model"
+    ),
     "train resume, no config.json": Case("train", [], "…: no config.json", damage="no config.json"),
     # ---------------------------------------------------------------- experiments/evaluate.py on the run
     "evaluate top_k": Case("evaluate", ["--top_k=-1"], "--top_k=-1: must be positive"),
@@ -136,9 +164,11 @@ CASES = {
     "evaluate video_frames": Case("evaluate", ["--video_frames=-1"], "--video_frames and --num_examples must be >= 0"),
     "evaluate negative step": Case("evaluate", ["--step=-2"], "--step=-2: "),
     "evaluate step not saved": Case("evaluate", ["--step=999"], "--step=999: "),
-    "evaluate a trained-model field": Case("evaluate", ["--model.z1_dim=4"],
-                                           "--model.z1_dim: only --eval.*, --model.pose_filter and the plant's "
-                                           "--world.ego_* may change"),
+    "evaluate a trained-model field": Case(
+        "evaluate",
+        ["--model.z1_dim=4"],
+        "--model.z1_dim: only --eval.*, --model.pose_filter and the plant's --world.ego_* may change",
+    ),
     "evaluate a preset": Case("evaluate", ["--config=tiny"], "--config: the run's config.json is the config"),
     "evaluate negative town seed": Case("evaluate", ["--eval.town_seed=-1"], "--eval.town_seed=-1: must be >= 0"),
     "evaluate no workdir": Case("evaluate", ["--workdir="], "--workdir is required"),
@@ -153,7 +183,7 @@ DAMAGES = {  # damage: what the message says (Case.expect)
     "checkpoint of another model width": "…/checkpoints/2: cannot be restored",
     "config.json not JSON": "…/config.json: not a config (JSONDecodeError",
     "config.json with an unknown field": "…/config.json: not a config (ValueError: config.json: unknown fields "
-                                         "['image_sise'] in [data])",
+    "['image_sise'] in [data])",
     "config.json of another model": "…/checkpoints/2: cannot be restored for its config.json",
     "no config.json": "…: no config.json",
     "no checkpoints": "no checkpoint in ",
@@ -161,55 +191,79 @@ DAMAGES = {  # damage: what the message says (Case.expect)
 for _damage, _expect in DAMAGES.items():
     CASES[f"load, {_damage}"] = Case("load", {}, _expect, damage=_damage)
     CASES[f"evaluate, {_damage}"] = Case("evaluate", [], _expect, damage=_damage)
-CASES.update({
-    # ---------------------------------------------------------------- e2e.load, Perceiver.init and .step
-    "load step not saved": Case("load", {"step": 3}, "--step=3: ", damage="none"),
-    "init negative": Case("init", [-1], "batch_size=-1: must be a positive integer"),
-    "init zero": Case("init", [0], "batch_size=0: must be a positive integer"),
-    "init a float": Case("init", [2.5], "batch_size=2.5: must be a positive integer"),
-    "init a bool": Case("init", [True], "batch_size=True: must be a positive integer"),
-    "init a string": Case("init", ["2"], "batch_size='2': must be a positive integer"),
-    "init None": Case("init", [None], "batch_size=None: must be a positive integer"),
-    "init under jit, negative": Case("init under jit", [-1], "batch_size=-1: must be a positive integer"),
-    "init traced under jit": Case("init traced", [2], "…: must be a positive integer"),  # a shape must be static
-})
+CASES.update(
+    {
+        # ---------------------------------------------------------------- e2e.load, Perceiver.init and .step
+        "load step not saved": Case("load", {"step": 3}, "--step=3: ", damage="none"),
+        "init negative": Case("init", [-1], "batch_size=-1: must be a positive integer"),
+        "init zero": Case("init", [0], "batch_size=0: must be a positive integer"),
+        "init a float": Case("init", [2.5], "batch_size=2.5: must be a positive integer"),
+        "init a bool": Case("init", [True], "batch_size=True: must be a positive integer"),
+        "init a string": Case("init", ["2"], "batch_size='2': must be a positive integer"),
+        "init None": Case("init", [None], "batch_size=None: must be a positive integer"),
+        "init under jit, negative": Case("init under jit", [-1], "batch_size=-1: must be a positive integer"),
+        "init traced under jit": Case("init traced", [2], "…: must be a positive integer"),  # a shape must be static
+    }
+)
 _IMAGE = f"uint8[2, {R}, {R}, 3]"
 _STEP_CASES = {  # replaced inputs -> message
-    "camera dtype": ({"camera": lambda: _images(dtype=_F32)},
-                     f"camera: expected {_IMAGE}, got float32[2, {R}, {R}, 3]"),
-    "camera size": ({"camera": lambda: _images(r=R // 2)},
-                    f"camera: expected {_IMAGE}, got uint8[2, {R // 2}, {R // 2}, 3]"),
+    "camera dtype": (
+        {"camera": lambda: _images(dtype=_F32)},
+        f"camera: expected {_IMAGE}, got float32[2, {R}, {R}, 3]",
+    ),
+    "camera size": (
+        {"camera": lambda: _images(r=R // 2)},
+        f"camera: expected {_IMAGE}, got uint8[2, {R // 2}, {R // 2}, 3]",
+    ),
     "camera batch": ({"camera": lambda: _images(b=3)}, f"camera: expected {_IMAGE}, got uint8[3, {R}, {R}, 3]"),
-    "camera without the batch axis": ({"camera": lambda: _images()[0]},
-                                      f"camera: expected {_IMAGE}, got uint8[{R}, {R}, 3]"),
-    "lidar size": ({"lidar": lambda: _images(r=R // 2)},
-                   f"lidar: expected {_IMAGE}, got uint8[2, {R // 2}, {R // 2}, 3]"),
+    "camera without the batch axis": (
+        {"camera": lambda: _images()[0]},
+        f"camera: expected {_IMAGE}, got uint8[{R}, {R}, 3]",
+    ),
+    "lidar size": (
+        {"lidar": lambda: _images(r=R // 2)},
+        f"lidar: expected {_IMAGE}, got uint8[2, {R // 2}, {R // 2}, 3]",
+    ),
     "lidar dtype": ({"lidar": lambda: _images(dtype=np.int32)}, f"lidar: expected {_IMAGE}, got int32[2, {R}, {R}, 3]"),
     "action width": ({"action": lambda: np.zeros((2, 3), _F32)}, "action: expected float32[2, 2], got float32[2, 3]"),
     "action dtype": ({"action": lambda: np.zeros((2, 2), np.int32)}, "action: expected float32[2, 2], got int32[2, 2]"),
     "action batch": ({"action": lambda: np.zeros((3, 2), _F32)}, "action: expected float32[2, 2], got float32[3, 2]"),
-    "start_pose width": ({"start_pose": lambda: np.zeros((2, 4), _F32)},
-                         "start_pose: expected float32[2, 5], got float32[2, 4]"),
-    "z1 width": ({"state": lambda: _state(z1=np.zeros((2, Z1 + 1), _F32))},
-                 f"state['z1']: expected float32[2, {Z1}], got float32[2, {Z1 + 1}]"),
-    "z2 batch": ({"state": lambda: _state(z2=np.zeros((3, Z2), _F32))},
-                 f"state['z2']: expected float32[2, {Z2}], got float32[3, {Z2}]"),
-    "z1 dtype": ({"state": lambda: _state(z1=np.zeros((2, Z1), np.float16))},
-                 f"state['z1']: expected float32[2, {Z1}], got float16[2, {Z1}]"),
-    "first dtype": ({"state": lambda: _state(first=np.zeros(2, np.int32))},
-                    "state['first']: expected bool[2], got int32[2]"),
-    "state missing a part": ({"state": lambda: _state(pose_speed_mps=None)},
-                             "state: expected the dict of Perceiver.init (keys ['first', 'pose', 'z1', 'z2'])"),
+    "start_pose width": (
+        {"start_pose": lambda: np.zeros((2, 4), _F32)},
+        "start_pose: expected float32[2, 5], got float32[2, 4]",
+    ),
+    "z1 width": (
+        {"state": lambda: _state(z1=np.zeros((2, Z1 + 1), _F32))},
+        f"state['z1']: expected float32[2, {Z1}], got float32[2, {Z1 + 1}]",
+    ),
+    "z2 batch": (
+        {"state": lambda: _state(z2=np.zeros((3, Z2), _F32))},
+        f"state['z2']: expected float32[2, {Z2}], got float32[3, {Z2}]",
+    ),
+    "z1 dtype": (
+        {"state": lambda: _state(z1=np.zeros((2, Z1), np.float16))},
+        f"state['z1']: expected float32[2, {Z1}], got float16[2, {Z1}]",
+    ),
+    "first dtype": (
+        {"state": lambda: _state(first=np.zeros(2, np.int32))},
+        "state['first']: expected bool[2], got int32[2]",
+    ),
+    "state missing a part": (
+        {"state": lambda: _state(pose_speed_mps=None)},
+        "state: expected the dict of Perceiver.init (keys ['first', 'pose', 'z1', 'z2'])",
+    ),
     "state None": ({"state": lambda: None}, "state: expected the dict of Perceiver.init"),
 }
 for _name, (_args, _expect) in _STEP_CASES.items():
     CASES[f"step {_name}"] = Case("step", _args, _expect)
     CASES[f"step under jit, {_name}"] = Case("step under jit", _args, _expect)
-CASES.update({  # array-likes NumPy takes as float32 [2, 2]
-    "accepted: action as a list": Case("accepted", {"action": lambda: [[0.5, -0.1], [0.0, 0.2]]}),
-    "accepted: action as a tuple": Case("accepted", {"action": lambda: ((0.5, -0.1), (0.0, 0.2))}),
-    "accepted: action as float64": Case("accepted", {"action": lambda: np.array([[0.5, -0.1], [0.0, 0.2]])}),
-})
+CASES.update(
+    {  # array-likes NumPy takes as float32 [2, 2]
+        "accepted: action as a list": Case("accepted", {"action": lambda: [[0.5, -0.1], [0.0, 0.2]]}),
+        "accepted: action as a tuple": Case("accepted", {"action": lambda: ((0.5, -0.1), (0.0, 0.2))}),
+        "accepted: action as float64": Case("accepted", {"action": lambda: np.array([[0.5, -0.1], [0.0, 0.2]])}),
+    }
+)
 LAUNCHERS = ("train", "evaluate")
 
 
@@ -297,8 +351,14 @@ def _launcher_run(case, workdir):
         cmd.append(f"--workdir={workdir}")
     if case.target == "train" and not any(a.startswith("--config") for a in case.args):
         cmd.append("--config=tiny")
-    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=600,
-                          env=dict(os.environ, JAX_LOG_COMPILES="1", **(case.env or {})))
+    proc = subprocess.run(
+        cmd,
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=600,
+        env=dict(os.environ, JAX_LOG_COMPILES="1", **(case.env or {})),
+    )
     return proc.returncode, proc.stderr, snapshot(workdir)
 
 
@@ -324,6 +384,7 @@ def launched(run, tmp_path_factory):
 @contextlib.contextmanager
 def no_compiles():
     """Fails if anything is compiled inside (jax logs each compilation under ``jax.log_compiles``)."""
+
     class Compiles(logging.Handler):
         def __init__(self):
             super().__init__(logging.WARNING)
@@ -356,8 +417,13 @@ def says(message, expect):
 
 
 def _step_inputs(case):
-    good = {"state": lambda: _state(), "camera": _images, "lidar": _images,
-            "action": lambda: np.zeros((2, 2), _F32), "start_pose": lambda: None}
+    good = {
+        "state": lambda: _state(),
+        "camera": _images,
+        "lidar": _images,
+        "action": lambda: np.zeros((2, 2), _F32),
+        "start_pose": lambda: None,
+    }
     return {k: make() for k, make in dict(good, **case.args).items()}
 
 
@@ -365,8 +431,10 @@ def _step_inputs(case):
 
 
 # The launcher rows are slow together: the first one starts all of them (``launched``).
-@pytest.mark.parametrize("name", [pytest.param(name, marks=pytest.mark.slow) if case.target in LAUNCHERS else name
-                                  for name, case in CASES.items()])
+@pytest.mark.parametrize(
+    "name",
+    [pytest.param(name, marks=pytest.mark.slow) if case.target in LAUNCHERS else name for name, case in CASES.items()],
+)
 def test_bad_input_fails_in_one_line_naming_it_and_writes_nothing(name, request, tmp_path):
     case = CASES[name]
     if case.target in LAUNCHERS:
@@ -378,7 +446,9 @@ def test_bad_input_fails_in_one_line_naming_it_and_writes_nothing(name, request,
         compiled = [l for l in lines if "Compiling " in l or "XLA compilation" in l or "MLIR module" in l]
         said = [l for l in lines if "Finished tracing" not in l]
         assert status == 1 and len(said) == 1 and said[0].startswith("error: ") and says(said[0][7:], case.expect), (
-            status, err)
+            status,
+            err,
+        )
         assert not compiled, err
         assert after == before  # nothing written, deleted or changed; a fresh --workdir not even made
         return
@@ -386,8 +456,9 @@ def test_bad_input_fails_in_one_line_naming_it_and_writes_nothing(name, request,
         inputs = _step_inputs(case)
         perceiver, params = e2e.Perceiver(CFG), request.getfixturevalue("params")
         _, got = perceiver.step(params, inputs["state"], inputs["camera"], inputs["lidar"], inputs["action"])
-        _, want = perceiver.step(params, inputs["state"], inputs["camera"], inputs["lidar"],
-                                 np.asarray(inputs["action"], _F32))
+        _, want = perceiver.step(
+            params, inputs["state"], inputs["camera"], inputs["lidar"], np.asarray(inputs["action"], _F32)
+        )
         jax.tree.map(np.testing.assert_array_equal, got, want)
         return
     perceiver = e2e.Perceiver(CFG)
@@ -399,15 +470,24 @@ def test_bad_input_fails_in_one_line_naming_it_and_writes_nothing(name, request,
         before = snapshot(workdir)
         call = lambda: e2e.load(workdir, **case.args)
     elif case.target.startswith("init"):
-        init = {"init": perceiver.init, "init under jit": jax.jit(perceiver.init, static_argnums=0),
-                "init traced": jax.jit(perceiver.init)}[case.target]
+        init = {
+            "init": perceiver.init,
+            "init under jit": jax.jit(perceiver.init, static_argnums=0),
+            "init traced": jax.jit(perceiver.init),
+        }[case.target]
         call = lambda: init(*case.args)
     else:
         inputs = _step_inputs(case)
         step = jax.jit(perceiver.step) if "jit" in case.target else perceiver.step
         params = request.getfixturevalue("params")
-        call = lambda: step(params, inputs["state"], inputs["camera"], inputs["lidar"], inputs["action"],
-                            start_pose=inputs["start_pose"])
+        call = lambda: step(
+            params,
+            inputs["state"],
+            inputs["camera"],
+            inputs["lidar"],
+            inputs["action"],
+            start_pose=inputs["start_pose"],
+        )
     # Eager step: putting new NumPy shapes on the device compiles a copy in some jax versions, valid or not;
     # the checks themselves run at trace time, compiling nothing, as the rows under jit show.
     guard = contextlib.nullcontext() if case.target == "step" else no_compiles()
@@ -422,8 +502,15 @@ def test_bad_input_fails_in_one_line_naming_it_and_writes_nothing(name, request,
 # ----------------------------------------------------------------------------- resuming a damaged run
 
 
-@pytest.mark.parametrize("how", ["array files truncated", "checkpoint overwritten with random bytes",
-                                 "empty step folder", "checkpoint of another model width"])
+@pytest.mark.parametrize(
+    "how",
+    [
+        "array files truncated",
+        "checkpoint overwritten with random bytes",
+        "empty step folder",
+        "checkpoint of another model width",
+    ],
+)
 @pytest.mark.slow
 def test_a_resume_sets_a_damaged_latest_checkpoint_aside(run, tmp_path, capfd, how):
     """Training resumed on a run whose latest checkpoint is damaged says so in one line, renames that one
@@ -444,7 +531,8 @@ def test_a_resume_sets_a_damaged_latest_checkpoint_aside(run, tmp_path, capfd, h
     after = snapshot(workdir)
     kept = {k: v for k, v in before.items() if k.startswith("checkpoints/2/")}
     assert {k.replace("checkpoints/2", "checkpoints/2.damaged", 1): v for k, v in kept.items()} == {
-        k: v for k, v in after.items() if k.startswith("checkpoints/2.damaged")}
+        k: v for k, v in after.items() if k.startswith("checkpoints/2.damaged")
+    }
     for name, digest in before.items():
         if name == "config.json" or name.startswith("checkpoints/1/"):
             assert after[name] == digest, name
@@ -453,8 +541,9 @@ def test_a_resume_sets_a_damaged_latest_checkpoint_aside(run, tmp_path, capfd, h
     timeless = lambda record: {k: v for k, v in record.items() if k != "steps_per_s"}
     assert timeless(records[1]) == timeless(undamaged[1])
     assert int(state.step) == 2 and checkpoint.saved_steps(workdir) == [1, 2]
-    jax.tree.map(np.testing.assert_array_equal, checkpoint.restore_params(workdir)[1],
-                 checkpoint.restore_params(run[0])[1])
+    jax.tree.map(
+        np.testing.assert_array_equal, checkpoint.restore_params(workdir)[1], checkpoint.restore_params(run[0])[1]
+    )
 
 
 @pytest.mark.slow

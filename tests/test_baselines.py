@@ -5,6 +5,7 @@ oracle, and the launcher end to end.
 Cost: the launcher runs in a subprocess started first (it overlaps the in-process tests); in this process
 one evaluation program is compiled (the oracle) and reused by the tracker and dead-reckoning runs.
 """
+
 import json
 import os
 import subprocess
@@ -30,16 +31,18 @@ def cli_run(tmp_path_factory):
     """The launcher, started at once; yields a function that waits for it and for a
     second, identical command (which must find everything done)."""
     workdir = str(tmp_path_factory.mktemp("baselines"))
-    proc = subprocess.Popen(LAUNCHER + CLI_FLAGS + [f"--workdir={workdir}"], stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
+    proc = subprocess.Popen(
+        LAUNCHER + CLI_FLAGS + [f"--workdir={workdir}"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+    )
     result = {}
 
     def wait():
         if not result:
             first, _ = proc.communicate(timeout=600)
             assert proc.returncode == 0, first[-3000:]
-            again = subprocess.run(LAUNCHER + CLI_FLAGS + [f"--workdir={workdir}"], capture_output=True, text=True,
-                                   timeout=300)
+            again = subprocess.run(
+                LAUNCHER + CLI_FLAGS + [f"--workdir={workdir}"], capture_output=True, text=True, timeout=300
+            )
             assert again.returncode == 0, again.stdout + again.stderr
             result.update(workdir=workdir, first=first, again=again.stdout)
         return result
@@ -63,7 +66,9 @@ def test_single_frame_output_ignores_other_frames_while_the_filter_remembers(cli
     for head in baselines.HEADS:
         params = baselines.init_params(jax.random.PRNGKey(0), cfg, head)
         image = jax.ShapeDtypeStruct((1, 32, 32, 3), jnp.uint8)  # flax's own init: the same tree and shapes
-        flax_init = jax.eval_shape(lambda k, x: baselines.build_model(cfg, head).init(k, x, x), jax.random.PRNGKey(0), image)
+        flax_init = jax.eval_shape(
+            lambda k, x: baselines.build_model(cfg, head).init(k, x, x), jax.random.PRNGKey(0), image
+        )
         assert jax.tree.map(np.shape, params) == jax.tree.map(lambda x: x.shape, flax_init)
         before = baselines.predict(params, batch["camera"], batch["lidar"], cfg, head)
         after = baselines.predict(params, changed["camera"], changed["lidar"], cfg, head)
@@ -83,12 +88,18 @@ def test_baseline_losses_are_the_perception_loss_terms_in_numpy():
     for head, names in (("detection", {"det_cls", "det_reg"}), ("pose", {"pose"})):
         params = baselines.init_params(jax.random.PRNGKey(1), cfg, head)
         total, metrics = baselines.loss_fn(params, batch, None, cfg, head)
-        pred = jax.tree.map(lambda x: np.asarray(x, np.float64),
-                            baselines.predict(params, batch["camera"], batch["lidar"], cfg, head))
+        pred = jax.tree.map(
+            lambda x: np.asarray(x, np.float64), baselines.predict(params, batch["camera"], batch["lidar"], cfg, head)
+        )
         if head == "detection":
             positive = batch["det_cls"] > 0.5
-            want = {"det_cls": w * np.sum(np_focal(pred["det_logit"], batch["det_cls"])) / b,
-                    "det_reg": w * 0.1 * np.sum(np.where(positive, np_smooth_l1(pred["det_reg"] - batch["det_reg"]), 0)) / b}
+            want = {
+                "det_cls": w * np.sum(np_focal(pred["det_logit"], batch["det_cls"])) / b,
+                "det_reg": w
+                * 0.1
+                * np.sum(np.where(positive, np_smooth_l1(pred["det_reg"] - batch["det_reg"]), 0))
+                / b,
+            }
         else:
             target = (batch["pose"] - [200, 200, 0, 0, 0]) / [100, 100, 1, 1, 10]
             want = {"pose": w * np.sum(np_smooth_l1(pred["pose_normalised"] - target)) / b}
@@ -116,10 +127,20 @@ TRUSTING = tracking.TrackerConfig(min_hits=1, meas_pos_std_m=1e-3, meas_yaw_std_
 @pytest.fixture(scope="module")
 def oracle_eval(tmp_path_factory):
     """``evaluate`` with the oracle frame function (one compile) and any host function."""
+
     def run(host_fn, name):
-        return eval_lib.evaluate(ORACLE_CFG, {}, str(tmp_path_factory.mktemp(name)), video_frames=0, num_examples=0,
-                                 perceiver=baselines.SingleFramePerceiver(ORACLE_CFG, None),
-                                 heads=oracle_heads, host_fn=host_fn, log=lambda _: None)
+        return eval_lib.evaluate(
+            ORACLE_CFG,
+            {},
+            str(tmp_path_factory.mktemp(name)),
+            video_frames=0,
+            num_examples=0,
+            perceiver=baselines.SingleFramePerceiver(ORACLE_CFG, None),
+            heads=oracle_heads,
+            host_fn=host_fn,
+            log=lambda _: None,
+        )
+
     return run
 
 
@@ -131,7 +152,12 @@ def test_tracker_on_oracle_detections_keeps_their_ap(oracle_eval):
     assert tracked["ap"]["0.5"]["visible"] >= 0.99, tracked["ap"]
     for iou in ("0.1", "0.5", "0.7"):
         for subset in ("all", "visible"):
-            assert tracked["ap"][iou][subset] >= plain["ap"][iou][subset] - 1e-3, (iou, subset, tracked["ap"], plain["ap"])
+            assert tracked["ap"][iou][subset] >= plain["ap"][iou][subset] - 1e-3, (
+                iou,
+                subset,
+                tracked["ap"],
+                plain["ap"],
+            )
 
 
 @pytest.mark.slow
@@ -148,17 +174,23 @@ def test_wheel_odometry_without_noise_or_bias_follows_the_true_path(oracle_eval)
     assert noisy["speed_mps"]["mean"] > 0.01  # the wheel-radius error scales the reported speed
 
 
-
-
 @pytest.mark.slow
 def test_dead_reckoning_on_the_commands_is_exact_in_the_exact_world_and_drifts_under_the_plant(tmp_path):
     """The commands through the exact bicycle (``MotionModel()``) from the true start: the true path (to
     float32 rounding) where the world's plant is exact; metres off where it is not."""
+
     def run(world, name):
         cfg = config.replace(ORACLE_CFG, world=world, eval=dict(known_start=True, num_frames=400))
-        return eval_lib.evaluate(cfg, {}, str(tmp_path / name), video_frames=0, num_examples=0,
-                                 perceiver=baselines.CommandOdometry(cfg, baselines.motion_lib.MotionModel()),
-                                 log=lambda _: None)["pose"]
+        return eval_lib.evaluate(
+            cfg,
+            {},
+            str(tmp_path / name),
+            video_frames=0,
+            num_examples=0,
+            perceiver=baselines.CommandOdometry(cfg, baselines.motion_lib.MotionModel()),
+            log=lambda _: None,
+        )["pose"]
+
     exact, plant = run(EXACT_PLANT, "exact"), run({}, "plant")
     assert exact["location_m"]["mean"] < 0.02 and exact["heading_rad"]["mean"] < 1e-3, exact
     assert plant["location_m"]["mean"] > 0.5, plant
@@ -200,13 +232,24 @@ def test_cli_trains_evaluates_and_resumes(cli_run):
 @pytest.mark.slow
 def test_bad_flags_fail_in_one_line_before_any_compile(tmp_path):
     """JAX_LOG_COMPILES=1 logs every compilation to stderr: a one-line stderr means nothing compiled."""
-    cases = [(["--baseline=detector,kalman"], "--baseline=detector,kalman"),
-             (["--world.ego_lag_s=-0.1"], "--world.ego_lag_s=-0.1"),
-             (["--data.image_size=48"], "--data.image_size=48")]
-    procs = [subprocess.Popen(LAUNCHER + flags + [f"--workdir={tmp_path / str(i)}"], stdout=subprocess.PIPE,
-                              stderr=subprocess.PIPE, text=True, env=dict(os.environ, JAX_LOG_COMPILES="1"))
-             for i, (flags, _) in enumerate(cases)]
+    cases = [
+        (["--baseline=detector,kalman"], "--baseline=detector,kalman"),
+        (["--world.ego_lag_s=-0.1"], "--world.ego_lag_s=-0.1"),
+        (["--data.image_size=48"], "--data.image_size=48"),
+    ]
+    procs = [
+        subprocess.Popen(
+            LAUNCHER + flags + [f"--workdir={tmp_path / str(i)}"],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=dict(os.environ, JAX_LOG_COMPILES="1"),
+        )
+        for i, (flags, _) in enumerate(cases)
+    ]
     for (flags, text), proc in zip(cases, procs):
         out, err = proc.communicate(timeout=120)
         assert proc.returncode == 1 and err.count("\n") == 1 and err.startswith("error: ") and text in err, (
-            flags, out + err)
+            flags,
+            out + err,
+        )

@@ -1,5 +1,6 @@
 """On-the-fly batches: the contract's shapes, determinism per key, resumable streams, and that frame t
 holds the observation of state t and the action that led to state t+1."""
+
 import itertools
 
 import jax
@@ -20,10 +21,18 @@ def first_batch(town):
 @pytest.mark.slow
 def test_batch_follows_the_contract(first_batch):
     b, t1, r, n = CFG.data.batch_size, CFG.data.seq_len + 1, CFG.data.image_size, CFG.world.num_vehicles
-    expected = {"camera": (np.uint8, (r, r, 3)), "lidar": (np.uint8, (r, r, 3)), "roadmap": (np.uint8, (r, r, 3)),
-                "det_cls": (np.float32, (r, r, 1)), "det_reg": (np.float32, (r, r, 6)), "pose": (np.float32, (5,)),
-                "action": (np.float32, (2,)), "boxes": (np.float32, (n, 5)), "boxes_valid": (np.bool_, (n,)),
-                "boxes_occluded": (np.bool_, (n,))}
+    expected = {
+        "camera": (np.uint8, (r, r, 3)),
+        "lidar": (np.uint8, (r, r, 3)),
+        "roadmap": (np.uint8, (r, r, 3)),
+        "det_cls": (np.float32, (r, r, 1)),
+        "det_reg": (np.float32, (r, r, 6)),
+        "pose": (np.float32, (5,)),
+        "action": (np.float32, (2,)),
+        "boxes": (np.float32, (n, 5)),
+        "boxes_valid": (np.bool_, (n,)),
+        "boxes_occluded": (np.bool_, (n,)),
+    }
     assert set(first_batch) == set(expected)
     for key, (dtype, shape) in expected.items():
         assert first_batch[key].dtype == dtype and first_batch[key].shape == (b, t1) + shape, key
@@ -46,8 +55,9 @@ def test_same_key_same_batch_other_key_other_batch(town, first_batch):
 def test_successive_batches_are_decorrelated(town, first_batch):
     # Each sequence starts from its own reset, so the sequences of successive batch keys neither continue one
     # another nor start near one another, and their traffic differs.
-    batches = [first_batch] + [jax.tree.map(np.asarray, batch.make_batch(batch.batch_key(0, s), town, CFG))
-                               for s in (1, 2)]
+    batches = [first_batch] + [
+        jax.tree.map(np.asarray, batch.make_batch(batch.batch_key(0, s), town, CFG)) for s in (1, 2)
+    ]
     starts = np.concatenate([b["pose"][:, 0, :2] for b in batches])  # [3B, 2], town metres
     gaps_m = np.linalg.norm(starts[:, None] - starts[None], axis=-1) + np.diag(np.full(len(starts), np.inf))
     assert gaps_m.min() > 5.0
@@ -97,7 +107,7 @@ def test_drive_slot_visits_each_drive_k_times_and_successive_steps_differ():
     # Brute force over the first 3 K^2 steps: every drive serves exactly K steps, segments 0..K-1 in order,
     # K apart; successive steps never share a drive; K = 1 is one fresh drive per step.
     for per_drive in (1, 2, 3, 5):
-        slots = [batch.drive_slot(step, per_drive) for step in range(3 * per_drive ** 2)]
+        slots = [batch.drive_slot(step, per_drive) for step in range(3 * per_drive**2)]
         served = {}
         for step, (drive, segment) in enumerate(slots):
             served.setdefault(drive, []).append((step, segment))
@@ -116,7 +126,7 @@ def test_batches_per_drive_interleave_drives_hand_over_the_ego_and_resume_mid_dr
     # mid-drive (re-driving its worlds unobserved) yields the same batch as the uninterrupted one.
     per_drive, b, n = 2, CFG.data.batch_size, CFG.world.num_vehicles
     cfg = config.replace(CFG, data=dict(batches_per_drive=per_drive))
-    stream = [b for _, b in itertools.islice(batch.batch_stream(town, cfg, seed=2), per_drive ** 2 + 1)]
+    stream = [b for _, b in itertools.islice(batch.batch_stream(town, cfg, seed=2), per_drive**2 + 1)]
     for drive in range(per_drive):
         drive_key = batch.batch_key(2, drive)
         states = batch.start_drive(drive_key, town, cfg, 0)
@@ -132,19 +142,24 @@ def test_batches_per_drive_interleave_drives_hand_over_the_ego_and_resume_mid_dr
             np.testing.assert_array_equal(place(states, [[world.EGO]] * b), place(before, np.array(vehicles)[:, None]))
             np.testing.assert_array_equal(place(states, np.array(vehicles)[:, None]), place(before, [[world.EGO]] * b))
             np.testing.assert_array_equal(np.asarray(states.veh_box)[..., 3:], np.asarray(before.veh_box)[..., 3:])
-            states, piece = jax.vmap(lambda s: rollout.drive(s, town, CFG.data.seq_len + 1, CFG.data.image_size))(states)
+            states, piece = jax.vmap(lambda s: rollout.drive(s, town, CFG.data.seq_len + 1, CFG.data.image_size))(
+                states
+            )
             for key in ("pose", "boxes", "action"):  # another program than the stream's: equal up to rounding
                 np.testing.assert_allclose(stream[step][key], piece[key], atol=1e-3, err_msg=f"{step} {key}")
             assert np.mean(np.asarray(stream[step]["camera"]) == np.asarray(piece["camera"])) > 0.99, step
     # successive batches come from different worlds, and a drive's next segment is seen from elsewhere:
     # its first pose is not one step on from the last segment's last pose
     assert not np.allclose(np.asarray(stream[0]["pose"]), np.asarray(stream[1]["pose"]))
-    jump_m = np.linalg.norm(np.asarray(stream[per_drive]["pose"])[:, 0, :2] - np.asarray(stream[0]["pose"])[:, -1, :2], axis=-1)
+    jump_m = np.linalg.norm(
+        np.asarray(stream[per_drive]["pose"])[:, 0, :2] - np.asarray(stream[0]["pose"])[:, -1, :2], axis=-1
+    )
     assert (jump_m > 5.0).all(), jump_m
     # step K^2 is slot 0's next drive (drive K), segment 0: fresh worlds, not a continuation
-    fresh = batch.drive_segment(batch.start_drive(batch.batch_key(2, per_drive), town, cfg, 0),
-                                batch.batch_key(2, per_drive), 0, town, cfg)[1]
-    np.testing.assert_array_equal(np.asarray(stream[per_drive ** 2]["pose"]), np.asarray(fresh["pose"]))
+    fresh = batch.drive_segment(
+        batch.start_drive(batch.batch_key(2, per_drive), town, cfg, 0), batch.batch_key(2, per_drive), 0, town, cfg
+    )[1]
+    np.testing.assert_array_equal(np.asarray(stream[per_drive**2]["pose"]), np.asarray(fresh["pose"]))
     for start in (2, 3):  # resumed at slot 0's and slot 1's second segment
         step, resumed = next(batch.batch_stream(town, cfg, seed=2, start_step=start))
         assert step == start
@@ -158,14 +173,20 @@ def test_carried_state_drives_continue_without_hand_over(town):
     # --data.carry_state the stream's segments of that drive are its consecutive pieces.
     per_drive, t1 = 2, CFG.data.seq_len + 1
     cfg = config.replace(CFG, data=dict(batches_per_drive=per_drive, carry_state=True))
-    stream = [b for _, b in itertools.islice(batch.batch_stream(town, cfg, seed=2), per_drive ** 2)]
+    stream = [b for _, b in itertools.islice(batch.batch_stream(town, cfg, seed=2), per_drive**2)]
     states = batch.start_drive(batch.batch_key(2, 0), town, cfg, 0)
     _, whole = jax.vmap(lambda s: rollout.drive(s, town, per_drive * t1, CFG.data.image_size))(states)
     for segment in range(per_drive):
         step = segment * per_drive  # slot 0's drive
         for key in ("pose", "action"):  # another program than the stream's: equal up to rounding
-            np.testing.assert_allclose(stream[step][key], np.asarray(whole[key])[:, segment * t1:(segment + 1) * t1],
-                                       atol=1e-3, err_msg=f"{step} {key}")
+            np.testing.assert_allclose(
+                stream[step][key],
+                np.asarray(whole[key])[:, segment * t1 : (segment + 1) * t1],
+                atol=1e-3,
+                err_msg=f"{step} {key}",
+            )
     # the next segment's first pose is one step on from the last one's last pose
-    step_m = np.linalg.norm(np.asarray(stream[per_drive]["pose"])[:, 0, :2] - np.asarray(stream[0]["pose"])[:, -1, :2], axis=-1)
+    step_m = np.linalg.norm(
+        np.asarray(stream[per_drive]["pose"])[:, 0, :2] - np.asarray(stream[0]["pose"])[:, -1, :2], axis=-1
+    )
     assert (step_m < 2.0).all(), step_m

@@ -1,5 +1,6 @@
 """The training step's per-op profile (bench.py --what=train_profile): ops put in parts by their HLO
 metadata, and thread-pool tasks given to the op that started them, on a hand-made trace."""
+
 import jax
 from helpers import load_experiment
 
@@ -18,17 +19,26 @@ _STATS = {"hlo_op": 1, "_p": 2, "_c": 3}
 
 def _event(kind, start_us, end_us=None, **stats):
     """One XEvent of the text proto: an op (``hlo_op``) or a thread pool's marker (``_p``, ``_c`` ids)."""
-    stat = "".join(f' stats {{ metadata_id: {_STATS[k]} str_value: "{v}" }}' if k == "hlo_op" else
-                   f" stats {{ metadata_id: {_STATS[k]} int64_value: {v} }}" for k, v in stats.items())
+    stat = "".join(
+        f' stats {{ metadata_id: {_STATS[k]} str_value: "{v}" }}'
+        if k == "hlo_op"
+        else f" stats {{ metadata_id: {_STATS[k]} int64_value: {v} }}"
+        for k, v in stats.items()
+    )
     duration_us = 0 if end_us is None else end_us - start_us
     return f"events {{ metadata_id: {_NAMES[kind]} offset_ps: {start_us * 10**6} duration_ps: {duration_us * 10**6}{stat} }}"
 
 
 def _trace(lines):
-    body = "".join(f'lines {{ id: {i} name: "t{i}" timestamp_ns: 0 {" ".join(events)} }}\n'
-                   for i, events in enumerate(lines))
-    names = {"op": "an op", "record": "ThreadpoolListener::Record", "start": "ThreadpoolListener::StartRegion",
-             "stop": "ThreadpoolListener::StopRegion"}
+    body = "".join(
+        f'lines {{ id: {i} name: "t{i}" timestamp_ns: 0 {" ".join(events)} }}\n' for i, events in enumerate(lines)
+    )
+    names = {
+        "op": "an op",
+        "record": "ThreadpoolListener::Record",
+        "start": "ThreadpoolListener::StartRegion",
+        "stop": "ThreadpoolListener::StopRegion",
+    }
     meta = "".join(f'event_metadata {{ key: {i} value {{ id: {i} name: "{names[k]}" }} }}\n' for k, i in _NAMES.items())
     meta += "".join(f'stat_metadata {{ key: {i} value {{ id: {i} name: "{k}" }} }}\n' for k, i in _STATS.items())
     return jax.profiler.ProfileData.from_text_proto(f'planes {{ id: 1 name: "/host:CPU" {body} {meta} }}')
@@ -44,10 +54,21 @@ def test_pool_tasks_are_given_to_the_op_that_started_them():
     """Hand-computed: conv.1 runs 0-10 us on thread a and starts task 7 (3-13 us on thread b), which starts
     task 8 (11-15 us on a); task 9 has no Record (3 us); task 10 (18-27 us) has no Record and holds
     add.2's own 20-25 us event, so only its other 4 us are a task's."""
-    a = [_event("op", 0, 10, hlo_op="conv.1"), _event("record", 2, _p=7),
-         _event("start", 11, _c=8), _event("stop", 15),
-         _event("start", 18, _c=10), _event("op", 20, 25, hlo_op="add.2"), _event("stop", 27)]
-    b = [_event("start", 3, _c=7), _event("record", 5, _p=8), _event("stop", 13),
-         _event("start", 30, _c=9), _event("stop", 33)]
+    a = [
+        _event("op", 0, 10, hlo_op="conv.1"),
+        _event("record", 2, _p=7),
+        _event("start", 11, _c=8),
+        _event("stop", 15),
+        _event("start", 18, _c=10),
+        _event("op", 20, 25, hlo_op="add.2"),
+        _event("stop", 27),
+    ]
+    b = [
+        _event("start", 3, _c=7),
+        _event("record", 5, _p=8),
+        _event("stop", 13),
+        _event("start", 30, _c=9),
+        _event("stop", 33),
+    ]
     core_ns = bench._op_core_ns(_trace([a, b]))
     assert core_ns == {"conv.1": (10 + 10 + 4) * 1000, "add.2": 5 * 1000, None: (3 + 4) * 1000}

@@ -1,6 +1,7 @@
 """TensorBoard events of a training run (e2e_percep_jax/board.py), read back with a TFRecord reader written
 here: the scalars are metrics.jsonl's records, the images are the inputs beside their reconstructions and
 the pose belief; without tensorboardX the run trains as before."""
+
 import glob
 import struct
 import sys
@@ -31,8 +32,8 @@ def read_events(workdir):
         data = open(path, "rb").read()
         at = 0
         while at < len(data):
-            (length,) = struct.unpack("<Q", data[at:at + 8])
-            events.append(event_pb2.Event.FromString(data[at + 12:at + 12 + length]))
+            (length,) = struct.unpack("<Q", data[at : at + 8])
+            events.append(event_pb2.Event.FromString(data[at + 12 : at + 12 + length]))
             at += 12 + length + 4
     return events
 
@@ -48,8 +49,9 @@ def test_events_hold_the_metrics_records_the_learning_rate_and_the_pictures_acro
             starts.append(event.step)
         for value in event.summary.value:
             if value.HasField("image"):
-                images[(value.tag, event.step)] = cv2.imdecode(np.frombuffer(value.image.encoded_image_string, np.uint8),
-                                                               cv2.IMREAD_COLOR)
+                images[(value.tag, event.step)] = cv2.imdecode(
+                    np.frombuffer(value.image.encoded_image_string, np.uint8), cv2.IMREAD_COLOR
+                )
             else:
                 scalars.setdefault(value.tag, {})[event.step] = value.simple_value
     records = read_jsonl(tmp_path / "metrics.jsonl")
@@ -57,12 +59,19 @@ def test_events_hold_the_metrics_records_the_learning_rate_and_the_pictures_acro
     for record in records:
         for name, value in record.items():
             if name != "step":
-                tag = name if name in ("grad_norm", "steps_per_s", "nonfinite_in_a_row", "nonfinite_total") else f"loss/{name}"
+                tag = (
+                    name
+                    if name in ("grad_norm", "steps_per_s", "nonfinite_in_a_row", "nonfinite_total")
+                    else f"loss/{name}"
+                )
                 assert scalars[tag][record["step"]] == pytest.approx(value, rel=1e-6), tag
         assert scalars["learning_rate"][record["step"]] == pytest.approx(CFG.train.learning_rate)
     r, n = CFG.data.image_size, pose_belief.grid_of(CFG.model).n
-    assert sorted(images) == sorted((tag, step) for step in (2, 4) for tag in
-                                    ("reconstruction/camera", "reconstruction/lidar", "reconstruction/roadmap", "pose_belief"))
+    assert sorted(images) == sorted(
+        (tag, step)
+        for step in (2, 4)
+        for tag in ("reconstruction/camera", "reconstruction/lidar", "reconstruction/roadmap", "pose_belief")
+    )
     camera = images[("reconstruction/camera", 4)][..., ::-1]  # (cv2 decodes BGR)
     assert camera.shape == (r, 2 * r, 3)
     np.testing.assert_array_equal(camera[:, :r], synthetic_batch(3, TINY)["camera"][0, -1])  # the input, left
@@ -70,7 +79,9 @@ def test_events_hold_the_metrics_records_the_learning_rate_and_the_pictures_acro
     assert belief.shape == (n, n, 3)
     green = np.argwhere((belief[..., 1] == 255) & (belief[..., 0] == 0))
     pose = synthetic_batch(3, TINY)["pose"][0, -1]
-    col, row = np.clip(np.floor((pose[:2] - pose_belief.AREA_ORIGIN_M) / pose_belief.grid_of(CFG.model).cell_m), 0, n - 1)
+    col, row = np.clip(
+        np.floor((pose[:2] - pose_belief.AREA_ORIGIN_M) / pose_belief.grid_of(CFG.model).cell_m), 0, n - 1
+    )
     assert green.tolist() == [[n - 1 - int(row), int(col)]]  # the true cell, north up
 
 

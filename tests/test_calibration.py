@@ -1,6 +1,7 @@
 """The motion model's calibration against drives whose plant is known: synthetic drives written here in
 NumPy with a planted steering offset, distance scale and lag; and the world's own drives, with its plant
 off (the fit must give back the exact bicycle) and on (the exact bicycle must then drift)."""
+
 import dataclasses
 
 import numpy as np
@@ -64,7 +65,11 @@ def integrate_commands(model: MotionModel, drives, num_steps):
             actuator = actuator + model.lag_share * (command[d, k] - actuator)
             v_new = max(v + (model.accel_per_pedal_mps2 * actuator[0] + model.accel_bias_mps2) * DT_S, 0.0)
             ds, tan = 0.5 * (v + v_new) * DT_S, np.tan(actuator[1])
-            dyaw = ds * (model.steer_gain * tan + model.steer_bias + model.understeer_s2pm2 * tan * (0.5 * (v + v_new)) ** 2) / WHEELBASE_M
+            dyaw = (
+                ds
+                * (model.steer_gain * tan + model.steer_bias + model.understeer_s2pm2 * tan * (0.5 * (v + v_new)) ** 2)
+                / WHEELBASE_M
+            )
             rear = np.array([x, y]) - 0.5 * WHEELBASE_M * np.array([np.cos(yaw), np.sin(yaw)])
             rear = rear + ds * np.array([np.cos(yaw + 0.5 * dyaw), np.sin(yaw + 0.5 * dyaw)])
             yaw, v = yaw + dyaw, v_new
@@ -77,8 +82,10 @@ def integrate_commands(model: MotionModel, drives, num_steps):
 def world_drives():
     """(the exact world's drives, the plant's drives): 4 drives of 600 steps of the tiny world."""
     exact = config.replace(TINY, world=EXACT_PLANT)
-    return (calibration.training_drives(exact, num_worlds=4, num_steps=600),
-            calibration.training_drives(TINY, num_worlds=4, num_steps=600))
+    return (
+        calibration.training_drives(exact, num_worlds=4, num_steps=600),
+        calibration.training_drives(TINY, num_worlds=4, num_steps=600),
+    )
 
 
 @pytest.mark.slow
@@ -106,4 +113,4 @@ def test_with_the_plant_on_the_exact_bicycle_drifts_and_the_fitted_noise_account
     heading_error = (integrate_commands(model, plant, 599)[:, 2] - truth[:, 2] + np.pi) % (2 * np.pi) - np.pi
     distance_m = np.sum(np.linalg.norm(np.diff(plant["pose"][:, :600, :2], axis=1), axis=-1), 1)
     z = heading_error / np.sqrt(model.heading_noise_rad2pm * distance_m)
-    assert 0.2 < np.sqrt(np.mean(z ** 2)) < 2.0, z
+    assert 0.2 < np.sqrt(np.mean(z**2)) < 2.0, z

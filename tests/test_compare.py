@@ -1,6 +1,7 @@
 """The table of the end-to-end variants against the modular pipeline, from hand-built metrics.json files:
 cells are the runs' own numbers (mean over seeds), towns come training town first, and evaluations under
 different protocols are refused."""
+
 import json
 import os
 import subprocess
@@ -18,14 +19,26 @@ def _metrics(ap, location_m, town=0, eval_frames=100, pose_defined=True):
     """A minimal metrics.json: every AP equal to ``ap`` (fraction), pose errors from ``location_m``."""
     pose = lambda v: {"mean": v, "median": v} if pose_defined else {"mean": float("nan"), "median": float("nan")}
     return {
-        "label": "x", "checkpoint_step": 10,
-        "config": {"world": {"town_seed": 0}, "data": {"image_size": 32}, "train": {"num_steps": 10, "seed": 0},
-                   "eval": {"town_seed": town, "num_steps": eval_frames}},
-        "detection": {"ap": {iou: {s: ap for s in SUBSETS} for iou in IOUS},
-                      "num_gt": {"all": 50 + town, "visible": 45, "occluded": 5}},
+        "label": "x",
+        "checkpoint_step": 10,
+        "config": {
+            "world": {"town_seed": 0},
+            "data": {"image_size": 32},
+            "train": {"num_steps": 10, "seed": 0},
+            "eval": {"town_seed": town, "num_steps": eval_frames},
+        },
+        "detection": {
+            "ap": {iou: {s: ap for s in SUBSETS} for iou in IOUS},
+            "num_gt": {"all": 50 + town, "visible": 45, "occluded": 5},
+        },
         "pose": {"location_m": pose(location_m), "heading_rad": pose(0.5), "speed_mps": pose(1.0)},
-        "baseline": {"pose": {"location_m": {"mean": 99.0, "median": 99.0}, "heading_rad": {"mean": 1.5, "median": 1.5},
-                              "speed_mps": {"mean": 3.0, "median": 3.0}}},
+        "baseline": {
+            "pose": {
+                "location_m": {"mean": 99.0, "median": 99.0},
+                "heading_rad": {"mean": 1.5, "median": 1.5},
+                "speed_mps": {"mean": 3.0, "median": 3.0},
+            }
+        },
     }
 
 
@@ -70,21 +83,29 @@ def test_different_protocols_are_refused_by_name(runs):
 def test_launcher_writes_the_table_and_names_bad_flags(runs, tmp_path):
     out = tmp_path / "table.md"
     cmd = [sys.executable, os.path.join(ROOT, "experiments", "compare.py")]
-    ok = subprocess.run(cmd + [f"--sweep_dir={runs[0]}", f"--baselines_dir={runs[1]}", f"--out={out}"],
-                        capture_output=True, text=True, timeout=300)
+    ok = subprocess.run(
+        cmd + [f"--sweep_dir={runs[0]}", f"--baselines_dir={runs[1]}", f"--out={out}"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert ok.returncode == 0 and out.read_text() == compare.table(compare.collect(*runs)), ok.stderr
     bad = subprocess.run(cmd + [f"--sweep_dir={tmp_path / 'missing'}"], capture_output=True, text=True, timeout=300)
     assert bad.returncode == 1 and bad.stderr.strip().startswith("error: --sweep_dir"), bad.stderr
 
 
-@pytest.mark.parametrize("comparable, refused", [
-    # An evaluation written before a config field existed equals one that writes the field's default,
-    # and still differs from one that sets it otherwise.
-    ({"batches_per_drive": 1}, {"batches_per_drive": 4}),
-    # The place stream trains the belief head alone: a pipeline trained without it compares with a model
-    # trained with it, and not once another data field differs too.
-    ({"place_frames": 32}, {"place_frames": 32, "seq_len": 7}),
-], ids=["a field added since compares as its default", "the place stream alone does not part them"])
+@pytest.mark.parametrize(
+    "comparable, refused",
+    [
+        # An evaluation written before a config field existed equals one that writes the field's default,
+        # and still differs from one that sets it otherwise.
+        ({"batches_per_drive": 1}, {"batches_per_drive": 4}),
+        # The place stream trains the belief head alone: a pipeline trained without it compares with a model
+        # trained with it, and not once another data field differs too.
+        ({"place_frames": 32}, {"place_frames": 32, "seq_len": 7}),
+    ],
+    ids=["a field added since compares as its default", "the place stream alone does not part them"],
+)
 def test_the_tracker_compares_with_the_sweep_unless_its_data_differs(runs, comparable, refused):
     sweep, base = runs
     for data in (comparable, refused):

@@ -1,5 +1,6 @@
 """Configs: presets are valid and hashable, flags override exactly the named field, config.json round-trips.
 (Bad values, each naming its flag, are rows of test_bad_input.py.)"""
+
 import dataclasses
 
 import pytest
@@ -33,7 +34,9 @@ def test_paper_preset_is_the_papers_network_with_the_cpu_recipe():
 
 
 def test_flags_override_only_the_named_fields():
-    cfg = _parse("--config=tiny", "--data.image_size=64", "--model.conv_channels=4,8,16,32", "--model.variant=no_input_recon")
+    cfg = _parse(
+        "--config=tiny", "--data.image_size=64", "--model.conv_channels=4,8,16,32", "--model.variant=no_input_recon"
+    )
     base = config_lib.get_config("tiny")
     assert cfg.data.image_size == 64 and cfg.model.conv_channels == (4, 8, 16, 32)
     assert cfg.model.variant == "no_input_recon"

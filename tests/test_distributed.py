@@ -5,6 +5,7 @@ each, so the global batch of 2 is one row per process), while the same config tr
 its one device. Both see the same global batches and the same latent noise, so they take the same Adam
 steps up to float32 rounding. The two-process run is stopped by SIGTERM to process 0 alone.
 """
+
 import concurrent.futures
 import json
 import os
@@ -24,8 +25,12 @@ from e2e_percep_jax import train
 STEPS = 20  # the two-process run stops long before (it is sent SIGTERM after its first checkpoint)
 CHECKPOINT_EVERY = 2
 CFG = tiny(num_steps=STEPS, checkpoint_every=CHECKPOINT_EVERY, log_every=1)
-FLAGS = TINY_FLAGS + [f"--train.num_steps={STEPS}", f"--train.checkpoint_every={CHECKPOINT_EVERY}",
-                      "--train.log_every=1", "--num_processes=2"]
+FLAGS = TINY_FLAGS + [
+    f"--train.num_steps={STEPS}",
+    f"--train.checkpoint_every={CHECKPOINT_EVERY}",
+    "--train.log_every=1",
+    "--num_processes=2",
+]
 # Adam moves every parameter by about the learning rate per step, whatever its gradient's size. Summing the
 # gradient over two processes' rows instead of over one device's changes it by float32 rounding (~1e-7
 # relative), which moves the parameters by ~1e-6 (3e-6 measured after 3 and after 8 steps); a wrong or
@@ -51,9 +56,16 @@ def launch_two_processes(workdir):
     """Processes 0 and 1 of one launcher run in ``workdir``; their Popen objects."""
     flags = FLAGS + [f"--workdir={workdir}", f"--coordinator_address=localhost:{free_port()}"]
     env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS="--xla_force_host_platform_device_count=1")
-    return [subprocess.Popen([sys.executable, "-c", WITH_PROCESS_COUNT] + LAUNCHER[1:] + flags +
-                             [f"--process_id={i}"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                             env=env) for i in range(2)]
+    return [
+        subprocess.Popen(
+            [sys.executable, "-c", WITH_PROCESS_COUNT] + LAUNCHER[1:] + flags + [f"--process_id={i}"],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            env=env,
+        )
+        for i in range(2)
+    ]
 
 
 def stop_all(procs):
@@ -130,8 +142,11 @@ def test_two_processes_train_as_one_and_stop_together(tmp_path):
             np.testing.assert_allclose(r[k], e[k], rtol=METRICS_RTOL, err_msg=f"step {e['step']}: {k}")
 
     # The single-process run's parameters at that step (the same compiled step and batches: seconds).
-    expected = jax.device_get(train.train(tiny(num_steps=stopped_at, checkpoint_every=CHECKPOINT_EVERY, log_every=1),
-                                          str(tmp_path / "one_to_stop")).params)
+    expected = jax.device_get(
+        train.train(
+            tiny(num_steps=stopped_at, checkpoint_every=CHECKPOINT_EVERY, log_every=1), str(tmp_path / "one_to_stop")
+        ).params
+    )
     params, init = restore_params(two, stopped_at), jax.device_get(train.init_state(CFG).params)
     assert jax.tree.structure(params) == jax.tree.structure(expected)
 
@@ -139,4 +154,5 @@ def test_two_processes_train_as_one_and_stop_together(tmp_path):
         name = jax.tree_util.keystr(path)
         assert np.max(np.abs(want - start)) > 10 * PARAMS_ATOL, f"{name} did not train"
         np.testing.assert_allclose(got, want, rtol=0, atol=PARAMS_ATOL, err_msg=name)
+
     jax.tree.map_with_path(check, params, expected, init)

@@ -3,6 +3,7 @@
 Cost: two programs are compiled, one in a subprocess (flat memory + end-to-end report, started first
 so it overlaps) and one in this process (oracle), ~1-2 min in all on 2 CPU cores.
 """
+
 import dataclasses
 import functools
 import json
@@ -19,10 +20,9 @@ import pytest
 from helpers import EXACT_PLANT
 
 from e2e_percep_jax import config as config_lib
-from e2e_percep_jax import detection
+from e2e_percep_jax import detection, report
 from e2e_percep_jax import evaluate as eval_lib
 from e2e_percep_jax import model as model_lib
-from e2e_percep_jax import report
 from e2e_percep_jax.sim import rollout, sensors, world
 from e2e_percep_jax.sim import town as town_lib
 
@@ -32,7 +32,8 @@ VIDEO_FRAMES = 40
 # The subprocess: a run directory written with train's own checkpoint manager and train state, restored
 # as the CLI restores it, then a warm-up, a 200-step and a 2,000-step evaluation in one process (the compiled
 # program is shared), with the resident set size sampled after every chunk.
-_MEMORY_SCRIPT = textwrap.dedent("""
+_MEMORY_SCRIPT = textwrap.dedent(
+    """
     import ctypes, json, os, resource, sys
     import jax
     import orbax.checkpoint as ocp
@@ -67,7 +68,9 @@ _MEMORY_SCRIPT = textwrap.dedent("""
                     checkpoint_step=step, log=lambda line: samples[n].append(rss()))
     print("RESULT " + json.dumps({"samples": samples,
                                   "maxrss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
-""" % VIDEO_FRAMES)
+"""
+    % VIDEO_FRAMES
+)
 
 
 @pytest.fixture(scope="module")
@@ -76,8 +79,14 @@ def memory_run(tmp_path_factory):
     run = str(tmp_path_factory.mktemp("evalrun") / "run")
     # Two malloc arenas: with glibc's default (one per thread under contention) a new 64 MB arena can
     # appear at any time on a loaded machine, which says nothing about the evaluation.
-    proc = subprocess.Popen([sys.executable, "-c", _MEMORY_SCRIPT, run], cwd=REPO, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True, env=dict(os.environ, MALLOC_ARENA_MAX="2"))
+    proc = subprocess.Popen(
+        [sys.executable, "-c", _MEMORY_SCRIPT, run],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=dict(os.environ, MALLOC_ARENA_MAX="2"),
+    )
     result = {}
 
     def wait():
@@ -85,7 +94,7 @@ def memory_run(tmp_path_factory):
             output, _ = proc.communicate(timeout=600)
             assert proc.returncode == 0, output[-3000:]
             line = [l for l in output.splitlines() if l.startswith("RESULT ")][-1]
-            result.update(json.loads(line[len("RESULT "):]), run=run)
+            result.update(json.loads(line[len("RESULT ") :]), run=run)
         return result
 
     yield wait
@@ -115,8 +124,11 @@ def test_known_start_odometry_follows_the_drive_in_the_exact_world_and_drifts_un
     is the exact bicycle (all its fields zero) and so is the motion model, an untrained model's odometry
     stays on the true path (float32 rounding), every drive counts as converged from frame 0, and the drift
     per 100 m is ~0; with the plant on, the same model drifts."""
-    cfg = config_lib.replace(config_lib.get_config("tiny"), world=EXACT_PLANT,
-                             eval=dict(num_frames=200, num_worlds=2, chunk_steps=20, known_start=True, town_seed=1))
+    cfg = config_lib.replace(
+        config_lib.get_config("tiny"),
+        world=EXACT_PLANT,
+        eval=dict(num_frames=200, num_worlds=2, chunk_steps=20, known_start=True, town_seed=1),
+    )
     params = model_lib.init_params(jax.random.PRNGKey(0), cfg)
     pose = eval_lib.evaluate(cfg, params, str(tmp_path), video_frames=0, num_examples=0, log=lambda _: None)["pose"]
     assert pose["known_start"] and pose["location_m"]["p90"] < 0.02 and pose["heading_rad"]["p90"] < 1e-4
@@ -124,8 +136,9 @@ def test_known_start_odometry_follows_the_drive_in_the_exact_world_and_drifts_un
     assert pose["drift_per_100m"] < 0.05
     assert "known start" in open(os.path.join(tmp_path, "report.md")).read()
     plant = dataclasses.replace(cfg, world=config_lib.get_config("tiny").world)
-    drifted = eval_lib.evaluate(plant, params, str(tmp_path / "plant"), video_frames=0, num_examples=0,
-                                log=lambda _: None)["pose"]
+    drifted = eval_lib.evaluate(
+        plant, params, str(tmp_path / "plant"), video_frames=0, num_examples=0, log=lambda _: None
+    )["pose"]
     assert drifted["drift_per_100m"] > 0.3, drifted["drift_per_100m"]
 
 
@@ -143,8 +156,10 @@ class RecordingPerceiver:
         record = lambda t, a, names: self.seen.setdefault(int(t), (np.asarray(a), names))
         jax.debug.callback(functools.partial(record, names=tuple(sorted(kwargs))), state["frame"], action)
         b, r = camera.shape[0], self.cfg.data.image_size
-        return ({"frame": state["frame"] + 1},
-                {"det_cls": jnp.zeros((b, r, r, 1)), "det_reg": jnp.zeros((b, r, r, 6)), "pose": jnp.zeros((b, 5))})
+        return (
+            {"frame": state["frame"] + 1},
+            {"det_cls": jnp.zeros((b, r, r, 1)), "det_reg": jnp.zeros((b, r, r, 6)), "pose": jnp.zeros((b, 5))},
+        )
 
 
 @pytest.mark.slow  # a drive compiled with a host callback each frame, then compiled again to re-simulate (~2.5 min)
@@ -174,16 +189,27 @@ def test_oracle_targets_through_the_decode_path_and_a_known_pose_offset(memory_r
     score floor, BEV-view rule, NMS and matching: AP >= 0.99 at IoU 0.5. The pose head replaced by the
     true pose moved 3 m east, 4 m north, turned by 0.25 rad and 1.5 m/s faster: errors 5 m, 0.25 rad,
     1.5 m/s on every frame."""
-    cfg = config_lib.replace(config_lib.get_config("tiny"), world=dict(num_vehicles=100),
-                             eval=dict(num_frames=160, num_worlds=2, chunk_steps=20))
+    cfg = config_lib.replace(
+        config_lib.get_config("tiny"),
+        world=dict(num_vehicles=100),
+        eval=dict(num_frames=160, num_worlds=2, chunk_steps=20),
+    )
     params = model_lib.init_params(jax.random.PRNGKey(0), cfg)
 
     def oracle(decoded, frame):
         pose = frame["pose"]
         turn = 0.25
         c, s = pose[:, 2], pose[:, 3]
-        moved = jnp.stack([pose[:, 0] + 3.0, pose[:, 1] + 4.0, c * np.cos(turn) - s * np.sin(turn),
-                           s * np.cos(turn) + c * np.sin(turn), pose[:, 4] + 1.5], -1)
+        moved = jnp.stack(
+            [
+                pose[:, 0] + 3.0,
+                pose[:, 1] + 4.0,
+                c * np.cos(turn) - s * np.sin(turn),
+                s * np.cos(turn) + c * np.sin(turn),
+                pose[:, 4] + 1.5,
+            ],
+            -1,
+        )
         return dict(decoded, det_cls=frame["det_cls"], det_reg=frame["det_reg"], pose=moved)
 
     m = eval_lib.evaluate(cfg, params, str(tmp_path), video_frames=0, heads=oracle, log=lambda _: None)
@@ -213,9 +239,9 @@ def test_oracle_targets_through_the_decode_path_and_a_known_pose_offset(memory_r
     counts = vehicles_in_view(cfg, frames=80)  # [frame, world]
     for half, example in enumerate(m["examples"]):
         assert example["vehicles_in_view"] == counts[example["frame"], example["world"]]
-        assert example["vehicles_in_view"] == counts[40 * half:40 * (half + 1)].max() > 0
+        assert example["vehicles_in_view"] == counts[40 * half : 40 * (half + 1)].max() > 0
     # The fixture discriminates: in some half, world 0 alone (the old choice) would miss the busiest frame.
-    assert any(counts[h:h + 40, 0].max() < counts[h:h + 40].max() for h in (0, 40))
+    assert any(counts[h : h + 40, 0].max() < counts[h : h + 40].max() for h in (0, 40))
 
 
 def test_host_detections_follow_floor_view_and_nms():
@@ -275,8 +301,19 @@ def test_end_to_end_report_files(memory_run):
     assert sum(m["pose"]["location_m_by_step"]["count"]) == 2000
 
     report = open(os.path.join(out, "report.md")).read()
-    for needle in ("vehicles in view", "Table I", "Table II", "AP<sub>0.5</sub>", "79.4%", "61.0%", "22.1%", "| 7.1 |", "0.17",
-                   "baseline: no boxes", "baseline: constant mean pose"):
+    for needle in (
+        "vehicles in view",
+        "Table I",
+        "Table II",
+        "AP<sub>0.5</sub>",
+        "79.4%",
+        "61.0%",
+        "22.1%",
+        "| 7.1 |",
+        "0.17",
+        "baseline: no boxes",
+        "baseline: constant mean pose",
+    ):
         assert needle in report, needle
 
     pr = cv2.imread(os.path.join(out, "pr_curves.png"))

@@ -1,4 +1,5 @@
 """Geometry helpers against brute force and closed forms, on several batch prefixes, on NumPy and JAX arrays."""
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -94,11 +95,14 @@ def test_array_module_picks_jax_for_jax_arrays_and_tracers():
 
 def test_rotate_by_known_angles():
     xy = np.array([[1.0, 0.0], [0.0, 2.0], [3.0, -1.0]])
-    for angle, rotated in ((0.0, xy), (np.pi / 2, np.stack([-xy[:, 1], xy[:, 0]], -1)), (np.pi, -xy),
-                           (-np.pi / 2, np.stack([xy[:, 1], -xy[:, 0]], -1))):
+    for angle, rotated in (
+        (0.0, xy),
+        (np.pi / 2, np.stack([-xy[:, 1], xy[:, 0]], -1)),
+        (np.pi, -xy),
+        (-np.pi / 2, np.stack([xy[:, 1], -xy[:, 0]], -1)),
+    ):
         _on_both(geo.rotate, xy, np.float64(angle), expected=rotated)
-    _on_both(geo.rotate_xy, xy[:, 0], xy[:, 1], np.float64(0.0), np.float64(1.0),
-             expected=(-xy[:, 1], xy[:, 0]))
+    _on_both(geo.rotate_xy, xy[:, 0], xy[:, 1], np.float64(0.0), np.float64(1.0), expected=(-xy[:, 1], xy[:, 0]))
 
 
 def test_wrap_angle_at_the_pi_boundaries():

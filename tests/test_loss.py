@@ -1,5 +1,6 @@
 """Loss tests: distrax pinned to closed forms, every term against NumPy formulas, per-sequence
 normalisation, variants, finite gradients reaching every network."""
+
 import distrax
 import jax
 import jax.numpy as jnp
@@ -15,7 +16,7 @@ def test_distrax_gaussian_kl_and_log_prob_match_closed_form():
     mq, sq = np.array([0.3, -1.2, 2.0]), np.array([0.5, 1.5, 0.1])
     mp, sp = np.array([0.0, 0.4, 1.5]), np.array([1.0, 0.7, 0.2])
     x = np.array([0.1, -0.5, 1.9])
-    kl = np.sum(np.log(sp / sq) + (sq ** 2 + (mq - mp) ** 2) / (2 * sp ** 2) - 0.5)
+    kl = np.sum(np.log(sp / sq) + (sq**2 + (mq - mp) ** 2) / (2 * sp**2) - 0.5)
     log_prob = np.sum(-0.5 * ((x - mq) / sq) ** 2 - np.log(sq) - 0.5 * np.log(2 * np.pi))
     f32 = lambda a: jnp.asarray(a, jnp.float32)
     np.testing.assert_allclose(loss.gaussian_kl(f32(mq), f32(sq), f32(mp), f32(sp)), kl, rtol=1e-5)
@@ -27,8 +28,9 @@ def test_distrax_gaussian_kl_and_log_prob_match_closed_form():
 def test_focal_loss_matches_torch_form():
     logit = np.linspace(-8, 8, 33)
     for y in (0.0, 1.0):
-        np.testing.assert_allclose(loss.focal_loss(jnp.asarray(logit), jnp.full(33, y)), np_focal(logit, y),
-                                   rtol=1e-4, atol=1e-7)
+        np.testing.assert_allclose(
+            loss.focal_loss(jnp.asarray(logit), jnp.full(33, y)), np_focal(logit, y), rtol=1e-4, atol=1e-7
+        )
 
 
 @pytest.fixture(scope="module")
@@ -40,27 +42,33 @@ def setup():
 def np_belief_terms(head, pose):
     """The belief head's per-frame losses, by hand: 10 m cells from -30 m (48 x 48), 36 heading bins,
     Gaussian soft targets of half a cell / bin, smooth-L1 on the true cell's and bin's offsets and the speed."""
+
     def log_softmax(x):
         x = x - x.max(-1, keepdims=True)
         return x - np.log(np.sum(np.exp(x), -1, keepdims=True))
+
     wrap = lambda a: (a + np.pi) % (2 * np.pi) - np.pi
     centre = -30.0 + 10.0 * (np.arange(48) + 0.5)
     cx, cy = np.meshgrid(centre, centre)  # row i along y, column j along x
-    target = np.exp(-((pose[..., :1] - cx.ravel()) ** 2 + (pose[..., 1:2] - cy.ravel()) ** 2) / (2 * 5.0 ** 2))
+    target = np.exp(-((pose[..., :1] - cx.ravel()) ** 2 + (pose[..., 1:2] - cy.ravel()) ** 2) / (2 * 5.0**2))
     yaw, width = np.arctan2(pose[..., 3], pose[..., 2]), 2 * np.pi / 36
     bins = -np.pi + (np.arange(36) + 0.5) * width
-    heading_target = np.exp(-wrap(yaw[..., None] - bins) ** 2 / (2 * (width / 2) ** 2))
+    heading_target = np.exp(-(wrap(yaw[..., None] - bins) ** 2) / (2 * (width / 2) ** 2))
     j, i = np.floor((pose[..., 0] + 30) / 10).astype(int), np.floor((pose[..., 1] + 30) / 10).astype(int)
     k = np.floor((yaw + np.pi) / width).astype(int) % 36
     offset = np.stack([(pose[..., 0] + 30) / 10 - j - 0.5, (pose[..., 1] + 30) / 10 - i - 0.5], -1)
     place_offset = np.take_along_axis(head["place_offset"], (i * 48 + j)[..., None, None], axis=-2)[..., 0, :]
     heading_offset = np.take_along_axis(head["heading_offset"], k[..., None], axis=-1)[..., 0]
-    return {"pose_place": -np.sum(target / target.sum(-1, keepdims=True) * log_softmax(head["place_logit"]), -1),
-            "pose_heading": -np.sum(heading_target / heading_target.sum(-1, keepdims=True)
-                                    * log_softmax(head["heading_logit"]), -1),
-            "pose_offset": (np.sum(np_smooth_l1(place_offset - offset), -1)
-                            + np_smooth_l1(heading_offset - wrap(yaw - bins[k]) / width)),
-            "pose_speed": np_smooth_l1(head["speed"] - pose[..., 4] / 10)}
+    return {
+        "pose_place": -np.sum(target / target.sum(-1, keepdims=True) * log_softmax(head["place_logit"]), -1),
+        "pose_heading": -np.sum(
+            heading_target / heading_target.sum(-1, keepdims=True) * log_softmax(head["heading_logit"]), -1
+        ),
+        "pose_offset": (
+            np.sum(np_smooth_l1(place_offset - offset), -1) + np_smooth_l1(heading_offset - wrap(yaw - bins[k]) / width)
+        ),
+        "pose_speed": np_smooth_l1(head["speed"] - pose[..., 4] / 10),
+    }
 
 
 @pytest.mark.slow
@@ -73,15 +81,17 @@ def test_every_term_matches_numpy_per_sequence(setup, pose_head):
         cfg = config.replace(cfg, model=dict(pose_head=pose_head))
         params = model.init_params(jax.random.PRNGKey(0), cfg)
     total, metrics = loss.loss_fn(params, batch, None, cfg)
-    out = jax.tree.map(np.asarray, model.filter_sequence(params, batch["camera"], batch["lidar"], batch["action"],
-                                                          None, cfg))
+    out = jax.tree.map(
+        np.asarray, model.filter_sequence(params, batch["camera"], batch["lidar"], batch["action"], None, cfg)
+    )
     b, t1 = batch["camera"].shape[:2]
     pred = model.decode(params, np.concatenate([out["z1"], out["z2"]], -1).reshape(b * t1, -1), cfg)
     pred = {k: np.asarray(v, np.float64).reshape((b, t1) + v.shape[1:]) for k, v in pred.items()}
-    want = {f"recon_{k}": np.sum((pred[k] - batch[k] / 255.0) ** 2 / (2 * 0.1)) / b
-            for k in ("camera", "lidar", "roadmap")}
+    want = {
+        f"recon_{k}": np.sum((pred[k] - batch[k] / 255.0) ** 2 / (2 * 0.1)) / b for k in ("camera", "lidar", "roadmap")
+    }
     mq, sq, mp, sp = (out[k].astype(np.float64) for k in ("q_z1_loc", "q_z1_scale", "p_z1_loc", "p_z1_scale"))
-    want["kl"] = np.sum(np.log(sp / sq) + (sq ** 2 + (mq - mp) ** 2) / (2 * sp ** 2) - 0.5) / b
+    want["kl"] = np.sum(np.log(sp / sq) + (sq**2 + (mq - mp) ** 2) / (2 * sp**2) - 0.5) / b
     w = 32.0  # the reference's perception terms are summed over its batch of 32: the default weight
     assert cfg.train.perception_weight == w
     want["det_cls"] = w * np.sum(np_focal(pred["det_logit"], batch["det_cls"])) / b
@@ -89,9 +99,16 @@ def test_every_term_matches_numpy_per_sequence(setup, pose_head):
     want["det_reg"] = w * 0.1 * np.sum(np.where(positive, np_smooth_l1(pred["det_reg"] - batch["det_reg"]), 0)) / b
     pose = batch["pose"].astype(np.float64)
     if pose_head == "regression":
-        want["pose"] = w * np.sum(np_smooth_l1(pred["pose_normalised"] - (pose - [200, 200, 0, 0, 0]) / [100, 100, 1, 1, 10])) / b
+        want["pose"] = (
+            w * np.sum(np_smooth_l1(pred["pose_normalised"] - (pose - [200, 200, 0, 0, 0]) / [100, 100, 1, 1, 10])) / b
+        )
     elif pose_head == "reference":  # 10 x smooth-L1 on metres, cos / sin and m/s
-        want["pose"] = w * 10 * np.sum(np_smooth_l1(pred["pose_normalised"] * [100, 100, 1, 1, 10] + [200, 200, 0, 0, 0] - pose)) / b
+        want["pose"] = (
+            w
+            * 10
+            * np.sum(np_smooth_l1(pred["pose_normalised"] * [100, 100, 1, 1, 10] + [200, 200, 0, 0, 0] - pose))
+            / b
+        )
     else:
         head = jax.tree.map(lambda x: np.asarray(x, np.float64), model.pose_belief_head(params, out, cfg))
         want.update({k: w * np.sum(v) / b for k, v in np_belief_terms(head, pose).items()})
@@ -115,18 +132,32 @@ def test_loss_is_per_sequence_whatever_the_batch_size(setup):
         np.testing.assert_allclose(metrics_doubled[k], metrics[k], rtol=1e-5, err_msg=k)
 
 
-@pytest.mark.parametrize("variant, images", [("full", {"camera", "lidar", "roadmap"}),
-                                             ("no_input_recon", {"roadmap"}),
-                                             ("no_roadmap_recon", {"camera", "lidar"})])
+@pytest.mark.parametrize(
+    "variant, images",
+    [
+        ("full", {"camera", "lidar", "roadmap"}),
+        ("no_input_recon", {"roadmap"}),
+        ("no_roadmap_recon", {"camera", "lidar"}),
+    ],
+)
 def test_variant_selects_the_reconstruction_terms_and_decoders(variant, images):
     """Abstract evaluation only (nothing compiled): which decoders exist and which loss terms the variant has."""
     cfg = config.replace(TINY, model=dict(variant=variant))
     params = jax.eval_shape(lambda: model.init_params(jax.random.PRNGKey(0), cfg))
-    assert {k[len("image_decoders_"):] for k in params["params"] if k.startswith("image_decoders_")} == images
-    _, metrics = jax.eval_shape(lambda p, b: loss.loss_fn(p, b, jax.random.PRNGKey(0), cfg), params,
-                                synthetic_batch(0, cfg))
-    assert set(metrics) == {f"recon_{k}" for k in images} | {"kl", "det_cls", "det_reg", "total", "pose_place",
-                                                             "pose_heading", "pose_offset", "pose_speed"}
+    assert {k[len("image_decoders_") :] for k in params["params"] if k.startswith("image_decoders_")} == images
+    _, metrics = jax.eval_shape(
+        lambda p, b: loss.loss_fn(p, b, jax.random.PRNGKey(0), cfg), params, synthetic_batch(0, cfg)
+    )
+    assert set(metrics) == {f"recon_{k}" for k in images} | {
+        "kl",
+        "det_cls",
+        "det_reg",
+        "total",
+        "pose_place",
+        "pose_heading",
+        "pose_offset",
+        "pose_speed",
+    }
 
 
 @pytest.mark.slow

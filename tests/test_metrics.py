@@ -1,4 +1,5 @@
 """Detection and pose metrics against brute force, closed forms and hand-computed cases."""
+
 import math
 
 import numpy as np
@@ -22,7 +23,8 @@ def _inside(points, b):
     c, s = math.cos(b[2]), math.sin(b[2])
     along, across = c * dx + s * dy, -s * dx + c * dy
     return (np.abs(along) <= b[3] / 2) & (np.abs(across) <= b[4] / 2), np.maximum(
-        np.abs(along) - b[3] / 2, np.abs(across) - b[4] / 2)
+        np.abs(along) - b[3] / 2, np.abs(across) - b[4] / 2
+    )
 
 
 def _grid_intersection(a, b, n=400):
@@ -69,22 +71,25 @@ def test_rotated_iou_matches_point_grid_on_random_pairs():
 OCTAGON = 2 * (math.sqrt(2) - 1)  # unit square ∩ its 45° rotation about the centre: a regular octagon
 
 
-@pytest.mark.parametrize("a, b, expected", [
-    (box(0, 0, 0.3, 4, 2), box(0, 0, 0.3, 4, 2), 1.0),  # identical
-    (box(312.5, -207.25, 2.9, 4.5, 1.9), box(312.5, -207.25, 2.9, 4.5, 1.9), 1.0),  # identical, far away
-    (box(0, 0, 0, 4, 2), box(4, 0, 0, 4, 2), 0.0),  # touching along an edge
-    (box(0, 0, 0.7, 4, 2), box(4 * math.cos(0.7), 4 * math.sin(0.7), 0.7, 4, 2), 0.0),  # rotated, touching
-    (box(0, 0, 0, 2, 2), box(2, 2, 0, 2, 2), 0.0),  # touching at a corner
-    (box(0, 0, 0, 2, 2), box(10, 0, 0.5, 2, 2), 0.0),  # disjoint
-    (box(0, 0, 0, 2, 2), box(2.5, 0, math.pi / 4, 2, 2), 0.0),  # disjoint but within circumscribed circles
-    (box(1, 1, 0.4, 6, 4), box(1.5, 1.2, 0.4, 2, 1), 2 / 24),  # nested, same yaw
-    (box(0, 0, 0, 6, 4), box(0.5, 0.2, 1.0, 2, 1), 2 / 24),  # nested, rotated
-    (box(0, 0, 0, 2, 2), box(0, 0, math.pi / 2, 2, 2), 1.0),  # square turned 90°
-    (box(0, 0, 0, 4, 2), box(0, 0, math.pi / 2, 4, 2), 4 / 12),  # rectangle turned 90°: a cross
-    (box(0, 0, 0, 1, 1), box(0, 0, math.pi / 4, 1, 1), OCTAGON / (2 - OCTAGON)),
-    (box(0, 0, 0.5, 4, 2), box(math.cos(0.5), math.sin(0.5), 0.5, 4, 2), 3 / 5),  # collinear edges, shifted
-    (box(0, 0, 0, 4, 2), box(0, 0, math.pi, 4, 2), 1.0),  # same footprint, opposite heading
-])
+@pytest.mark.parametrize(
+    "a, b, expected",
+    [
+        (box(0, 0, 0.3, 4, 2), box(0, 0, 0.3, 4, 2), 1.0),  # identical
+        (box(312.5, -207.25, 2.9, 4.5, 1.9), box(312.5, -207.25, 2.9, 4.5, 1.9), 1.0),  # identical, far away
+        (box(0, 0, 0, 4, 2), box(4, 0, 0, 4, 2), 0.0),  # touching along an edge
+        (box(0, 0, 0.7, 4, 2), box(4 * math.cos(0.7), 4 * math.sin(0.7), 0.7, 4, 2), 0.0),  # rotated, touching
+        (box(0, 0, 0, 2, 2), box(2, 2, 0, 2, 2), 0.0),  # touching at a corner
+        (box(0, 0, 0, 2, 2), box(10, 0, 0.5, 2, 2), 0.0),  # disjoint
+        (box(0, 0, 0, 2, 2), box(2.5, 0, math.pi / 4, 2, 2), 0.0),  # disjoint but within circumscribed circles
+        (box(1, 1, 0.4, 6, 4), box(1.5, 1.2, 0.4, 2, 1), 2 / 24),  # nested, same yaw
+        (box(0, 0, 0, 6, 4), box(0.5, 0.2, 1.0, 2, 1), 2 / 24),  # nested, rotated
+        (box(0, 0, 0, 2, 2), box(0, 0, math.pi / 2, 2, 2), 1.0),  # square turned 90°
+        (box(0, 0, 0, 4, 2), box(0, 0, math.pi / 2, 4, 2), 4 / 12),  # rectangle turned 90°: a cross
+        (box(0, 0, 0, 1, 1), box(0, 0, math.pi / 4, 1, 1), OCTAGON / (2 - OCTAGON)),
+        (box(0, 0, 0.5, 4, 2), box(math.cos(0.5), math.sin(0.5), 0.5, 4, 2), 3 / 5),  # collinear edges, shifted
+        (box(0, 0, 0, 4, 2), box(0, 0, math.pi, 4, 2), 1.0),  # same footprint, opposite heading
+    ],
+)
 def test_rotated_iou_closed_forms(a, b, expected):
     assert metrics.rotated_iou(a[None], b[None])[0, 0] == pytest.approx(expected, abs=1e-9)
     assert metrics.rotated_iou(b[None], a[None])[0, 0] == pytest.approx(expected, abs=1e-9)
@@ -100,8 +105,9 @@ def test_rotated_iou_empty_inputs():
 
 def test_nms_collapses_duplicates_to_the_best_and_keeps_separate_boxes():
     car_a, car_b = box(0, 0, 0.2, 4.5, 2), box(0, 5, -0.1, 4.5, 2)
-    boxes = np.stack([car_a + [0.2, 0, 0, 0, 0], car_b, car_a, car_b + [0, 0.3, 0.05, 0, 0],
-                      car_a + [-0.1, 0.1, 0, 0, 0]])
+    boxes = np.stack(
+        [car_a + [0.2, 0, 0, 0, 0], car_b, car_a, car_b + [0, 0.3, 0.05, 0, 0], car_a + [-0.1, 0.1, 0, 0, 0]]
+    )
     scores = np.array([0.6, 0.7, 0.9, 0.5, 0.8])
     np.testing.assert_array_equal(metrics.nms(boxes, scores, 0.3), [2, 1])
 
@@ -146,8 +152,13 @@ def _cars(n):
 
 def _frame(acc, det, scores, gt, occluded=None, valid=None):
     k = len(gt)
-    acc.add_frame(det, np.asarray(scores, float), gt, np.ones(k, bool) if valid is None else valid,
-                  np.zeros(k, bool) if occluded is None else occluded)
+    acc.add_frame(
+        det,
+        np.asarray(scores, float),
+        gt,
+        np.ones(k, bool) if valid is None else valid,
+        np.zeros(k, bool) if occluded is None else occluded,
+    )
 
 
 def test_accumulator_pr_curve_and_ap_over_frames():
@@ -259,12 +270,15 @@ def test_pose_accumulator_mean_median_and_step_bins():
     zeros = np.zeros(6)
     # Two chunks of one drive (steps 0..5), the second with a [1, 2] batch shape.
     acc.add(metrics.PoseErrors(location[:4], zeros[:4], zeros[:4] + 1), np.arange(4))
-    acc.add(metrics.PoseErrors(location[None, 4:], zeros[None, 4:], zeros[None, 4:] + 3),
-            np.arange(4, 6)[None])
+    acc.add(metrics.PoseErrors(location[None, 4:], zeros[None, 4:], zeros[None, 4:] + 3), np.arange(4, 6)[None])
     res = acc.results()
     # p90 by NumPy's linear interpolation: sorted [0, 1, 1, 2, 3, 4], position 4.5 -> 3.5.
-    assert res["location_m"] == {"mean": pytest.approx(11 / 6), "median": pytest.approx(1.5), "p90": pytest.approx(3.5),
-                                 "within": {"5": 1.0, "10": 1.0, "50": 1.0}}
+    assert res["location_m"] == {
+        "mean": pytest.approx(11 / 6),
+        "median": pytest.approx(1.5),
+        "p90": pytest.approx(3.5),
+        "within": {"5": 1.0, "10": 1.0, "50": 1.0},
+    }
     assert res["heading_rad"]["within"] == {"0.1": 1.0} and res["speed_mps"]["within"] == {}
     assert res["speed_mps"]["mean"] == pytest.approx(10 / 6)
     assert res["speed_mps"]["median"] == pytest.approx(1.0)

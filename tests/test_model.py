@@ -1,5 +1,6 @@
 """Model tests: shapes at every size, the paper's parameter count by hand, layers against a NumPy
 re-implementation of the torch peer's layers, and the filtering recursion (scan = streaming)."""
+
 import dataclasses
 
 import distrax
@@ -34,28 +35,45 @@ def test_every_network_output_shape(r):
     first = jax.ShapeDtypeStruct((n,), bool)
 
     assert apply(PerceptionModel.encode, image, image).shape == (n, 2 * m.feature_dim)
-    for method, args, dim in [(PerceptionModel.z1_prior, (vec(m.z2_dim), vec(2), first), m.z1_dim),
-                              (PerceptionModel.z1_posterior, (vec(2 * m.feature_dim), vec(m.z2_dim), vec(2), first),
-                               m.z1_dim),
-                              (PerceptionModel.z2_prior, (vec(m.z1_dim), vec(m.z2_dim), vec(2), first), m.z2_dim)]:
+    for method, args, dim in [
+        (PerceptionModel.z1_prior, (vec(m.z2_dim), vec(2), first), m.z1_dim),
+        (PerceptionModel.z1_posterior, (vec(2 * m.feature_dim), vec(m.z2_dim), vec(2), first), m.z1_dim),
+        (PerceptionModel.z2_prior, (vec(m.z1_dim), vec(m.z2_dim), vec(2), first), m.z2_dim),
+    ]:
         loc, scale = apply(method, *args)
         assert loc.shape == scale.shape == (n, dim)
     decoded = apply(PerceptionModel.decode, vec(m.z1_dim + m.z2_dim))
     assert {k: v.shape for k, v in decoded.items()} == {
-        "camera": (n, r, r, 3), "lidar": (n, r, r, 3), "roadmap": (n, r, r, 3), "det_logit": (n, r, r, 1),
-        "det_cls": (n, r, r, 1), "det_reg": (n, r, r, 6)}  # the belief head reads features, not z
+        "camera": (n, r, r, 3),
+        "lidar": (n, r, r, 3),
+        "roadmap": (n, r, r, 3),
+        "det_logit": (n, r, r, 1),
+        "det_cls": (n, r, r, 1),
+        "det_reg": (n, r, r, 6),
+    }  # the belief head reads features, not z
     grid = pose_belief.grid_of(m)
     assert grid.n == 48 and grid.head_size == 3 * 48 * 48 + 2 * 36 + 1  # 480 m in 10 m cells, 36 bins
-    assert apply(PerceptionModel.pose_belief, vec(2 * m.feature_dim), vec(m.z1_dim),
-                 vec(m.z2_dim)).shape == (n, grid.head_size)
-    trunk = jax.eval_shape(lambda z: model.Trunk(model.conv_widths(cfg.model, r), m.feature_dim).init_with_output(
-        jax.random.PRNGKey(0), z)[0], vec(m.z1_dim + m.z2_dim))
+    assert apply(PerceptionModel.pose_belief, vec(2 * m.feature_dim), vec(m.z1_dim), vec(m.z2_dim)).shape == (
+        n,
+        grid.head_size,
+    )
+    trunk = jax.eval_shape(
+        lambda z: model.Trunk(model.conv_widths(cfg.model, r), m.feature_dim).init_with_output(
+            jax.random.PRNGKey(0), z
+        )[0],
+        vec(m.z1_dim + m.z2_dim),
+    )
     assert trunk.shape == (n, r // 2, r // 2, 4)
 
     b, t1 = 2, 4
     seq = jax.ShapeDtypeStruct((b, t1, r, r, 3), jnp.uint8)
-    out = jax.eval_shape(lambda p, c, l, a: model.filter_sequence(p, c, l, a, jax.random.PRNGKey(0), cfg),
-                         params, seq, seq, jax.ShapeDtypeStruct((b, t1, 2), jnp.float32))
+    out = jax.eval_shape(
+        lambda p, c, l, a: model.filter_sequence(p, c, l, a, jax.random.PRNGKey(0), cfg),
+        params,
+        seq,
+        seq,
+        jax.ShapeDtypeStruct((b, t1, 2), jnp.float32),
+    )
     assert out["z1"].shape == out["q_z1_scale"].shape == out["p_z1_loc"].shape == (b, t1, m.z1_dim)
     assert out["z2"].shape == out["z2_scale"].shape == (b, t1, m.z2_dim)
     assert out["features"].shape == (b, t1, 2 * m.feature_dim)
@@ -73,17 +91,20 @@ def test_paper_parameter_count_by_hand():
     """R = 128 with the paper's widths; every layer written out (with the regression pose head it equals the
     torch peer's count; the belief head replaces that head)."""
     cfg = with_sizes(config.get_config("paper"), pose_head="regression")
-    encoder = (conv(5, 3, 32) + conv(3, 32, 64) + conv(3, 64, 128) + conv(3, 128, 256) + conv(3, 256, 256)
-               + conv(4, 256, 256))
+    encoder = (
+        conv(5, 3, 32) + conv(3, 32, 64) + conv(3, 64, 128) + conv(3, 128, 256) + conv(3, 256, 256) + conv(4, 256, 256)
+    )
     trunk = conv(4, 288, 256) + conv(3, 256, 256) + conv(3, 256, 128) + conv(3, 128, 64) + conv(3, 64, 32)
     image_decoder = trunk + conv(5, 32, 3)
     pixor = trunk + conv(5, 32, 1) + conv(5, 32, 6)
     gauss = lambda cin, out: dense(cin, 256) + dense(256, 256) + dense(256, 2 * out)
-    latent = (gauss(512, 32)  # q(z1_1 | f_1)
-              + gauss(512 + 256 + 2, 32)  # q(z1_t+1 | f_t+1, z2_t, a_t)
-              + gauss(256 + 2, 32)  # p(z1_t+1 | z2_t, a_t)
-              + gauss(32, 256)  # p(z2_1 | z1_1)
-              + gauss(32 + 256 + 2, 256))  # p(z2_t+1 | z1_t+1, z2_t, a_t)
+    latent = (
+        gauss(512, 32)  # q(z1_1 | f_1)
+        + gauss(512 + 256 + 2, 32)  # q(z1_t+1 | f_t+1, z2_t, a_t)
+        + gauss(256 + 2, 32)  # p(z1_t+1 | z2_t, a_t)
+        + gauss(32, 256)  # p(z2_1 | z1_1)
+        + gauss(32 + 256 + 2, 256)
+    )  # p(z2_t+1 | z1_t+1, z2_t, a_t)
     pose = dense(288, 256) + dense(256, 256) + dense(256, 5)
     full = 2 * encoder + 3 * image_decoder + pixor + latent + pose
     assert full == 13_960_149
@@ -120,7 +141,7 @@ def np_conv(x, w, b, stride, pad):
     out = np.empty((h, h, w.shape[-1]))
     for i in range(h):
         for j in range(h):
-            out[i, j] = np.einsum("abc,abcd->d", x[i * stride:i * stride + k, j * stride:j * stride + k], w)
+            out[i, j] = np.einsum("abc,abcd->d", x[i * stride : i * stride + k, j * stride : j * stride + k], w)
     return out + b
 
 
@@ -131,8 +152,8 @@ def np_deconv(x, w, b, stride, pad, out_pad):
     full = np.zeros(((h - 1) * stride + k + out_pad,) * 2 + (w.shape[-1],))
     for i in range(h):
         for j in range(h):
-            full[i * stride:i * stride + k, j * stride:j * stride + k] += np.einsum("c,abcd->abd", x[i, j], w)
-    return full[pad:pad + size, pad:pad + size] + b
+            full[i * stride : i * stride + k, j * stride : j * stride + k] += np.einsum("c,abcd->abd", x[i, j], w)
+    return full[pad : pad + size, pad : pad + size] + b
 
 
 def np_transposed(p, stride, pad, out_pad):
@@ -175,10 +196,20 @@ def test_subpixel_deconv_equals_flax_conv_transpose(kernel, features):
 def test_whole_map_layers_equal_flax_conv_and_conv_transpose(kernel):
     """The encoder's last layer and the trunks' first, as matmuls, against flax's layers with the same
     parameters, values and gradients."""
-    pairs = ((model.WholeMapConv(5), nn.Conv(5, (kernel, kernel), padding="VALID"),
-              (3, kernel, kernel, 4), lambda y: y.reshape(3, 5)),
-             (model.WholeMapConvTranspose(5, kernel), nn.ConvTranspose(5, (kernel, kernel), padding="VALID"),
-              (3, 4), lambda y: y))
+    pairs = (
+        (
+            model.WholeMapConv(5),
+            nn.Conv(5, (kernel, kernel), padding="VALID"),
+            (3, kernel, kernel, 4),
+            lambda y: y.reshape(3, 5),
+        ),
+        (
+            model.WholeMapConvTranspose(5, kernel),
+            nn.ConvTranspose(5, (kernel, kernel), padding="VALID"),
+            (3, 4),
+            lambda y: y,
+        ),
+    )
     for ours, flax_layer, in_shape, as_ours in pairs:
         x = jax.random.normal(jax.random.PRNGKey(0), in_shape)
         flax_in = x if x.ndim == 4 else x[:, None, None, :]
@@ -187,8 +218,10 @@ def test_whole_map_layers_equal_flax_conv_and_conv_transpose(kernel):
         np.testing.assert_allclose(got, as_ours(flax_layer.apply(params, flax_in)), rtol=1e-5, atol=1e-6)
         cotangent = jax.random.normal(jax.random.PRNGKey(2), got.shape)
         grad = lambda f: jax.grad(lambda p: jnp.sum(f(p) * cotangent))(params)
-        for g, want in zip(jax.tree.leaves(grad(lambda p: ours.apply(p, x))),
-                           jax.tree.leaves(grad(lambda p: as_ours(flax_layer.apply(p, flax_in))))):
+        for g, want in zip(
+            jax.tree.leaves(grad(lambda p: ours.apply(p, x))),
+            jax.tree.leaves(grad(lambda p: as_ours(flax_layer.apply(p, flax_in)))),
+        ):
             np.testing.assert_allclose(g, want, rtol=1e-5, atol=1e-5)
 
 
@@ -205,11 +238,12 @@ def test_layers_match_numpy_torch_semantics():
     x = np.asarray(camera[0], np.float64) / 255.0
     p = params["camera_encoder"]
     for i in range(3):
-        x = leaky(np_conv(x, np.asarray(p[f"Conv_{i}"]["kernel"]), np.asarray(p[f"Conv_{i}"]["bias"]), 2,
-                          2 if i == 0 else 1))
+        x = leaky(
+            np_conv(x, np.asarray(p[f"Conv_{i}"]["kernel"]), np.asarray(p[f"Conv_{i}"]["bias"]), 2, 2 if i == 0 else 1)
+        )
     feature = leaky(np_conv(x, np.asarray(p["Conv_3"]["kernel"]), np.asarray(p["Conv_3"]["bias"]), 1, 0)).ravel()
     got = net.apply({"params": params}, camera, camera, method=PerceptionModel.encode)[0]
-    np.testing.assert_allclose(got[:cfg.model.feature_dim], feature, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(got[: cfg.model.feature_dim], feature, rtol=1e-4, atol=1e-5)
 
     z = np.asarray(jax.random.normal(jax.random.PRNGKey(5), (cfg.model.z1_dim + cfg.model.z2_dim,)))
     got = net.apply({"params": params}, jnp.asarray(z[None], jnp.float32), method=PerceptionModel.decode)
@@ -220,26 +254,35 @@ def test_layers_match_numpy_torch_semantics():
     h = np_trunk(p["Trunk_0"], z)
     logit = np_transposed(p["Deconv2x_0"], 2, 2, 1)(h)
     np.testing.assert_allclose(got["det_cls"][0], 1 / (1 + np.exp(-logit)), rtol=1e-4, atol=1e-6)
-    np.testing.assert_allclose(got["det_reg"][0], leaky(np_transposed(p["Deconv2x_1"], 2, 2, 1)(h)),
-                               rtol=1e-4, atol=1e-5)
-    features, z1_loc, z2_loc = (np.asarray(jax.random.normal(jax.random.PRNGKey(i), (d,)))
-                                for i, d in ((6, 2 * cfg.model.feature_dim), (7, cfg.model.z1_dim), (8, cfg.model.z2_dim)))
-    got = net.apply({"params": params}, *(jnp.asarray(v[None], jnp.float32) for v in (features, z1_loc, z2_loc)),
-                    method=PerceptionModel.pose_belief)
-    np.testing.assert_allclose(got[0], np_mlp(params["pose_belief_head"], np.concatenate([features, z1_loc, z2_loc])),
-                               rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(
+        got["det_reg"][0], leaky(np_transposed(p["Deconv2x_1"], 2, 2, 1)(h)), rtol=1e-4, atol=1e-5
+    )
+    features, z1_loc, z2_loc = (
+        np.asarray(jax.random.normal(jax.random.PRNGKey(i), (d,)))
+        for i, d in ((6, 2 * cfg.model.feature_dim), (7, cfg.model.z1_dim), (8, cfg.model.z2_dim))
+    )
+    got = net.apply(
+        {"params": params},
+        *(jnp.asarray(v[None], jnp.float32) for v in (features, z1_loc, z2_loc)),
+        method=PerceptionModel.pose_belief,
+    )
+    np.testing.assert_allclose(
+        got[0], np_mlp(params["pose_belief_head"], np.concatenate([features, z1_loc, z2_loc])), rtol=1e-4, atol=1e-5
+    )
     regression = with_sizes(cfg, pose_head="regression")
     reg_params = model.init_params(jax.random.PRNGKey(3), regression)["params"]
-    got = model.build_model(regression).apply({"params": reg_params}, jnp.asarray(z[None], jnp.float32),
-                                              method=PerceptionModel.decode)
+    got = model.build_model(regression).apply(
+        {"params": reg_params}, jnp.asarray(z[None], jnp.float32), method=PerceptionModel.decode
+    )
     np.testing.assert_allclose(got["pose_normalised"][0], np_mlp(reg_params["pose_head"], z), rtol=1e-4, atol=1e-5)
 
-    z1 = z[:cfg.model.z1_dim]
-    loc, scale = net.apply({"params": params}, jnp.asarray(z1[None], jnp.float32),
-                           method=lambda m, z1: m.p_z2_first(z1))
+    z1 = z[: cfg.model.z1_dim]
+    loc, scale = net.apply(
+        {"params": params}, jnp.asarray(z1[None], jnp.float32), method=lambda m, z1: m.p_z2_first(z1)
+    )
     out = np_mlp(params["p_z2_first"]["MLP_0"], z1)
-    np.testing.assert_allclose(loc[0], out[:cfg.model.z2_dim], rtol=1e-4, atol=1e-5)
-    np.testing.assert_allclose(scale[0], np.log1p(np.exp(out[cfg.model.z2_dim:])) + 1e-5, rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(loc[0], out[: cfg.model.z2_dim], rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(scale[0], np.log1p(np.exp(out[cfg.model.z2_dim :])) + 1e-5, rtol=1e-4, atol=1e-6)
 
 
 # ----------------------------------------------------------------------------- filtering
@@ -251,8 +294,9 @@ def filtered():
     params = model.init_params(jax.random.PRNGKey(0), cfg)
     batch = synthetic_batch(1, cfg)
     key = jax.random.PRNGKey(2)
-    out = jax.jit(model.filter_sequence, static_argnums=5)(params, batch["camera"], batch["lidar"], batch["action"],
-                                                          key, cfg)
+    out = jax.jit(model.filter_sequence, static_argnums=5)(
+        params, batch["camera"], batch["lidar"], batch["action"], key, cfg
+    )
     return cfg, params, batch, key, out
 
 
@@ -283,10 +327,12 @@ def test_z2_kl_is_identically_zero(filtered):
     prev_action = jnp.concatenate([jnp.zeros_like(batch["action"][:, :1]), batch["action"][:, :-1]], 1)
     first = jnp.broadcast_to(jnp.arange(t1) == 0, (b, t1))
     flat = lambda x: x.reshape((b * t1,) + x.shape[2:])
-    loc, scale = model.build_model(cfg).apply(params, flat(out["z1"]), flat(z2_prev), flat(prev_action), flat(first),
-                                              method=PerceptionModel.z2_prior)
+    loc, scale = model.build_model(cfg).apply(
+        params, flat(out["z1"]), flat(z2_prev), flat(prev_action), flat(first), method=PerceptionModel.z2_prior
+    )
     kl = distrax.MultivariateNormalDiag(flat(out["z2_loc"]), flat(out["z2_scale"])).kl_divergence(
-        distrax.MultivariateNormalDiag(loc, scale))
+        distrax.MultivariateNormalDiag(loc, scale)
+    )
     np.testing.assert_array_equal(kl, 0.0)
     assert not any("q_z2" in name for name in params["params"])
 

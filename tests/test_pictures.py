@@ -1,4 +1,5 @@
 """Pictures for people (e2e_percep_jax/pictures.py): boxes land where the geometry module puts them."""
+
 import numpy as np
 import pytest
 
@@ -33,16 +34,21 @@ def test_heading_tick_points_to_the_front():
     for sign, lit in ((1.0, True), (-1.0, False)):
         xy = BOX[:2] + sign * 0.25 * BOX[3] * np.array([np.cos(BOX[2]), np.sin(BOX[2])])
         row, col = np.asarray(geo.ego_to_bev_px(xy, VIEW_PX)).astype(int)
-        assert (view[row - 1:row + 2, col - 1:col + 2].max() > 0) == lit
+        assert (view[row - 1 : row + 2, col - 1 : col + 2].max() > 0) == lit
 
 
 def test_frame_panel_colours_visible_and_occluded_boxes():
     r = 32
-    frame = dict(camera=np.zeros((r, r, 3), np.uint8), lidar=np.zeros((r, r, 3), np.uint8),
-                 roadmap=np.zeros((r, r, 3), np.uint8), boxes=np.stack([BOX, BOX * [-1, -1, 1, 1, 1]]),
-                 boxes_valid=np.array([True, True]), boxes_occluded=np.array([False, True]))
+    frame = dict(
+        camera=np.zeros((r, r, 3), np.uint8),
+        lidar=np.zeros((r, r, 3), np.uint8),
+        roadmap=np.zeros((r, r, 3), np.uint8),
+        boxes=np.stack([BOX, BOX * [-1, -1, 1, 1, 1]]),
+        boxes_valid=np.array([True, True]),
+        boxes_occluded=np.array([False, True]),
+    )
     panel = pictures.frame_panel(frame, panel_px=VIEW_PX, titles=False)
-    boxes_view = panel[:, 3 * VIEW_PX:]
+    boxes_view = panel[:, 3 * VIEW_PX :]
     pixels = boxes_view.reshape(-1, 3).astype(float)
     for colour in (pictures.VISIBLE_RGB, pictures.OCCLUDED_RGB):  # each drawn (anti-aliased: near, not equal)
         assert np.min(np.linalg.norm(pixels - colour, axis=-1)) < 40, colour
@@ -54,6 +60,7 @@ def test_town_map_puts_the_belief_and_the_paths_where_the_town_frame_says():
     the estimate's ring is drawn around its town position."""
     from e2e_percep_jax import pose_belief
     from e2e_percep_jax.sim import town as town_lib
+
     grid = pose_belief.Grid(cell_m=10.0, heading_bins=36)
     lo, size = pose_belief.AREA_ORIGIN_M, pose_belief.AREA_SIZE_M
     view = pictures.TopDown(town_lib.build_town(0), (lo, lo, lo + size, lo + size), px_per_m=0.8)
@@ -99,11 +106,16 @@ def test_pr_legend_sits_above_the_axes_where_no_curve_runs():
     legend inside them would cover them: each colour appears above the axes (its swatch) and on its own
     curve only."""
     from e2e_percep_jax.metrics import SUBSETS, PRCurve
+
     recall = np.linspace(0.01, 1.0, 50)
     precision = {0.1: 0.95, 0.3: 0.9, 0.5: 0.85, 0.7: 0.8}
-    image = pictures.pr_curves_image({t: {s: PRCurve(p, np.full_like(recall, p), recall, np.linspace(1, 0, 50), 10)
-                                          for s in SUBSETS} for t, p in precision.items()})
-    panel = image[:, :image.shape[1] // len(SUBSETS)]
+    image = pictures.pr_curves_image(
+        {
+            t: {s: PRCurve(p, np.full_like(recall, p), recall, np.linspace(1, 0, 50), 10) for s in SUBSETS}
+            for t, p in precision.items()
+        }
+    )
+    panel = image[:, : image.shape[1] // len(SUBSETS)]
     frame = np.flatnonzero((panel == 0).all(-1).sum(1) > panel.shape[1] // 2)  # the axes' top and bottom edges
     top, bottom = frame.min(), frame.max()
     colours = {0.1: (200, 120, 30), 0.3: (40, 160, 40), 0.5: (30, 110, 230), 0.7: (160, 40, 160)}  # BGR
@@ -121,6 +133,10 @@ def test_line_chart_places_a_point_by_its_axes_log_or_linear():
         chart = pictures.line_chart([("a point", colour, [5.0], [y])], "t", "x", (0.0, 10.0), y_range, log_y=log_y)
         frame = np.flatnonzero((chart == 0).all(-1).sum(1) > chart.shape[1] // 2)  # the axes' top and bottom
         columns = np.flatnonzero((chart == 0).all(-1).sum(0) > (frame.max() - frame.min()) // 2)  # left, right
-        rows, cols = np.nonzero((chart == colour).all(-1)[frame.min():])  # below the legend: the dot
+        rows, cols = np.nonzero((chart == colour).all(-1)[frame.min() :])  # below the legend: the dot
         centre = (frame.min() + frame.max()) / 2 - frame.min(), (columns.min() + columns.max()) / 2
-        assert abs(rows.mean() - centre[0]) <= 1 and abs(cols.mean() - centre[1]) <= 1, (rows.mean(), cols.mean(), centre)
+        assert abs(rows.mean() - centre[0]) <= 1 and abs(cols.mean() - centre[1]) <= 1, (
+            rows.mean(),
+            cols.mean(),
+            centre,
+        )

@@ -1,11 +1,11 @@
 """PIXOR targets against an independent point-in-polygon test, and the targets -> boxes round trip."""
+
 import jax
 import numpy as np
 import pytest
 
 from e2e_percep_jax.sim import geometry as geo
 from e2e_percep_jax.sim import pixor
-
 
 targets = jax.jit(pixor.targets, static_argnums=1)
 
@@ -14,8 +14,16 @@ def _scattered_boxes(rng, n):
     """n non-overlapping vehicle-like boxes [n, 5] (ego frame) around and partly outside the BEV view."""
     boxes = []
     while len(boxes) < n:
-        box = np.array([rng.uniform(-16, 24), rng.uniform(-20, 20), rng.uniform(-np.pi, np.pi),
-                        rng.uniform(3.5, 6.0), rng.uniform(1.6, 2.4)], np.float32)
+        box = np.array(
+            [
+                rng.uniform(-16, 24),
+                rng.uniform(-20, 20),
+                rng.uniform(-np.pi, np.pi),
+                rng.uniform(3.5, 6.0),
+                rng.uniform(1.6, 2.4),
+            ],
+            np.float32,
+        )
         radius = lambda b: 0.5 * np.hypot(b[3], b[4])  # disjoint bounding circles: the boxes cannot overlap
         if all(np.linalg.norm(box[:2] - other[:2]) > radius(box) + radius(other) for other in boxes):
             boxes.append(box)
@@ -26,8 +34,9 @@ def _inside_polygon(points, box):
     """Independent truth: a point is inside a convex CCW polygon iff every edge cross product is >= 0."""
     angle, half_l, half_w = box[2], box[3] / 2, box[4] / 2
     u, v = np.array([np.cos(angle), np.sin(angle)]), np.array([-np.sin(angle), np.cos(angle)])
-    corners = box[:2] + np.array([half_l * u - half_w * v, half_l * u + half_w * v,
-                                  -half_l * u + half_w * v, -half_l * u - half_w * v])
+    corners = box[:2] + np.array(
+        [half_l * u - half_w * v, half_l * u + half_w * v, -half_l * u + half_w * v, -half_l * u - half_w * v]
+    )
     edges = np.roll(corners, -1, axis=0) - corners
     rel = points[..., None, :] - corners
     cross = edges[:, 0] * rel[..., 1] - edges[:, 1] * rel[..., 0]

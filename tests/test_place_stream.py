@@ -1,6 +1,7 @@
 """The place stream (``--data.place_frames``): its frames keep the frame contract and stand on the town's
 lanes (checked by brute force over every lane sample), its points are uniform over the lanes (a histogram
 against the lanes' lengths), the loss trains the belief head on them, and a resumed stream repeats them."""
+
 import itertools
 
 import jax
@@ -60,7 +61,9 @@ def test_the_loss_trains_the_belief_head_on_the_place_frames(town):
     for name in ("camera", "lidar", "pose"):  # frame p alone, as the first frame of a batch of one sequence
         single[name] = frames[f"place_{name}"][:, None]
     one = model.filter_sequence(params, single["camera"], single["lidar"], np.zeros((6, 1, 2), np.float32), None, CFG)
-    parts = pose_belief.loss_terms(model.pose_belief_head(params, one, CFG), single["pose"], pose_belief.grid_of(CFG.model))
+    parts = pose_belief.loss_terms(
+        model.pose_belief_head(params, one, CFG), single["pose"], pose_belief.grid_of(CFG.model)
+    )
     for term, values in parts.items():
         want = loss.pose_weight(CFG) * float(np.sum(values)) / CFG.data.batch_size
         np.testing.assert_allclose(metrics[f"place_{term}"], want, rtol=1e-4)

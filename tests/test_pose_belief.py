@@ -6,6 +6,7 @@ integration of the motion model, and the filter on real drives of a world whose 
 The expectations are computed here in NumPy float64 from the motion model's equations as
 e2e_percep_jax/sim/motion.py's docstring states them; pose_belief's and motion.py's functions only produce the
 values under test."""
+
 import dataclasses
 import math
 
@@ -23,34 +24,49 @@ from e2e_percep_jax.sim.motion import MotionModel
 GRID = pose_belief.Grid(cell_m=10.0, heading_bins=36)
 DT_S, WHEELBASE_M = 0.1, 2.7  # the world's step and wheelbase, written out again
 # A motion model unlike the exact bicycle in every field (its process noise is irrelevant to a point odometry).
-LAGGED = MotionModel(lag_share=0.45, accel_per_pedal_mps2=2.6, accel_bias_mps2=-0.08, steer_gain=1.15,
-                     steer_bias=0.012, understeer_s2pm2=-0.0015, heading_noise_rad2pm=0.002, position_noise_m2pm=0.3)
+LAGGED = MotionModel(
+    lag_share=0.45,
+    accel_per_pedal_mps2=2.6,
+    accel_bias_mps2=-0.08,
+    steer_gain=1.15,
+    steer_bias=0.012,
+    understeer_s2pm2=-0.0015,
+    heading_noise_rad2pm=0.002,
+    position_noise_m2pm=0.3,
+)
 
 
 def random_poses(n, seed=0):
     rng = np.random.default_rng(seed)
     yaw = rng.uniform(-np.pi, np.pi, n)
-    return np.stack([rng.uniform(0, 420, n), rng.uniform(0, 420, n), np.cos(yaw), np.sin(yaw),
-                     rng.uniform(0, 12, n)], -1).astype(np.float32)
+    return np.stack(
+        [rng.uniform(0, 420, n), rng.uniform(0, 420, n), np.cos(yaw), np.sin(yaw), rng.uniform(0, 12, n)], -1
+    ).astype(np.float32)
 
 
 def head_naming(pose, grid):
     """A belief head that names ``pose`` exactly: log soft targets, and the true offsets in every cell / bin."""
     cell, offset = pose_belief.true_cell(pose[:, :2], grid)
     k, heading_offset = pose_belief.true_bin(jnp.arctan2(pose[:, 3], pose[:, 2]), grid)
-    return {"place_logit": jnp.log(pose_belief.place_target(pose[:, :2], grid)),
-            "place_offset": jnp.broadcast_to(offset[:, None, :], (len(pose), grid.num_cells, 2)),
-            "heading_logit": jnp.log(pose_belief.heading_target(jnp.arctan2(pose[:, 3], pose[:, 2]), grid)),
-            "heading_offset": jnp.broadcast_to(heading_offset[:, None], (len(pose), grid.heading_bins)),
-            "speed": pose[:, 4] / pose_belief.SPEED_SCALE_MPS}
+    return {
+        "place_logit": jnp.log(pose_belief.place_target(pose[:, :2], grid)),
+        "place_offset": jnp.broadcast_to(offset[:, None, :], (len(pose), grid.num_cells, 2)),
+        "heading_logit": jnp.log(pose_belief.heading_target(jnp.arctan2(pose[:, 3], pose[:, 2]), grid)),
+        "heading_offset": jnp.broadcast_to(heading_offset[:, None], (len(pose), grid.heading_bins)),
+        "speed": pose[:, 4] / pose_belief.SPEED_SCALE_MPS,
+    }
 
 
 def blank_head(batch, grid, speed_mps):
     """A head that carries no place or heading information (all logits equal), with the given speed."""
     g, h = grid.num_cells, grid.heading_bins
-    return {"place_logit": jnp.zeros((batch, g)), "place_offset": jnp.zeros((batch, g, 2)),
-            "heading_logit": jnp.zeros((batch, h)), "heading_offset": jnp.zeros((batch, h)),
-            "speed": jnp.asarray(speed_mps, jnp.float32) / pose_belief.SPEED_SCALE_MPS}
+    return {
+        "place_logit": jnp.zeros((batch, g)),
+        "place_offset": jnp.zeros((batch, g, 2)),
+        "heading_logit": jnp.zeros((batch, h)),
+        "heading_offset": jnp.zeros((batch, h)),
+        "speed": jnp.asarray(speed_mps, jnp.float32) / pose_belief.SPEED_SCALE_MPS,
+    }
 
 
 def softmax(x):
@@ -73,7 +89,7 @@ def np_model_step(model, actuator, command, speed_mps):
     v_new = max(speed_mps + (model.accel_per_pedal_mps2 * actuator[0] + model.accel_bias_mps2) * DT_S, 0.0)
     ds = 0.5 * (speed_mps + v_new) * DT_S
     tan, v_mid = math.tan(actuator[1]), 0.5 * (speed_mps + v_new)
-    kappa = (model.steer_gain * tan + model.steer_bias + model.understeer_s2pm2 * tan * v_mid ** 2) / WHEELBASE_M
+    kappa = (model.steer_gain * tan + model.steer_bias + model.understeer_s2pm2 * tan * v_mid**2) / WHEELBASE_M
     return actuator, v_new, ds, ds * kappa
 
 
@@ -136,13 +152,27 @@ def test_measurement_update_is_bayes_rule_against_brute_force():
     b, h, n = 2, grid.heading_bins, grid.n
     prior = rng.uniform(0.0, 1.0, (b, h, n, n))
     prior /= prior.sum(axis=(1, 2, 3), keepdims=True)
-    head = {"place_logit": rng.normal(0, 2, (b, n * n)), "heading_logit": rng.normal(0, 2, (b, h)),
-            "place_offset": np.zeros((b, n * n, 2)), "heading_offset": np.zeros((b, h)), "speed": np.zeros(b)}
+    head = {
+        "place_logit": rng.normal(0, 2, (b, n * n)),
+        "heading_logit": rng.normal(0, 2, (b, h)),
+        "place_offset": np.zeros((b, n * n, 2)),
+        "heading_offset": np.zeros((b, h)),
+        "speed": np.zeros(b),
+    }
     state = dict(pose_belief.init_state(b, grid), belief=jnp.asarray(prior, jnp.float32))
     f32 = {k: jnp.asarray(v, jnp.float32) for k, v in head.items()}
     floor, power, relocation = 0.1, 0.7, 0.01
-    new, _ = pose_belief.filter_step(state, f32, jnp.zeros((b, 2)), jnp.zeros(b, bool), grid, MotionModel(),
-                                     floor=floor, power=power, relocation=relocation)
+    new, _ = pose_belief.filter_step(
+        state,
+        f32,
+        jnp.zeros((b, 2)),
+        jnp.zeros(b, bool),
+        grid,
+        MotionModel(),
+        floor=floor,
+        power=power,
+        relocation=relocation,
+    )
     for row in range(b):
         place = (1 - floor) * softmax(head["place_logit"][row]) + floor / (n * n)
         heading = (1 - floor) * softmax(head["heading_logit"][row]) + floor / h
@@ -181,16 +211,27 @@ def np_transition(move_m, ds_m, yaw_after_rad, model, n, cell_m, h, relocation, 
     step = lambda u: 1 if u > 0 else -1
     split_x = stage(lambda k, i, j: [(k, i, j, 1 - abs(shift[k, 0])), (k, i, j + step(shift[k, 0]), abs(shift[k, 0]))])
     split_y = stage(lambda k, i, j: [(k, i, j, 1 - abs(shift[k, 1])), (k, i + step(shift[k, 1]), j, abs(shift[k, 1]))])
-    variance = model.position_noise_m2pm * ds_m / cell_m ** 2
+    variance = model.position_noise_m2pm * ds_m / cell_m**2
     missing = np.maximum(variance - np.abs(shift) * (1 - np.abs(shift)), 0.0)  # [h, 2]
     pos_share = np.minimum(0.5 * missing, 0.25)
-    noise_x = stage(lambda k, i, j: [(k, i, j, 1 - 2 * pos_share[k, 0]), (k, i, j - 1, pos_share[k, 0]),
-                                     (k, i, j + 1, pos_share[k, 0])])
-    noise_y = stage(lambda k, i, j: [(k, i, j, 1 - 2 * pos_share[k, 1]), (k, i - 1, j, pos_share[k, 1]),
-                                     (k, i + 1, j, pos_share[k, 1])])
-    head_share = min(0.5 * heading_noise_scale * model.heading_noise_rad2pm * ds_m / bin_rad ** 2, 0.25)
-    noise_heading = stage(lambda k, i, j: [(k, i, j, 1 - 2 * head_share), (k - 1, i, j, head_share),
-                                           (k + 1, i, j, head_share)])
+    noise_x = stage(
+        lambda k, i, j: [
+            (k, i, j, 1 - 2 * pos_share[k, 0]),
+            (k, i, j - 1, pos_share[k, 0]),
+            (k, i, j + 1, pos_share[k, 0]),
+        ]
+    )
+    noise_y = stage(
+        lambda k, i, j: [
+            (k, i, j, 1 - 2 * pos_share[k, 1]),
+            (k, i - 1, j, pos_share[k, 1]),
+            (k, i + 1, j, pos_share[k, 1]),
+        ]
+    )
+    head_share = min(0.5 * heading_noise_scale * model.heading_noise_rad2pm * ds_m / bin_rad**2, 0.25)
+    noise_heading = stage(
+        lambda k, i, j: [(k, i, j, 1 - 2 * head_share), (k - 1, i, j, head_share), (k + 1, i, j, head_share)]
+    )
     whole = int(np.round(yaw_after_rad / bin_rad))
     roll = stage(lambda k, i, j: [(k + whole, i, j, 1.0)])
     relocate = stage(lambda k, i, j: [(k, i, j, 1 - relocation)] + [(k2, i, j, relocation / h) for k2 in range(h)])
@@ -202,13 +243,27 @@ def np_transition(move_m, ds_m, yaw_after_rad, model, n, cell_m, h, relocation, 
 
 
 MOVING_MODELS = {
-    "lagged_with_noise": dict(lag_share=0.6, accel_per_pedal_mps2=2.5, accel_bias_mps2=-0.1, steer_gain=1.3,
-                              steer_bias=0.02, understeer_s2pm2=-0.001, heading_noise_rad2pm=0.05,
-                              position_noise_m2pm=1.0),
+    "lagged_with_noise": dict(
+        lag_share=0.6,
+        accel_per_pedal_mps2=2.5,
+        accel_bias_mps2=-0.1,
+        steer_gain=1.3,
+        steer_bias=0.02,
+        understeer_s2pm2=-0.001,
+        heading_noise_rad2pm=0.05,
+        position_noise_m2pm=1.0,
+    ),
     # noise large enough that both shares reach their cap of 0.25
-    "saturated_noise": dict(lag_share=0.3, accel_per_pedal_mps2=3.5, accel_bias_mps2=0.2, steer_gain=0.9,
-                            steer_bias=-0.03, understeer_s2pm2=0.002, heading_noise_rad2pm=3.0,
-                            position_noise_m2pm=30.0),
+    "saturated_noise": dict(
+        lag_share=0.3,
+        accel_per_pedal_mps2=3.5,
+        accel_bias_mps2=0.2,
+        steer_gain=0.9,
+        steer_bias=-0.03,
+        understeer_s2pm2=0.002,
+        heading_noise_rad2pm=3.0,
+        position_noise_m2pm=30.0,
+    ),
 }
 
 
@@ -234,18 +289,45 @@ def test_filter_step_is_brute_force_bayes_through_the_motion_model(name, monkeyp
     pedal = rng.uniform(-0.6, 0.8, (frames, b))
     steer = np.stack([rng.uniform(0.2, 0.3, frames), rng.uniform(-0.3, -0.2, frames)], -1)
     commands = np.stack([pedal, steer], -1).astype(np.float32)  # [frames, b, 2]: frame t's prev_action
-    heads = [{"place_logit": rng.normal(0, 1.5, (b, n * n)), "heading_logit": rng.normal(0, 1.5, (b, h)),
-              "place_offset": rng.uniform(-0.5, 0.5, (b, n * n, 2)), "heading_offset": rng.uniform(-0.5, 0.5, (b, h)),
-              "speed": rng.uniform(0.8, 1.2, b)} for _ in range(frames)]
+    heads = [
+        {
+            "place_logit": rng.normal(0, 1.5, (b, n * n)),
+            "heading_logit": rng.normal(0, 1.5, (b, h)),
+            "place_offset": rng.uniform(-0.5, 0.5, (b, n * n, 2)),
+            "heading_offset": rng.uniform(-0.5, 0.5, (b, h)),
+            "speed": rng.uniform(0.8, 1.2, b),
+        }
+        for _ in range(frames)
+    ]
     heads = [{k: v.astype(np.float32) for k, v in head.items()} for head in heads]
 
-    step = jax.jit(lambda state, head, action, first: pose_belief.filter_step(
-        state, head, action, first, grid, model, floor=floor, power=power, speed_gain=gain, relocation=relocation,
-        heading_noise_scale=heading_scale))
+    step = jax.jit(
+        lambda state, head, action, first: pose_belief.filter_step(
+            state,
+            head,
+            action,
+            first,
+            grid,
+            model,
+            floor=floor,
+            power=power,
+            speed_gain=gain,
+            relocation=relocation,
+            heading_noise_scale=heading_scale,
+        )
+    )
     state = pose_belief.init_state(b, grid)
     centres = -np.pi + (np.arange(h) + 0.5) * 2 * np.pi / h
-    want = [dict(belief=np.full((h, n, n), 1.0 / (h * n * n)), speed=0.0, offset=0.0, actuator=np.zeros(2),
-                 actuator_set=False) for _ in range(b)]
+    want = [
+        dict(
+            belief=np.full((h, n, n), 1.0 / (h * n * n)),
+            speed=0.0,
+            offset=0.0,
+            actuator=np.zeros(2),
+            actuator_set=False,
+        )
+        for _ in range(b)
+    ]
     stats = {"rolls": set(), "position_diffused": False, "split_covers": False, "capped": False}
     for t in range(frames):
         state, pose = step(state, heads[t], jnp.asarray(commands[t]), jnp.asarray(first[t]))
@@ -253,8 +335,9 @@ def test_filter_step_is_brute_force_bayes_through_the_motion_model(name, monkeyp
             w, head, command = want[row], {k: np.float64(v[row]) for k, v in heads[t].items()}, commands[t, row]
             head_speed = 10.0 * head["speed"]
             if first[t, row]:
-                w.update(belief=np.ones((h, n, n)), speed=head_speed, offset=0.0, actuator=np.zeros(2),
-                         actuator_set=False)
+                w.update(
+                    belief=np.ones((h, n, n)), speed=head_speed, offset=0.0, actuator=np.zeros(2), actuator_set=False
+                )
             else:
                 actuator = w["actuator"] if w["actuator_set"] else command.astype(np.float64)
                 actuator, v_new, ds, dyaw = np_model_step(model, actuator, command, w["speed"])
@@ -262,9 +345,13 @@ def test_filter_step_is_brute_force_bayes_through_the_motion_model(name, monkeyp
                 yaw_after = w["offset"] + dyaw
                 matrix = np_transition(move, ds, yaw_after, model, n, grid.cell_m, h, relocation, heading_scale, stats)
                 whole = np.round(yaw_after / grid.bin_rad)
-                w.update(belief=(matrix @ w["belief"].ravel()).reshape(h, n, n),
-                         speed=v_new + gain * (head_speed - v_new), offset=yaw_after - whole * grid.bin_rad,
-                         actuator=actuator, actuator_set=True)
+                w.update(
+                    belief=(matrix @ w["belief"].ravel()).reshape(h, n, n),
+                    speed=v_new + gain * (head_speed - v_new),
+                    offset=yaw_after - whole * grid.bin_rad,
+                    actuator=actuator,
+                    actuator_set=True,
+                )
             place = (1 - floor) * softmax(head["place_logit"]) + floor / (n * n)
             heading = (1 - floor) * softmax(head["heading_logit"]) + floor / h
             posterior = w["belief"] * (heading[:, None, None] * place.reshape(n, n)[None]) ** power
@@ -314,15 +401,20 @@ def test_in_region_against_sorting():
     # true states: from the belief for even rows and the point, uniform for the other odd rows; a point
     # inside the cell and bin
     flat = belief.reshape(b, -1).astype(np.float64)
-    state_index = np.array([rng.choice(h * n * n, p=f / f.sum()) if r % 2 == 0 or r == 1
-                            else rng.integers(h * n * n) for r, f in enumerate(flat)])
+    state_index = np.array(
+        [
+            rng.choice(h * n * n, p=f / f.sum()) if r % 2 == 0 or r == 1 else rng.integers(h * n * n)
+            for r, f in enumerate(flat)
+        ]
+    )
     k, i, j = state_index // (n * n), state_index // n % n, state_index % n
     x = pose_belief.AREA_ORIGIN_M + (j + rng.uniform(0.05, 0.95, b)) * grid.cell_m
     y = pose_belief.AREA_ORIGIN_M + (i + rng.uniform(0.05, 0.95, b)) * grid.cell_m
     yaw = -np.pi + (k + rng.uniform(0.05, 0.95, b)) * grid.bin_rad + offset
     pose = np.stack([x, y, np.cos(yaw), np.sin(yaw), np.zeros(b)], -1).astype(np.float32)
-    state = dict(pose_belief.init_state(b, grid), belief=jnp.asarray(belief),
-                 yaw_offset_rad=jnp.asarray(offset, jnp.float32))
+    state = dict(
+        pose_belief.init_state(b, grid), belief=jnp.asarray(belief), yaw_offset_rad=jnp.asarray(offset, jnp.float32)
+    )
     # the true cell and bin from the pose, by hand
     column = lambda u: np.floor((u - pose_belief.AREA_ORIGIN_M) / grid.cell_m).astype(int)
     cell = column(y) * n + column(x)
@@ -348,7 +440,7 @@ def known_start_track(model, start, commands, grid, restart_at=None):
     state = pose_belief.init_state(1, grid)
     poses, actuators = [], []
     for t in range(len(commands) + 1):
-        action = commands[t - 1:t] if t else np.full((1, 2), 0.7)  # (a first frame's command means nothing)
+        action = commands[t - 1 : t] if t else np.full((1, 2), 0.7)  # (a first frame's command means nothing)
         first = jnp.asarray([t == 0 or t == restart_at])
         state, pose = step(state, jnp.asarray(action, jnp.float32), first, jnp.asarray(start[None], jnp.float32))
         poses.append(np.asarray(pose[0]))
@@ -376,7 +468,7 @@ def test_known_start_odometry_follows_the_motion_model():
     restart = 350
     got, got_actuator = known_start_track(LAGGED, start, commands, grid, restart_at=restart)
     # frame t's pose comes from commands 0..t-1; after the restart from commands restart..t-1
-    first_part, first_act = np_odometry(LAGGED, start, commands[:restart - 1].astype(np.float64))
+    first_part, first_act = np_odometry(LAGGED, start, commands[: restart - 1].astype(np.float64))
     second_part, second_act = np_odometry(LAGGED, start, commands[restart:].astype(np.float64))
     want = np.concatenate([first_part, second_part])
     want_actuator = np.concatenate([np.zeros((1, 2)), first_act, np.zeros((1, 2)), second_act])
@@ -395,15 +487,20 @@ def histogram_track(model, start, commands, grid):
     """The histogram's own motion (``predict`` moved by ``motion.step``) of a point mass at ``start`` [5]
     driven by ``commands`` [T, 2] (actuators starting at the first): the belief's mean poses [T+1, 5]."""
     belief, offset = pose_belief.start_at(jnp.asarray(start[None], jnp.float32), grid)
-    state = dict(pose_belief.init_state(1, grid), belief=belief, yaw_offset_rad=offset,
-                 speed_mps=jnp.asarray(start[None, 4], jnp.float32))
+    state = dict(
+        pose_belief.init_state(1, grid),
+        belief=belief,
+        yaw_offset_rad=offset,
+        speed_mps=jnp.asarray(start[None, 4], jnp.float32),
+    )
     predict = jax.jit(lambda b, m, o, d: pose_belief.predict(b, m, o, d, model, grid))
     actuator = jnp.asarray(commands[:1], jnp.float32)
     poses = [pose_belief.mean_pose(state, grid)[0]]
     for command in commands:
         yaw = jnp.asarray(grid.bin_centres())[None] + state["yaw_offset_rad"][:, None]
-        actuator, speed, ds, move, dyaw = motion_lib.step(model, actuator, jnp.asarray(command[None], jnp.float32),
-                                                      state["speed_mps"], yaw)
+        actuator, speed, ds, move, dyaw = motion_lib.step(
+            model, actuator, jnp.asarray(command[None], jnp.float32), state["speed_mps"], yaw
+        )
         belief, offset = predict(state["belief"][0], move[0], state["yaw_offset_rad"][0] + dyaw[0], ds[0])
         state = dict(state, belief=belief[None], yaw_offset_rad=offset[None], speed_mps=speed)
         poses.append(pose_belief.mean_pose(state, grid)[0])
@@ -448,6 +545,7 @@ def test_histogram_motion_keeps_a_point_mass_mean_on_the_motion_model(case):
 def ego_drives(key, town, world_cfg, warmup_steps, num_worlds, frames):
     """Drives of the ego (world.step, no sensors): NumPy (poses [W, T, 5] (x, y, cos, sin, speed), the
     commands applied from frame t-1 to frame t [W, T, 2] (frame 0's: the warm-up's last))."""
+
     @jax.jit
     def run(keys):
         def one(k):
@@ -457,8 +555,11 @@ def ego_drives(key, town, world_cfg, warmup_steps, num_worlds, frames):
                 box = s.veh_box[world.EGO]
                 pose = jnp.stack([box[0], box[1], jnp.cos(box[2]), jnp.sin(box[2]), s.veh_speed_mps[world.EGO]])
                 return world.step(s, town), (pose, s.ego_action)
+
             return jax.lax.scan(body, state, None, length=frames)[1]
+
         return jax.vmap(one)(keys)
+
     return jax.tree.map(np.asarray, run(jax.random.split(key, num_worlds)))
 
 
@@ -467,8 +568,9 @@ def test_the_world_moves_its_ego_by_the_exact_motion_model(town):
     """A real drive of a world whose ego plant is exact (all its fields zero): the known-start odometry
     with ``MotionModel()`` fed the logged commands alone stays on the true path for 1,000 frames."""
     cfg = config.get_config("tiny")
-    pose, prev_action = ego_drives(jax.random.PRNGKey(4), town, config.replace(cfg, world=EXACT_PLANT).world,
-                                   cfg.data.warmup_steps, 1, 1000)
+    pose, prev_action = ego_drives(
+        jax.random.PRNGKey(4), town, config.replace(cfg, world=EXACT_PLANT).world, cfg.data.warmup_steps, 1, 1000
+    )
     got, _ = known_start_track(MotionModel(), pose[0, 0], prev_action[0, 1:], GRID)
     travelled = np.sum(np.linalg.norm(np.diff(pose[0, :, :2], axis=0), axis=-1))
     error_m = np.linalg.norm(got[:, :2] - pose[0, :, :2], axis=-1)
@@ -484,8 +586,7 @@ def plant_drives(town):
     """Drives of the tiny config's world, its ego with the default plant (lag, steering offset, gain,
     understeer, noise), from keys the calibration does not use."""
     cfg = config.get_config("tiny")
-    return ego_drives(jax.random.PRNGKey(29), town, cfg.world, cfg.data.warmup_steps, COVERAGE_DRIVES,
-                      COVERAGE_FRAMES)
+    return ego_drives(jax.random.PRNGKey(29), town, cfg.world, cfg.data.warmup_steps, COVERAGE_DRIVES, COVERAGE_FRAMES)
 
 
 def coverage(model, pose, prev_action, grid):
@@ -498,12 +599,15 @@ def coverage(model, pose, prev_action, grid):
     def run(pose, prev_action):
         def body(state, xs):
             p, a, first = xs
-            state, _ = pose_belief.filter_step(state, blank_head(w, grid, p[:, 4]), a, first, grid, model,
-                                               start_pose=p, measure=True, relocation=0.0)
+            state, _ = pose_belief.filter_step(
+                state, blank_head(w, grid, p[:, 4]), a, first, grid, model, start_pose=p, measure=True, relocation=0.0
+            )
             return state, pose_belief.in_region(state, p, grid)
+
         first = jnp.arange(frames) == 0
         xs = (jnp.swapaxes(pose, 0, 1), jnp.swapaxes(prev_action, 0, 1), jnp.broadcast_to(first[:, None], (frames, w)))
         return jax.lax.scan(body, pose_belief.init_state(w, grid), xs)[1]
+
     return np.asarray(run(jnp.asarray(pose), jnp.asarray(prev_action)))
 
 
@@ -532,7 +636,7 @@ def test_calibrated_process_noise_covers_the_true_pose_without_measurements(plan
 def test_negative_log_likelihood_of_a_uniform_belief_is_the_log_volume():
     state = pose_belief.init_state(3, GRID)
     nll = pose_belief.negative_log_likelihood(state, jnp.asarray(random_poses(3)), GRID)
-    np.testing.assert_allclose(nll, math.log(480.0 ** 2 * 2 * math.pi), rtol=1e-5)
+    np.testing.assert_allclose(nll, math.log(480.0**2 * 2 * math.pi), rtol=1e-5)
 
 
 @pytest.mark.slow

@@ -1,6 +1,7 @@
 """The one driving loop: ``advance`` and ``drive`` step the world as single steps do, and ``drive`` pairs each
 frame with the action that follows it. (``drive_perceiving`` is pinned by the evaluation's tests: the
 oracle sees every frame's truth through it, and the known-start odometry follows its previous actions.)"""
+
 import jax
 import numpy as np
 import pytest
@@ -44,8 +45,18 @@ def test_drive_returns_the_next_frames_state_and_the_states_it_saw(town, start, 
 
 def test_frames_are_a_read_only_mapping_of_the_contract(start, drive):
     _, frames, _ = drive(start)
-    assert list(frames) == ["camera", "lidar", "roadmap", "det_cls", "det_reg", "pose", "action", "boxes",
-                            "boxes_valid", "boxes_occluded"]
+    assert list(frames) == [
+        "camera",
+        "lidar",
+        "roadmap",
+        "det_cls",
+        "det_reg",
+        "pose",
+        "action",
+        "boxes",
+        "boxes_valid",
+        "boxes_occluded",
+    ]
     assert frames["camera"] is frames.camera and frames.camera.shape == (NUM_FRAMES, IMAGE_SIZE, IMAGE_SIZE, 3)
     assert dict(frames).keys() == set(frames) and len(frames) == 10
     with pytest.raises(KeyError):

@@ -1,5 +1,6 @@
 """Sensors against known geometry: pinhole projection, occlusion, lidar rings and outlines, roadmap crops,
 and the frame contract. Scenes are built by hand (a few boxes on a synthetic map) so the truth is known."""
+
 import functools
 
 import cv2
@@ -27,11 +28,17 @@ def make_town(sem_map=None, buildings=()):
     if sem_map is None:
         sem_map = np.full((600, 600), SEM_ROAD, np.uint8)
     boxes = [b for b, _, _ in buildings] or [[1e4, 1e4, 0.0, 1.0, 1.0]]  # a far dummy when there are none
-    return Town(**{f: None for f in Town._fields} | dict(
-        sem_map=sem_map, map_origin_m=np.array(MAP_ORIGIN_M, np.float32), map_res_m=np.float32(MAP_RES_M),
-        building_box=np.array(boxes, np.float32),
-        building_height_m=np.array([h for _, h, _ in buildings] or [1.0], np.float32),
-        building_color=np.array([c for _, _, c in buildings] or [[0, 0, 0]], np.uint8)))
+    return Town(
+        **{f: None for f in Town._fields}
+        | dict(
+            sem_map=sem_map,
+            map_origin_m=np.array(MAP_ORIGIN_M, np.float32),
+            map_res_m=np.float32(MAP_RES_M),
+            building_box=np.array(boxes, np.float32),
+            building_height_m=np.array([h for _, h, _ in buildings] or [1.0], np.float32),
+            building_color=np.array([c for _, _, c in buildings] or [[0, 0, 0]], np.uint8),
+        )
+    )
 
 
 def make_state(ego_box, vehicles=()):
@@ -39,11 +46,17 @@ def make_state(ego_box, vehicles=()):
     (box [5], height_m, rgb)."""
     boxes = np.array([ego_box] + [b for b, _, _ in vehicles], np.float32)
     n = len(boxes)
-    return WorldState(**{f: None for f in WorldState._fields} | dict(
-        veh_box=boxes, veh_speed_mps=np.arange(n, dtype=np.float32) + 3.0,
-        veh_height_m=np.array([1.5] + [h for _, h, _ in vehicles], np.float32),
-        veh_color=np.array([[200, 30, 40]] + [c for _, _, c in vehicles], np.uint8),
-        ego_action=np.zeros(2, np.float32), key=jax.random.PRNGKey(0)))
+    return WorldState(
+        **{f: None for f in WorldState._fields}
+        | dict(
+            veh_box=boxes,
+            veh_speed_mps=np.arange(n, dtype=np.float32) + 3.0,
+            veh_height_m=np.array([1.5] + [h for _, h, _ in vehicles], np.float32),
+            veh_color=np.array([[200, 30, 40]] + [c for _, _, c in vehicles], np.uint8),
+            ego_action=np.zeros(2, np.float32),
+            key=jax.random.PRNGKey(0),
+        )
+    )
 
 
 def make_obstacles(items):
@@ -54,7 +67,8 @@ def make_obstacles(items):
         color=jnp.array([c for _, _, c, _ in items], jnp.float32),
         is_vehicle=jnp.array([v for _, _, _, v in items]),
         valid=jnp.ones(len(items), bool),
-        vehicle_index=jnp.where(jnp.array([v for _, _, _, v in items]), jnp.arange(len(items)), -1))
+        vehicle_index=jnp.where(jnp.array([v for _, _, _, v in items]), jnp.arange(len(items)), -1),
+    )
 
 
 FAR = ([1e4, 1e4, 0.0, 1.0, 1.0], 1.0, [0, 0, 0], False)  # an obstacle nobody sees (the "empty" scene)
@@ -113,7 +127,7 @@ def test_camera_ground_texture_projects_at_the_right_rows():
     white, grey = centre.mean(-1) > 180, centre.mean(-1) < 120
     assert np.all(white[np.abs(ground_x - 9.0) < 0.6 - MAP_RES_M])
     assert np.all(grey[(np.abs(ground_x - 9.0) > 0.6 + MAP_RES_M) & (ground_x < 30)])
-    assert np.all(image[:r // 2, :, 2] > image[:r // 2, :, 0])  # sky above the horizon: blue
+    assert np.all(image[: r // 2, :, 2] > image[: r // 2, :, 0])  # sky above the horizon: blue
 
 
 def test_camera_near_hides_far_and_sides_are_shaded():
@@ -173,8 +187,12 @@ def test_lidar_ground_returns_lie_on_the_beam_rings(r):
 
 def test_lidar_obstacle_returns_lie_on_outlines():
     # Tall boxes (above the 2.1 m sensor: no roof returns) at assorted poses, none around the sensor.
-    walls = [([9.0, 5.0, 0.4, 6.0, 3.0], 6.0), ([-6.0, -8.0, -0.9, 5.0, 2.0], 4.0), ([4.0, -9.0, 0.0, 2.0, 2.0], 3.0),
-             ([14.0, -3.0, 1.2, 3.0, 1.0], 5.0)]
+    walls = [
+        ([9.0, 5.0, 0.4, 6.0, 3.0], 6.0),
+        ([-6.0, -8.0, -0.9, 5.0, 2.0], 4.0),
+        ([4.0, -9.0, 0.0, 2.0, 2.0], 3.0),
+        ([14.0, -3.0, 1.2, 3.0, 1.0], 5.0),
+    ]
     image, returned = lidar([(b, h, [1, 1, 1], False) for b, h in walls])
     assert returned.all()
     res = 0.25
@@ -194,8 +212,17 @@ def test_lidar_car_roofs_and_sides_stay_within_the_footprint():
     image, returned = lidar([(b, h, [1, 1, 1], True) for b, h in cars])
     assert returned.all()
     green = image[..., 1] == 255
-    dist_outside = np.min([np.where(geo.points_in_boxes(cell_centres(128), np.array(b)), 0.0,
-                                    distance_to_outline(cell_centres(128), np.array(b))) for b, _ in cars], axis=0)
+    dist_outside = np.min(
+        [
+            np.where(
+                geo.points_in_boxes(cell_centres(128), np.array(b)),
+                0.0,
+                distance_to_outline(cell_centres(128), np.array(b)),
+            )
+            for b, _ in cars
+        ],
+        axis=0,
+    )
     assert green.sum() > 10
     assert np.all(dist_outside[green] <= 0.25 * np.sqrt(0.5) + 1e-3)
 
@@ -307,13 +334,21 @@ def test_roadmap_keeps_thin_solid_lines_solid(r):
 def scene():
     """Ego at (5, 2) heading north-west; a wall ahead hiding one car; one car in the open; one far away."""
     ego_yaw = 2.3
-    to_town = lambda x, y, yaw, l, w: [*np.asarray(geo.ego_to_town(np.array([x, y]), np.array([5.0, 2.0]),
-                                                                    ego_yaw)), yaw + ego_yaw, l, w]
-    buildings = [(to_town(9.0, 0.0, 0.0, 1.0, 12.0), 4.0, [120, 110, 100]),
-                 (to_town(-30.0, 30.0, 0.5, 10.0, 10.0), 12.0, [90, 90, 160])]
-    vehicles = [(to_town(14.0, 1.0, 0.2, 4.5, 1.9), 1.5, [20, 90, 200]),  # behind the wall
-                (to_town(-6.0, 6.0, 1.0, 4.2, 1.8), 1.4, [230, 200, 40]),  # in the open
-                (to_town(45.0, -30.0, 0.0, 4.0, 1.8), 1.5, [10, 10, 10])]  # outside the view
+    to_town = lambda x, y, yaw, l, w: [
+        *np.asarray(geo.ego_to_town(np.array([x, y]), np.array([5.0, 2.0]), ego_yaw)),
+        yaw + ego_yaw,
+        l,
+        w,
+    ]
+    buildings = [
+        (to_town(9.0, 0.0, 0.0, 1.0, 12.0), 4.0, [120, 110, 100]),
+        (to_town(-30.0, 30.0, 0.5, 10.0, 10.0), 12.0, [90, 90, 160]),
+    ]
+    vehicles = [
+        (to_town(14.0, 1.0, 0.2, 4.5, 1.9), 1.5, [20, 90, 200]),  # behind the wall
+        (to_town(-6.0, 6.0, 1.0, 4.2, 1.8), 1.4, [230, 200, 40]),  # in the open
+        (to_town(45.0, -30.0, 0.0, 4.0, 1.8), 1.5, [10, 10, 10]),
+    ]  # outside the view
     return make_town(blocky_sem_map(2), buildings), make_state([5.0, 2.0, ego_yaw, 4.6, 1.9], vehicles)
 
 
@@ -322,9 +357,17 @@ def scene():
 def test_observe_follows_the_frame_contract(r):
     town, state = scene()
     frame = {k: np.asarray(v) for k, v in observe(state, town, r).items()}
-    expected = {"camera": (np.uint8, (r, r, 3)), "lidar": (np.uint8, (r, r, 3)), "roadmap": (np.uint8, (r, r, 3)),
-                "det_cls": (np.float32, (r, r, 1)), "det_reg": (np.float32, (r, r, 6)), "pose": (np.float32, (5,)),
-                "boxes": (np.float32, (3, 5)), "boxes_valid": (np.bool_, (3,)), "boxes_occluded": (np.bool_, (3,))}
+    expected = {
+        "camera": (np.uint8, (r, r, 3)),
+        "lidar": (np.uint8, (r, r, 3)),
+        "roadmap": (np.uint8, (r, r, 3)),
+        "det_cls": (np.float32, (r, r, 1)),
+        "det_reg": (np.float32, (r, r, 6)),
+        "pose": (np.float32, (5,)),
+        "boxes": (np.float32, (3, 5)),
+        "boxes_valid": (np.bool_, (3,)),
+        "boxes_occluded": (np.bool_, (3,)),
+    }
     assert set(frame) == set(expected)  # "action" is added by rollout.drive (it needs the next state)
     for key, (dtype, shape) in expected.items():
         assert frame[key].dtype == dtype and frame[key].shape == shape, key
@@ -376,8 +419,15 @@ def test_boxes_occluded_means_no_lidar_return_on_the_box():
     placed = [np.array([0.0, 0.0, 0.0, 4.6, 1.9])] + [np.array(b) for b, _, _ in walls + vehicles]
     rng = np.random.default_rng(5)
     while len(vehicles) < 10:  # bounding circles disjoint: nothing overlaps
-        box = np.array([rng.uniform(-11, 19), rng.uniform(-15, 15), rng.uniform(-np.pi, np.pi), rng.uniform(3.8, 5.0),
-                        rng.uniform(1.7, 2.1)])
+        box = np.array(
+            [
+                rng.uniform(-11, 19),
+                rng.uniform(-15, 15),
+                rng.uniform(-np.pi, np.pi),
+                rng.uniform(3.8, 5.0),
+                rng.uniform(1.7, 2.1),
+            ]
+        )
         if all(np.linalg.norm(box[:2] - p[:2]) > 0.5 * (np.hypot(*box[3:]) + np.hypot(*p[3:])) + 0.3 for p in placed):
             placed.append(box)
             vehicles.append((list(box), rng.uniform(1.4, 2.4), [100, 100, 100]))
@@ -386,7 +436,7 @@ def test_boxes_occluded_means_no_lidar_return_on_the_box():
     occluded, valid = np.asarray(frame["boxes_occluded"]), np.asarray(frame["boxes_valid"])
     obstacles = vehicles + walls
     hits = marched_lidar_hits(np.array([b for b, _, _ in obstacles]), np.array([h for _, h, _ in obstacles]), 28.0)
-    hits = hits[:len(vehicles)]
+    hits = hits[: len(vehicles)]
     assert valid.all() and occluded[:2].all() and not occluded.all()
     # A box some beams end on is not occluded; an occluded box gets no beam. Beams that only graze a corner
     # may fall between 10 cm samples, hence the margin of 2 beams.

@@ -1,5 +1,6 @@
 """Seed sweeps on the tiny config: the same seed gives identical metrics, a rerun skips finished runs,
 and the summary is the mean ± std of the runs' own metrics."""
+
 import glob
 import json
 import os
@@ -81,11 +82,19 @@ def test_held_out_towns_and_baselines_join_a_finished_sweep_without_retraining(s
     assert held_out["checkpoint_step"] == 4
     assert held_out["detection"]["num_gt"] != _metrics(a, "full-seed0")["detection"]["num_gt"]  # another town
     base = "baselines-seed0"
-    evaluated = {os.path.relpath(os.path.dirname(p), os.path.join(a, base))
-                 for p in glob.glob(os.path.join(a, base, "*", "eval*", "metrics.json"))}
-    assert evaluated == {"detector/eval", "tracker/eval", "pose/eval", "dead_reckoning/eval_known_start",
-                         "detector/eval_town3_known_start", "tracker/eval_town3_known_start",
-                         "dead_reckoning/eval_town3_known_start"}
+    evaluated = {
+        os.path.relpath(os.path.dirname(p), os.path.join(a, base))
+        for p in glob.glob(os.path.join(a, base, "*", "eval*", "metrics.json"))
+    }
+    assert evaluated == {
+        "detector/eval",
+        "tracker/eval",
+        "pose/eval",
+        "dead_reckoning/eval_known_start",
+        "detector/eval_town3_known_start",
+        "tracker/eval_town3_known_start",
+        "dead_reckoning/eval_town3_known_start",
+    }
     assert _metrics(a, os.path.join(base, "detector"))["config"]["train"]["seed"] == 0
     with open(os.path.join(a, "summary_town3_known_start.json")) as f:
         summary = json.load(f)["summary"]
@@ -101,8 +110,13 @@ def test_held_out_towns_and_baselines_join_a_finished_sweep_without_retraining(s
 
 @pytest.mark.slow
 def test_bad_sweep_flags_are_named(tmp_path):
-    for argv, flag in ((["--seeds=0,x"], "--seeds"), (["--variants=full,bogus"], "--variants"),
-                       (["--parallel=0"], "--parallel"),
-                       (["--baselines=detector,bogus"], "--baselines"), (["--held_out_towns=0"], "--held_out_towns"), (["--data.image_size=48"], "--data.image_size")):
+    for argv, flag in (
+        (["--seeds=0,x"], "--seeds"),
+        (["--variants=full,bogus"], "--variants"),
+        (["--parallel=0"], "--parallel"),
+        (["--baselines=detector,bogus"], "--baselines"),
+        (["--held_out_towns=0"], "--held_out_towns"),
+        (["--data.image_size=48"], "--data.image_size"),
+    ):
         result = _sweep(tmp_path, *argv)
         assert result.returncode == 1 and result.stderr.strip().startswith(f"error: {flag}"), result.stderr

@@ -1,44 +1,77 @@
 """The tables launcher: its cells against means and standard deviations worked out by hand, the kept
 evaluations without their curves, the README's blocks filled, and the README's tables equal to what the
 kept evaluations render (so the README cannot drift from the runs)."""
+
 import json
 import os
 import subprocess
 import sys
 
 import pytest
+from helpers import load_experiment
 
 from e2e_percep_jax import config
-from helpers import load_experiment
 
 tables = load_experiment("tables")
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-PAPER = {"ap_percent": {"Inputs and roadmap (full)": {"0.1": 79.4, "0.3": 72.0, "0.5": 56.5, "0.7": 16.8}},
-         "pose": {"Inputs and roadmap (full)": {"location_m": 11.4, "heading_rad": 0.33}}}
+PAPER = {
+    "ap_percent": {"Inputs and roadmap (full)": {"0.1": 79.4, "0.3": 72.0, "0.5": 56.5, "0.7": 16.8}},
+    "pose": {"Inputs and roadmap (full)": {"location_m": 11.4, "heading_rad": 0.33}},
+}
 
 
-def _metrics(seed, *, label="full", ap=0.5, location=4.0, drift=1.0, town=0, known_start=False, by_step=(3.0, 3.0),
-             step=None, place_frames=None):
+def _metrics(
+    seed,
+    *,
+    label="full",
+    ap=0.5,
+    location=4.0,
+    drift=1.0,
+    town=0,
+    known_start=False,
+    by_step=(3.0, 3.0),
+    step=None,
+    place_frames=None,
+):
     """A metrics.json with what the tables read, every AP ``ap`` and the location mean ``location``
     (of checkpoint ``step``, or of the trained run where None), of the `cpu` preset (with ``place_frames``
     where given: another recipe)."""
-    cfg = config.replace(config.get_config("cpu"), train=dict(seed=seed),
-                         eval=dict(town_seed=town, known_start=known_start))
+    cfg = config.replace(
+        config.get_config("cpu"), train=dict(seed=seed), eval=dict(town_seed=town, known_start=known_start)
+    )
     if place_frames is not None:
         cfg = config.replace(cfg, data=dict(place_frames=place_frames))
-    pose = {"location_m": {"mean": location, "median": location, "p90": 2 * location, "within": {"5": 0.3, "10": 0.5}},
-            "heading_rad": {"mean": 0.05, "median": 0.05, "p90": 0.1, "within": {}},
-            "speed_mps": {"mean": 0.1, "median": 0.1, "p90": 0.2, "within": {}},
-            "location_m_by_step": {"bin_edges": [0, 10, 30, 100, 300, 1000, 3000],
-                                   "mean": [9.0, 9.0, 9.0, by_step[0], by_step[0], by_step[1]],
-                                   "count": [10, 20, 70, 200, 700, 875]},
-            "drift_per_100m": drift, "coverage95": {"place": 0.95, "place_heading": 0.9}}
-    return {"label": label, "config": json.loads(cfg.to_json()), "paper": PAPER, "checkpoint_step": step,
-            "detection": {"ap": {iou: {"all": ap, "visible": ap, "occluded": ap / 2} for iou in ("0.1", "0.3", "0.5", "0.7")},
-                          "pr_curves": [[0.0] * 100]},
-            "examples": [1], "pose": pose,
-            "baseline": {"pose": {**pose, "location_m": {"mean": 160.0, "median": 150.0, "p90": 240.0, "within": {}},
-                                  "heading_rad": {"mean": 1.1, "median": 1.1, "p90": 2.0, "within": {}}}}}
+    pose = {
+        "location_m": {"mean": location, "median": location, "p90": 2 * location, "within": {"5": 0.3, "10": 0.5}},
+        "heading_rad": {"mean": 0.05, "median": 0.05, "p90": 0.1, "within": {}},
+        "speed_mps": {"mean": 0.1, "median": 0.1, "p90": 0.2, "within": {}},
+        "location_m_by_step": {
+            "bin_edges": [0, 10, 30, 100, 300, 1000, 3000],
+            "mean": [9.0, 9.0, 9.0, by_step[0], by_step[0], by_step[1]],
+            "count": [10, 20, 70, 200, 700, 875],
+        },
+        "drift_per_100m": drift,
+        "coverage95": {"place": 0.95, "place_heading": 0.9},
+    }
+    return {
+        "label": label,
+        "config": json.loads(cfg.to_json()),
+        "paper": PAPER,
+        "checkpoint_step": step,
+        "detection": {
+            "ap": {iou: {"all": ap, "visible": ap, "occluded": ap / 2} for iou in ("0.1", "0.3", "0.5", "0.7")},
+            "pr_curves": [[0.0] * 100],
+        },
+        "examples": [1],
+        "pose": pose,
+        "baseline": {
+            "pose": {
+                **pose,
+                "location_m": {"mean": 160.0, "median": 150.0, "p90": 240.0, "within": {}},
+                "heading_rad": {"mean": 1.1, "median": 1.1, "p90": 2.0, "within": {}},
+            }
+        },
+    }
 
 
 def _write_run(run_dir, evaluations):
@@ -65,28 +98,42 @@ def results(tmp_path):
     `dead_reckoning` run and one `detector` run (no pose), kept."""
     for seed, ap, location, by_step in ((0, 0.5, 4.0, (2.0, 4.0)), (1, 0.6, 6.0, (4.0, 6.0))):
         _write_training(tmp_path / "runs" / f"place_s{seed}", seed)
-        _write_run(tmp_path / "runs" / f"place_s{seed}", {
-            "eval": _metrics(seed, ap=ap, location=location),
-            "eval_known_start": _metrics(seed, ap=ap, known_start=True, drift=0.5 + seed, by_step=by_step),
-            "eval_town7_known_start": _metrics(seed, ap=ap / 2, town=7, known_start=True, drift=2.0)})
+        _write_run(
+            tmp_path / "runs" / f"place_s{seed}",
+            {
+                "eval": _metrics(seed, ap=ap, location=location),
+                "eval_known_start": _metrics(seed, ap=ap, known_start=True, drift=0.5 + seed, by_step=by_step),
+                "eval_town7_known_start": _metrics(seed, ap=ap / 2, town=7, known_start=True, drift=2.0),
+            },
+        )
     for seed in (0, 1):
-        _write_run(tmp_path / "runs" / f"curve_s{seed}", {
-            "eval_step1000": _metrics(seed, ap=0.1, location=20.0 + 10 * seed, step=1000),
-            "eval_step2000": _metrics(seed, ap=0.3 + 0.2 * seed, location=5.0, step=2000)})
+        _write_run(
+            tmp_path / "runs" / f"curve_s{seed}",
+            {
+                "eval_step1000": _metrics(seed, ap=0.1, location=20.0 + 10 * seed, step=1000),
+                "eval_step2000": _metrics(seed, ap=0.3 + 0.2 * seed, location=5.0, step=2000),
+            },
+        )
     unposed = _metrics(0, label="single-frame detector", ap=0.7)  # boxes and no pose: NaN errors, 0 % within
     for name in ("location_m", "heading_rad", "speed_mps"):
         unposed["pose"][name].update(mean=float("nan"), median=float("nan"), p90=float("nan"))
-    unposed["pose"].update(drift_per_100m=None, location_m_by_step={"bin_edges": [0, 10], "mean": [None], "count": [10]})
+    unposed["pose"].update(
+        drift_per_100m=None, location_m_by_step={"bin_edges": [0, 10], "mean": [None], "count": [10]}
+    )
     del unposed["pose"]["coverage95"]
     unposed["pose"]["location_m"]["within"] = {"10": 0.0}
     _write_run(tmp_path / "runs" / "detector", {"eval": unposed})
-    _write_run(tmp_path / "runs" / "dead_reckoning", {
-        "eval_known_start": _metrics(0, label="dead_reckoning", ap=0.0, known_start=True, drift=3.0)})
+    _write_run(
+        tmp_path / "runs" / "dead_reckoning",
+        {"eval_known_start": _metrics(0, label="dead_reckoning", ap=0.0, known_start=True, drift=3.0)},
+    )
     out = tmp_path / "results"
-    tables.collect("cpu", [str(tmp_path / "runs" / name) for name in ("place_s0", "place_s1", "curve_s0", "curve_s1")],
-                   str(out))
-    _write_run(tmp_path / "runs" / "place64", {
-        "eval_step1000": _metrics(0, ap=0.2, location=9.0, step=1000, place_frames=64)})
+    tables.collect(
+        "cpu", [str(tmp_path / "runs" / name) for name in ("place_s0", "place_s1", "curve_s0", "curve_s1")], str(out)
+    )
+    _write_run(
+        tmp_path / "runs" / "place64", {"eval_step1000": _metrics(0, ap=0.2, location=9.0, step=1000, place_frames=64)}
+    )
     tables.collect("place64", [str(tmp_path / "runs" / "place64")], str(out))
     tables.collect("dead_reckoning", [str(tmp_path / "runs" / "dead_reckoning")], str(out))
     tables.collect("detector", [str(tmp_path / "runs" / "detector")], str(out))
@@ -115,10 +162,14 @@ def test_cells_are_the_mean_and_std_over_seeds(results):
     dr = _row(rendered["localisation"], "`dead_reckoning`")
     assert dr[1] == "" and dr[6] == "3.00 / - / -"
     assert "| constant pose (the drive's mean pose) | 160.0 / 240.0 | 1.100 |" in rendered["localisation"]
-    assert ("- `cpu` (2 runs): `python experiments/main.py --config=cpu --train.seed={0,1}`"
-            in rendered["localisation"].splitlines())
-    assert ("- `dead_reckoning` (1 run): `python experiments/baselines.py --baseline=dead_reckoning --config=cpu`"
-            in rendered["localisation"].splitlines())
+    assert (
+        "- `cpu` (2 runs): `python experiments/main.py --config=cpu --train.seed={0,1}`"
+        in rendered["localisation"].splitlines()
+    )
+    assert (
+        "- `dead_reckoning` (1 run): `python experiments/baselines.py --baseline=dead_reckoning --config=cpu`"
+        in rendered["localisation"].splitlines()
+    )
 
 
 def test_the_papers_tables_set_each_variant_beside_the_papers_row(results):
@@ -137,18 +188,24 @@ def test_learning_curve_reads_each_checkpoints_evaluations(results):
     assert _row(curve, "1,000")[1:] == ["25.0 ± 5.0 / 0.050 ± 0.000 / 10.0 ± 0.0", "9.0 / 0.050 / 20.0 |"]
     assert _row(curve, "2,000")[1:] == ["5.0 ± 0.0 / 0.050 ± 0.000 / 40.0 ± 10.0", " |"]  # `place64`: none
     assert "`dead_reckoning`" not in curve  # no checkpoints evaluated
-    assert ("- `cpu` (2 runs): `python experiments/main.py --config=cpu --train.num_steps=2000 --train.seed={0,1}`"
-            in curve.splitlines())
+    assert (
+        "- `cpu` (2 runs): `python experiments/main.py --config=cpu --train.num_steps=2000 --train.seed={0,1}`"
+        in curve.splitlines()
+    )
 
 
 def test_collected_runs_are_named_by_their_path_below_the_common_folder(tmp_path):
     """A sweep keeps each seed's baselines in ``baselines-seed<s>/<baseline>``: same folder names, two runs."""
     for seed in (0, 1):
         _write_run(tmp_path / "sweep" / f"baselines-seed{seed}" / "detector", {"eval": _metrics(seed, ap=0.1 * seed)})
-    written = tables.collect("detector", [str(tmp_path / "sweep" / f"baselines-seed{s}" / "detector") for s in (0, 1)],
-                             str(tmp_path / "results"))
+    written = tables.collect(
+        "detector",
+        [str(tmp_path / "sweep" / f"baselines-seed{s}" / "detector") for s in (0, 1)],
+        str(tmp_path / "results"),
+    )
     assert sorted(os.path.relpath(p, tmp_path / "results") for p in written) == [
-        os.path.join("detector", f"baselines-seed{s}-detector", "eval.json") for s in (0, 1)]
+        os.path.join("detector", f"baselines-seed{s}-detector", "eval.json") for s in (0, 1)
+    ]
     assert [m["config"]["train"]["seed"] for m in tables.load(str(tmp_path / "results"))["detector"]["eval"]] == [0, 1]
     alone = tables.collect("detector", [str(tmp_path / "sweep" / "baselines-seed0" / "detector")], str(tmp_path / "r2"))
     assert alone == [str(tmp_path / "r2" / "detector" / "detector" / "eval.json")]
@@ -182,9 +239,11 @@ def test_kept_evaluations_lose_only_their_curves(results):
 
 def test_readme_blocks_are_filled_and_checked(results, tmp_path):
     readme = tmp_path / "README.md"
-    readme.write_text("# x\n<!-- table:localisation:begin -->\nold\n<!-- table:localisation:end -->\ntext\n"
-                      "<!-- table:detection:begin --><!-- table:detection:end -->\n"
-                      "<!-- table:learning_curve:begin --><!-- table:learning_curve:end -->\n")
+    readme.write_text(
+        "# x\n<!-- table:localisation:begin -->\nold\n<!-- table:localisation:end -->\ntext\n"
+        "<!-- table:detection:begin --><!-- table:detection:end -->\n"
+        "<!-- table:learning_curve:begin --><!-- table:learning_curve:end -->\n"
+    )
     cmd = [sys.executable, os.path.join(REPO, "experiments", "tables.py"), f"--results={results}", f"--readme={readme}"]
     stale = subprocess.run(cmd + ["--check"], capture_output=True, text=True, timeout=120)
     assert stale.returncode == 1 and "differ" in stale.stderr

@@ -1,4 +1,5 @@
 """The town against independent truth: graph search, raster look-ups and geometry done here, not in town.py."""
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -29,8 +30,10 @@ def lane_samples(town, lane):
     pos = town.lane_length_m[lane] / town_lib.LANE_DS_M
     m = int(np.floor(pos))
     end_xy = town.lane_xy_m[lane, m] + (pos - m) * (town.lane_xy_m[lane, m + 1] - town.lane_xy_m[lane, m])
-    return (np.concatenate([town.lane_xy_m[lane, :m + 1], end_xy[None]]),
-            np.append(town.lane_yaw_rad[lane, :m + 1], town.lane_yaw_rad[lane, m]))
+    return (
+        np.concatenate([town.lane_xy_m[lane, : m + 1], end_xy[None]]),
+        np.append(town.lane_yaw_rad[lane, : m + 1], town.lane_yaw_rad[lane, m]),
+    )
 
 
 def reachable(adjacency, start):
@@ -60,7 +63,7 @@ def test_successors_continue_where_their_lane_ends(town):
     """The graph agrees with the geometry: a successor starts at its predecessor's end, heading the same way."""
     for lane in range(len(town.lane_length_m)):
         end_xy, end_yaw = (a[-1] for a in lane_samples(town, lane))
-        for nxt in town.lane_succ[lane, :town.lane_num_succ[lane]]:
+        for nxt in town.lane_succ[lane, : town.lane_num_succ[lane]]:
             assert np.linalg.norm(town.lane_xy_m[nxt, 0] - end_xy) < 0.1, (lane, nxt)
             turn = (town.lane_yaw_rad[nxt, 0] - end_yaw + np.pi) % (2 * np.pi) - np.pi
             assert abs(turn) < 0.15, (lane, nxt, turn)
@@ -96,9 +99,13 @@ def test_size_and_road_length_are_like_town03(town):
     road_km = np.linalg.norm(town.road_xy_m[:, 1] - town.road_xy_m[:, 0], axis=1).sum() / 1000
     assert 5.0 < road_km < 7.0, road_km
     # The raster agrees: road area ~ length x width of the carriageways (junction squares make it larger).
-    road_cells = np.isin(town.sem_map, DRIVABLE).sum() * town.map_res_m ** 2
-    carriageway_m2 = (np.linalg.norm(town.road_xy_m[:, 1] - town.road_xy_m[:, 0], axis=1)
-                      * 2 * town.road_lanes_per_dir * town_lib.LANE_WIDTH_M).sum()
+    road_cells = np.isin(town.sem_map, DRIVABLE).sum() * town.map_res_m**2
+    carriageway_m2 = (
+        np.linalg.norm(town.road_xy_m[:, 1] - town.road_xy_m[:, 0], axis=1)
+        * 2
+        * town.road_lanes_per_dir
+        * town_lib.LANE_WIDTH_M
+    ).sum()
     assert 0.8 < road_cells / carriageway_m2 < 1.3, road_cells / carriageway_m2
 
 
@@ -112,7 +119,9 @@ def test_roads_are_two_way_and_some_have_two_lanes_per_direction(town):
         along = (b - a) / np.linalg.norm(b - a)
         rel = mid - 0.5 * (a + b)  # lane middles sit near the road's middle (mouths differ at either end)
         lateral_m = rel @ [-along[1], along[0]]
-        alongside = (np.abs(rel @ along) < 0.2 * np.linalg.norm(b - a)) & (np.abs(lateral_m) < 2 * town_lib.LANE_WIDTH_M)
+        alongside = (np.abs(rel @ along) < 0.2 * np.linalg.norm(b - a)) & (
+            np.abs(lateral_m) < 2 * town_lib.LANE_WIDTH_M
+        )
         forward = alongside & (heading @ along > 0.99)
         backward = alongside & (heading @ along < -0.99)
         assert forward.sum() == per_dir and backward.sum() == per_dir, (a, b, forward.sum(), backward.sum())
@@ -182,8 +191,10 @@ def test_same_seed_same_town_and_other_seeds_differ():
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     other = town_lib.build_town(HELD_OUT_SEED)
     assert not np.allclose(np.asarray(default.node_xy_m), np.asarray(other.node_xy_m))
-    assert (np.asarray(default.sem_map).shape != np.asarray(other.sem_map).shape
-            or (np.asarray(default.sem_map) != np.asarray(other.sem_map)).mean() > 0.05)
+    assert (
+        np.asarray(default.sem_map).shape != np.asarray(other.sem_map).shape
+        or (np.asarray(default.sem_map) != np.asarray(other.sem_map)).mean() > 0.05
+    )
 
 
 @pytest.mark.slow

@@ -5,6 +5,7 @@ Independent truths: the closed-form steady state of the discrete white-noise-acc
 scalar random walk; the Riccati recursion iterated here; brute-force assignment; hand-built scenes; the
 world's own ego path (world.reset / world.step).
 """
+
 import itertools
 
 import jax
@@ -35,12 +36,14 @@ IDENTITY_POSE = pose_of(0.0, 0.0, 0.0)
 
 def test_frame_helpers_match_geometry():
     rng = np.random.default_rng(0)
-    boxes = np.column_stack([rng.uniform(-30, 30, (20, 2)), rng.uniform(-4, 4, 20), rng.uniform(3, 6, 20),
-                             rng.uniform(1.5, 2.2, 20)])
+    boxes = np.column_stack(
+        [rng.uniform(-30, 30, (20, 2)), rng.uniform(-4, 4, 20), rng.uniform(3, 6, 20), rng.uniform(1.5, 2.2, 20)]
+    )
     pose = pose_of(120.0, -40.0, 2.5)
     ours = tr.boxes_town_to_ego(boxes, pose)
-    ref = np.asarray(geo.box_to_ego(jnp.asarray(boxes, jnp.float32), jnp.asarray(pose[:2], jnp.float32),
-                                    jnp.float32(2.5)))
+    ref = np.asarray(
+        geo.box_to_ego(jnp.asarray(boxes, jnp.float32), jnp.asarray(pose[:2], jnp.float32), jnp.float32(2.5))
+    )
     np.testing.assert_allclose(ours[:, :2], ref[:, :2], atol=1e-4)
     np.testing.assert_allclose(geo.wrap_angle(ours[:, 2] - ref[:, 2]), 0.0, atol=1e-5)
     np.testing.assert_allclose(ours[:, 3:], boxes[:, 3:])
@@ -107,18 +110,17 @@ def test_fold_heading():
 
 def _alpha_beta_steady_state(accel_std, meas_std, dt):
     """Posterior covariance [2, 2] of (position, velocity), closed form (Bar-Shalom §6.5.3, DWNA model)."""
-    lam = accel_std * dt ** 2 / meas_std  # tracking index
-    root = np.sqrt(lam ** 2 + 8 * lam)
-    alpha = -(lam ** 2 + 8 * lam - (lam + 4) * root) / 8
-    beta = (lam ** 2 + 4 * lam - lam * root) / 4
-    return meas_std ** 2 * np.array([[alpha, beta / dt],
-                                     [beta / dt, beta * (alpha - beta / 2) / ((1 - alpha) * dt ** 2)]])
+    lam = accel_std * dt**2 / meas_std  # tracking index
+    root = np.sqrt(lam**2 + 8 * lam)
+    alpha = -(lam**2 + 8 * lam - (lam + 4) * root) / 8
+    beta = (lam**2 + 4 * lam - lam * root) / 4
+    return meas_std**2 * np.array([[alpha, beta / dt], [beta / dt, beta * (alpha - beta / 2) / ((1 - alpha) * dt**2)]])
 
 
 def _random_walk_steady_state(q_var, r_var):
     """Posterior variance of a scalar random walk (variance q per step) seen with noise r: the positive root
     of the prior's m^2 - q m - q r = 0, then p = m r / (m + r)."""
-    m = 0.5 * (q_var + np.sqrt(q_var ** 2 + 4 * q_var * r_var))
+    m = 0.5 * (q_var + np.sqrt(q_var**2 + 4 * q_var * r_var))
     return m * r_var / (m + r_var)
 
 
@@ -137,8 +139,8 @@ def _expected_steady_state(cfg):
     pv = _alpha_beta_steady_state(cfg.accel_std_mps2, cfg.meas_pos_std_m, cfg.dt_s)
     for pos, vel in ((0, 5), (1, 6)):
         p[np.ix_([pos, vel], [pos, vel])] = pv
-    p[2, 2] = _random_walk_steady_state((cfg.yaw_rate_std_rps * cfg.dt_s) ** 2, cfg.meas_yaw_std_rad ** 2)
-    p[3, 3] = p[4, 4] = _random_walk_steady_state(cfg.size_std_m ** 2, cfg.meas_size_std_m ** 2)
+    p[2, 2] = _random_walk_steady_state((cfg.yaw_rate_std_rps * cfg.dt_s) ** 2, cfg.meas_yaw_std_rad**2)
+    p[3, 3] = p[4, 4] = _random_walk_steady_state(cfg.size_std_m**2, cfg.meas_size_std_m**2)
     return p
 
 
@@ -146,11 +148,11 @@ def _model_q(cfg):
     """The process noise of the tracker's model, built here from its definition (DWNA per axis)."""
     dt = cfg.dt_s
     g = np.zeros((7, 4))  # noise inputs: ax, ay, yaw step, (length, width) steps
-    g[0, 0] = g[1, 1] = dt ** 2 / 2
+    g[0, 0] = g[1, 1] = dt**2 / 2
     g[5, 0] = g[6, 1] = dt
-    q = g @ np.diag([cfg.accel_std_mps2 ** 2] * 2 + [0.0, 0.0]) @ g.T
+    q = g @ np.diag([cfg.accel_std_mps2**2] * 2 + [0.0, 0.0]) @ g.T
     q[2, 2] = (cfg.yaw_rate_std_rps * dt) ** 2
-    q[3, 3] = q[4, 4] = cfg.size_std_m ** 2
+    q[3, 3] = q[4, 4] = cfg.size_std_m**2
     return q
 
 
@@ -160,8 +162,9 @@ def test_closed_forms_agree_with_riccati_iteration():
     f[0, 5] = f[1, 6] = cfg.dt_s
     h = np.eye(5, 7)
     r = np.diag([cfg.meas_pos_std_m] * 2 + [cfg.meas_yaw_std_rad] + [cfg.meas_size_std_m] * 2) ** 2
-    np.testing.assert_allclose(_riccati_fixed_point(f, _model_q(cfg), h, r), _expected_steady_state(cfg),
-                               rtol=1e-6, atol=1e-12)
+    np.testing.assert_allclose(
+        _riccati_fixed_point(f, _model_q(cfg), h, r), _expected_steady_state(cfg), rtol=1e-6, atol=1e-12
+    )
     np.testing.assert_allclose(tr.process_noise(cfg), _model_q(cfg), rtol=1e-12, atol=1e-15)
 
 
@@ -171,15 +174,22 @@ def _simulate_model_targets(cfg, num_targets, num_frames, rng, spacing_m=5000.0)
     f[0, 5] = f[1, 6] = cfg.dt_s
     side = int(np.ceil(np.sqrt(num_targets)))
     grid = spacing_m * np.stack(np.divmod(np.arange(num_targets), side), axis=1).astype(float)
-    x = np.column_stack([grid, rng.uniform(-np.pi, np.pi, num_targets), np.full(num_targets, 4.5),
-                         np.full(num_targets, 1.9), rng.normal(0, 1.0, (num_targets, 2))])  # slow: new v = 0
+    x = np.column_stack(
+        [
+            grid,
+            rng.uniform(-np.pi, np.pi, num_targets),
+            np.full(num_targets, 4.5),
+            np.full(num_targets, 1.9),
+            rng.normal(0, 1.0, (num_targets, 2)),
+        ]
+    )  # slow: new v = 0
     dt = cfg.dt_s
     out = []
     for _ in range(num_frames):
         out.append(x.copy())
         accel = cfg.accel_std_mps2 * rng.standard_normal((num_targets, 2))  # constant over the step
         x = x @ f.T
-        x[:, :2] += 0.5 * dt ** 2 * accel
+        x[:, :2] += 0.5 * dt**2 * accel
         x[:, 5:] += dt * accel
         x[:, 2] += cfg.yaw_rate_std_rps * dt * rng.standard_normal(num_targets)
         x[:, 3:5] += cfg.size_std_m * rng.standard_normal((num_targets, 2))
@@ -290,7 +300,7 @@ def test_hidden_target_recovered_with_identity():
         ids_a.append(out.track_ids[i])
         if k in hidden:
             misses = k - hidden[0] + 1
-            assert out.scores[i] == pytest.approx(0.8 * cfg.score_decay ** misses)
+            assert out.scores[i] == pytest.approx(0.8 * cfg.score_decay**misses)
             assert np.linalg.norm(out.boxes[i, :2] - truth_a[:2]) < 0.05  # constant velocity: coasts on it
         else:
             assert out.scores[i] == pytest.approx(0.8)
@@ -324,8 +334,9 @@ def test_centre_gate_keeps_young_track_whose_prediction_missed():
         ids = []
         for k, y in enumerate(ys):
             if k == 2:
-                predicted = tr.kf_predict(tracker.mean, tracker.cov, tr.transition_matrix(DT),
-                                          tr.process_noise(tracker.cfg))[0]
+                predicted = tr.kf_predict(
+                    tracker.mean, tracker.cov, tr.transition_matrix(DT), tr.process_noise(tracker.cfg)
+                )[0]
                 assert metrics.rotated_iou(predicted[:, :5], _box(0.0, y, 0.0)[None]).max() < tracker.cfg.iou_threshold
             out = tracker.update(_box(0.0, y, 0.0)[None], [0.9], IDENTITY_POSE)
             ids.append(int(out.track_ids[-1]))
@@ -434,8 +445,14 @@ def test_dead_reckoning_reproduces_world_path(world_ego_path):
 def test_dead_reckoning_error_grows_with_noise(world_ego_path):
     poses = world_ego_path
     rng = np.random.default_rng(7)
-    errors = np.stack([np.linalg.norm(tr.dead_reckon(poses[0], *tr.noisy_odometry(poses, 0.2, 0.02, rng))[:, :2]
-                                      - poses[:, :2], axis=1) for _ in range(64)])  # [runs, 201]
+    errors = np.stack(
+        [
+            np.linalg.norm(
+                tr.dead_reckon(poses[0], *tr.noisy_odometry(poses, 0.2, 0.02, rng))[:, :2] - poses[:, :2], axis=1
+            )
+            for _ in range(64)
+        ]
+    )  # [runs, 201]
     mean_err = errors.mean(0)
     assert mean_err[0] == 0.0
     assert 0.0 < mean_err[20] < mean_err[100] < mean_err[200]

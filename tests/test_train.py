@@ -6,6 +6,7 @@ Every in-process run shares ONE train-step compilation (runs differing only in n
 checkpoint_every compile the same step, see ``train.step_config``), and the subprocesses share a
 persistent compilation cache.
 """
+
 import concurrent.futures
 import itertools
 import json
@@ -22,8 +23,18 @@ import numpy as np
 import optax
 import orbax.checkpoint as ocp
 import pytest
-from helpers import (LAUNCHER, ROOT, TINY, TINY_FLAGS, checkpoint_steps, free_port, loss_and_grads, read_jsonl,
-                     synthetic_batch, tiny)
+from helpers import (
+    LAUNCHER,
+    ROOT,
+    TINY,
+    TINY_FLAGS,
+    checkpoint_steps,
+    free_port,
+    loss_and_grads,
+    read_jsonl,
+    synthetic_batch,
+    tiny,
+)
 
 from e2e_percep_jax import config, loss, model, train
 
@@ -34,6 +45,7 @@ START_FIRST = ["subprocess_runs"]  # see conftest.start_first
 
 def synthetic_batches(nan_steps=(), stop=None):
     """A ``train.Batches`` of synthetic frames up to ``stop``; the pose is NaN at ``nan_steps``."""
+
     def stream(start):
         step = start
         while step != stop:
@@ -42,6 +54,7 @@ def synthetic_batches(nan_steps=(), stop=None):
                 batch["pose"] = np.full_like(batch["pose"], np.nan)
             yield step, batch
             step += 1
+
     return stream
 
 
@@ -54,14 +67,20 @@ def assert_trees_equal(a, b):
 
 
 def run_python(code, **env):
-    return subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True,
-                          env=dict(os.environ, PYTHONPATH=os.path.join(ROOT, "tests"), **env), timeout=600)
+    return subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(code)],
+        capture_output=True,
+        text=True,
+        env=dict(os.environ, PYTHONPATH=os.path.join(ROOT, "tests"), **env),
+        timeout=600,
+    )
 
 
 def four_device_loss_and_grads(workdir):
     """(metrics, gradients) of the B = 4 synthetic batch sharded over 4 simulated CPU devices."""
     path = workdir / "four.pkl"
-    r = run_python(f"""
+    r = run_python(
+        f"""
         import pickle, jax
         from jax.sharding import NamedSharding, PartitionSpec
         from helpers import TINY, loss_and_grads, synthetic_batch
@@ -74,7 +93,9 @@ def four_device_loss_and_grads(workdir):
         (_, metrics), grads = loss_and_grads(params, batch, jax.random.PRNGKey(7), TINY)
         with open({str(path)!r}, "wb") as f:
             pickle.dump(jax.device_get((metrics, grads)), f)
-        """, XLA_FLAGS="--xla_force_host_platform_device_count=4")
+        """,
+        XLA_FLAGS="--xla_force_host_platform_device_count=4",
+    )
     assert r.returncode == 0, r.stdout + r.stderr
     with open(path, "rb") as f:
         return pickle.load(f)
@@ -85,8 +106,10 @@ def subprocess_runs(tmp_path_factory):
     """The subprocess runs, started before the first test of this file (``START_FIRST``): XLA compiles on one
     core, so on this 2-core machine they overlap with the in-process tests. Futures of their results."""
     with concurrent.futures.ThreadPoolExecutor(2) as pool:
-        yield {"four_devices": pool.submit(four_device_loss_and_grads, tmp_path_factory.mktemp("four")),
-               "stops": pool.submit(stops_and_resumes, tmp_path_factory.mktemp("stops"))}
+        yield {
+            "four_devices": pool.submit(four_device_loss_and_grads, tmp_path_factory.mktemp("four")),
+            "stops": pool.submit(stops_and_resumes, tmp_path_factory.mktemp("stops")),
+        }
 
 
 # ----------------------------------------------------------------------------- non-finite losses
@@ -108,8 +131,10 @@ def test_nonfinite_batch_skips_the_update():
     state, metrics = step(state, train.shard_batch(synthetic_batch(1, cfg), mesh), jax.random.PRNGKey(1))
     assert np.isfinite(metrics["total"])
     assert (int(state.step), int(state.nonfinite_in_a_row), int(state.nonfinite_total)) == (2, 0, 1)
-    assert not np.array_equal(state.params["params"]["pose_belief_head"]["Dense_2"]["bias"],
-                              before.params["params"]["pose_belief_head"]["Dense_2"]["bias"])
+    assert not np.array_equal(
+        state.params["params"]["pose_belief_head"]["Dense_2"]["bias"],
+        before.params["params"]["pose_belief_head"]["Dense_2"]["bias"],
+    )
 
 
 @pytest.mark.slow
@@ -125,9 +150,11 @@ def test_compiled_step_uses_the_perception_pose_and_kl_weights():
     w = CFG.train.perception_weight
     assert (w, CFG.train.pose_weight, CFG.train.kl_weight) == (32.0, 1.0, 1.0)
     base, changed = (
-        train.make_train_step(cfg, mesh)(jax.device_put(train.init_state(cfg), replicated), batch,
-                                         jax.random.PRNGKey(0))[1]
-        for cfg in (CFG, config.replace(CFG, train=dict(perception_weight=1.0, pose_weight=5.0, kl_weight=0.25))))
+        train.make_train_step(cfg, mesh)(
+            jax.device_put(train.init_state(cfg), replicated), batch, jax.random.PRNGKey(0)
+        )[1]
+        for cfg in (CFG, config.replace(CFG, train=dict(perception_weight=1.0, pose_weight=5.0, kl_weight=0.25)))
+    )
     for k in ("det_cls", "det_reg"):
         np.testing.assert_allclose(changed[k], base[k] / w, rtol=1e-5, err_msg=k)
     for k in POSE_TERMS:
@@ -163,8 +190,11 @@ def test_gradient_clip_is_adam_on_the_rescaled_gradient():
 @pytest.mark.slow
 def test_stops_after_max_nonfinite_in_a_row_keeping_the_last_good_checkpoint(tmp_path):
     # Steps 0, 1 update; 2, 3, 4 are non-finite (the 3rd in a row halts updates), found at the log of step 6.
-    with pytest.raises(train.NonFiniteLossError, match=r"stopping at step 6: 3 non-finite .*"
-                                                       r"--train\.max_nonfinite_in_a_row=3.*step 4"):
+    with pytest.raises(
+        train.NonFiniteLossError,
+        match=r"stopping at step 6: 3 non-finite .*"
+        r"--train\.max_nonfinite_in_a_row=3.*step 4",
+    ):
         train.train(CFG, str(tmp_path), batches=synthetic_batches(nan_steps=range(2, 100)))
     assert checkpoint_steps(tmp_path) == [2, 4]
     assert_trees_equal(saved_params(tmp_path, 4), saved_params(tmp_path, 2))  # the skips changed nothing
@@ -181,8 +211,19 @@ def test_logs_metrics_progress_and_resumes(tmp_path, capsys):
     train.train(CFG, str(tmp_path), batches=synthetic_batches(stop=4))  # data ends: checkpoint at exit
     records = read_jsonl(tmp_path / "metrics.jsonl")
     assert [r["step"] for r in records] == [2, 4]
-    assert set(records[0]) >= {"recon_camera", "recon_lidar", "recon_roadmap", "kl", "det_cls", "det_reg", *POSE_TERMS,
-                               "total", "grad_norm", "steps_per_s", "nonfinite_total"}
+    assert set(records[0]) >= {
+        "recon_camera",
+        "recon_lidar",
+        "recon_roadmap",
+        "kl",
+        "det_cls",
+        "det_reg",
+        *POSE_TERMS,
+        "total",
+        "grad_norm",
+        "steps_per_s",
+        "nonfinite_total",
+    }
     out = capsys.readouterr().out
     assert "step 4/8" in out and "steps/s" in out and "ETA" in out
     assert json.loads((tmp_path / "config.json").read_text())["train"]["num_steps"] == 8
@@ -205,13 +246,24 @@ def test_launcher_with_a_coordinator_counts_both_processes_devices_before_any_co
     stderr proves nothing was compiled. (The other launcher errors are rows of test_bad_input.py.)"""
     port = free_port()
     coordinator = [f"--coordinator_address=localhost:{port}", "--num_processes=2", "--data.batch_size=3"]
-    procs = [subprocess.Popen(LAUNCHER + TINY_FLAGS + [f"--workdir={tmp_path / str(i)}", f"--process_id={i}"] +
-                              coordinator, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                              env=dict(os.environ, JAX_LOG_COMPILES="1")) for i in range(2)]
+    procs = [
+        subprocess.Popen(
+            LAUNCHER + TINY_FLAGS + [f"--workdir={tmp_path / str(i)}", f"--process_id={i}"] + coordinator,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=dict(os.environ, JAX_LOG_COMPILES="1"),
+        )
+        for i in range(2)
+    ]
     for i, proc in enumerate(procs):
         out, err = proc.communicate(timeout=300)
-        assert proc.returncode == 1 and err.count("\n") == 1 and err.startswith("error: ") and (
-            "--data.batch_size=3 must be a multiple of the number of devices (2)" in err), (i, out + err)
+        assert (
+            proc.returncode == 1
+            and err.count("\n") == 1
+            and err.startswith("error: ")
+            and ("--data.batch_size=3 must be a multiple of the number of devices (2)" in err)
+        ), (i, out + err)
         assert not (tmp_path / str(i)).exists() or not os.listdir(tmp_path / str(i)), i  # nothing written
 
 
@@ -224,15 +276,18 @@ def test_four_devices_equal_one_device(subprocess_runs):
     metrics4, grads4 = subprocess_runs["four_devices"].result()
     params = model.init_params(jax.random.PRNGKey(0), TINY)
     (_, metrics1), grads1 = jax.device_get(
-        loss_and_grads(params, synthetic_batch(0, TINY, batch_size=4), jax.random.PRNGKey(7), TINY))
+        loss_and_grads(params, synthetic_batch(0, TINY, batch_size=4), jax.random.PRNGKey(7), TINY)
+    )
     assert set(metrics4) == set(metrics1)
     for k in metrics1:
         np.testing.assert_allclose(metrics4[k], metrics1[k], rtol=1e-5, err_msg=k)
+
     # float32 sums over pixels and rows in another order (the loss is O(1e4), so a bias gradient sums
     # large terms that cancel): each gradient's error relative to its norm; a wrong row or shard gives O(1)
     def check(path, g4, g1):
         error = np.linalg.norm(g4 - g1) / np.linalg.norm(g1)
         assert error < 1e-3, (jax.tree_util.keystr(path), error)
+
     jax.tree_util.tree_map_with_path(check, grads4, grads1)
 
 
@@ -265,8 +320,10 @@ def test_tiny_run_on_world_batches_lowers_every_loss_term(world_run):
     at_kill_steps, at_end, records, held_out = world_run
     assert [r["step"] for r in records] == list(range(10, WORLD_STEPS + 1, 10))
     # TINY has the run's model section, so this reuses the loss tests' compilation.
-    mean_terms = lambda params: jax.tree.map(lambda *x: np.mean(x), *[
-        jax.device_get(loss.loss_fn(params, {k: b[k] for k in loss.BATCH_KEYS}, None, TINY)[1]) for b in held_out])
+    mean_terms = lambda params: jax.tree.map(
+        lambda *x: np.mean(x),
+        *[jax.device_get(loss.loss_fn(params, {k: b[k] for k in loss.BATCH_KEYS}, None, TINY)[1]) for b in held_out],
+    )
     start, end = mean_terms(at_kill_steps), mean_terms(at_end)
     assert len(start) == 11  # 10 terms (4 of them the pose belief's) and the total
     # Not the per-cell offsets: each of the 2,304 cells' offsets learns only where an ego has been, and this
@@ -278,10 +335,20 @@ def test_tiny_run_on_world_batches_lowers_every_loss_term(world_run):
 
 def launch(workdir, cache):
     """The launcher on the world run's config; compilations are shared through a persistent cache."""
-    return subprocess.Popen(LAUNCHER + TINY_FLAGS + [f"--workdir={workdir}", f"--train.num_steps={KILL_STEPS}",
-                                                     "--train.checkpoint_every=2", "--train.log_every=10"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env=dict(os.environ, JAX_COMPILATION_CACHE_DIR=str(cache)))
+    return subprocess.Popen(
+        LAUNCHER
+        + TINY_FLAGS
+        + [
+            f"--workdir={workdir}",
+            f"--train.num_steps={KILL_STEPS}",
+            "--train.checkpoint_every=2",
+            "--train.log_every=10",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=dict(os.environ, JAX_COMPILATION_CACHE_DIR=str(cache)),
+    )
 
 
 def wait_for_checkpoint(proc, workdir, after):
@@ -359,7 +426,10 @@ def test_carried_state_chains_segments_and_resumes_bit_identically(tmp_path):
         expected = fresh(state.params, b)
         state, metrics = step_fn(state, b, key)
         np.testing.assert_allclose(metrics["total"], expected, rtol=1e-6)
-    start = ({"z1": state.carry["z1"][0], "z2": state.carry["z2"][0], "first": np.zeros(2, bool)}, state.carry["action"][0])
+    start = (
+        {"z1": state.carry["z1"][0], "z2": state.carry["z2"][0], "first": np.zeros(2, bool)},
+        state.carry["action"][0],
+    )
     np.testing.assert_array_equal(state.carry["action"][0], batches[0]["action"][:, -1])
     expected = loss.sequence_loss(state.params, batches[2], key, cfg, start)[0]
     assert not np.allclose(expected, fresh(state.params, batches[2]), rtol=1e-4)

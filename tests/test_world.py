@@ -3,6 +3,7 @@
 Overlap is an independent separating-axis test written here; road membership is read straight from the
 semantic raster; red-light crossings are found from box geometry, the stop lines and ``light_states``.
 """
+
 import functools
 import os
 
@@ -81,8 +82,14 @@ def sem_at(town, xy):
 
 def test_sat_finds_overlaps():
     a = np.array([[0.0, 0.0, 0.0, 4.0, 2.0]] * 4)
-    b = np.array([[3.9, 0.0, 0.0, 4.0, 2.0], [4.1, 0.0, 0.0, 4.0, 2.0],
-                  [3.0, 2.5, np.pi / 4, 4.0, 2.0], [3.3, 2.8, np.pi / 4, 4.0, 2.0]])  # the last: bounding boxes meet
+    b = np.array(
+        [
+            [3.9, 0.0, 0.0, 4.0, 2.0],
+            [4.1, 0.0, 0.0, 4.0, 2.0],
+            [3.0, 2.5, np.pi / 4, 4.0, 2.0],
+            [3.3, 2.8, np.pi / 4, 4.0, 2.0],
+        ]
+    )  # the last: bounding boxes meet
     np.testing.assert_array_equal(sat_overlap(a, b), [True, False, True, False])
 
 
@@ -173,7 +180,7 @@ def test_traffic_keeps_moving(recorded):
     for t0 in range(0, NUM_STEPS - window + 1, window):
         moved = np.linalg.norm(xy[t0 + window] - xy[t0], axis=-1) > 1.0  # [W, N]
         assert (moved.mean(-1) > 0.4).all(), (t0, moved.mean(-1))
-    assert states.veh_speed_mps[NUM_STEPS // 2:].mean() > 2.0
+    assert states.veh_speed_mps[NUM_STEPS // 2 :].mean() > 2.0
 
 
 @pytest.mark.slow
@@ -197,8 +204,9 @@ def test_ego_commands_are_within_limits_and_the_plant_is_what_moved_the_ego(reco
     accel_residual = ((v[1:] - v[:-1]) / world.DT_S - plant.distance_scale * act[1:, :, 0])[moving]
     assert abs(accel_residual.std() / CFG.ego_accel_noise_mps2 - 1) < 0.1
     ds = 0.5 * (v[1:] + v[:-1]) * world.DT_S
-    wheel = np.clip(plant.steer_gain * act[1:, :, 1] + plant.steer_offset_rad, -world.EGO_STEER_LIMIT_RAD,
-                    world.EGO_STEER_LIMIT_RAD)
+    wheel = np.clip(
+        plant.steer_gain * act[1:, :, 1] + plant.steer_offset_rad, -world.EGO_STEER_LIMIT_RAD, world.EGO_STEER_LIMIT_RAD
+    )
     curvature = np.tan(wheel) / (world.WHEELBASE_M + plant.understeer_rad_s2pm * (0.5 * (v[1:] + v[:-1])) ** 2)
     dyaw = (np.diff(states.veh_box[:, :, world.EGO, 2], axis=0) + np.pi) % (2 * np.pi) - np.pi
     curvature_residual = dyaw[moving] / ds[moving] - curvature[moving]
@@ -218,6 +226,7 @@ def test_an_exact_plant_reproduces_the_recorded_drive_of_the_exact_action_world(
         def body(states, _):
             states = jax.vmap(lambda s: world.step(s, town))(states)
             return states, (states.veh_box, states.veh_speed_mps[:, world.EGO], states.ego_action)
+
         return jax.lax.scan(body, jax.vmap(lambda k: world.reset(k, town, cfg))(keys), None, length=400)[1]
 
     boxes, ego_speed, command = jax.tree.map(np.asarray, run(jax.random.split(jax.random.PRNGKey(7), 2)))
@@ -225,8 +234,9 @@ def test_an_exact_plant_reproduces_the_recorded_drive_of_the_exact_action_world(
     np.testing.assert_array_equal(boxes[-1], recorded["final_boxes"])
     np.testing.assert_array_equal(ego_speed, recorded["ego_speed_mps"])
     np.testing.assert_array_equal(command[..., 1], recorded["ego_accel_steer"][..., 1])
-    np.testing.assert_allclose(command[..., 0] * world.EGO_ACCEL_LIMIT_MPS2, recorded["ego_accel_steer"][..., 0],
-                               rtol=0, atol=1e-6)  # the pedal: the acceleration over its limit
+    np.testing.assert_allclose(
+        command[..., 0] * world.EGO_ACCEL_LIMIT_MPS2, recorded["ego_accel_steer"][..., 0], rtol=0, atol=1e-6
+    )  # the pedal: the acceleration over its limit
 
 
 @pytest.mark.slow
@@ -245,9 +255,12 @@ def test_ego_hand_overs_keep_bodies_apart_on_the_road_and_the_ego_within_its_lim
         states = jax.lax.fori_loop(0, 200, lambda _, s: step(s), states)
 
         def segment(states, key):
-            states = jax.vmap(world.hand_over_ego, in_axes=(0, 0, None))(states, jax.random.randint(key, (len(keys),), 1, n), town)
+            states = jax.vmap(world.hand_over_ego, in_axes=(0, 0, None))(
+                states, jax.random.randint(key, (len(keys),), 1, n), town
+            )
             last, later = jax.lax.scan(lambda s, _: (step(s),) * 2, states, None, length=seg_len)
             return last, jax.tree.map(lambda a, b: jnp.concatenate([a[None], b[:-1]]), states, later)
+
         return jax.lax.scan(segment, states, jax.random.split(keys[0], segments))[1]
 
     states = jax.tree.map(np.asarray, drive_handing_over(world_keys(DEFAULT_TOWN_SEED), town))
@@ -325,9 +338,11 @@ def test_no_gridlock_in_a_15000_step_drive(town0):
                 states, moved = carry
                 states = jax.vmap(lambda s: world.step(s, town))(states)
                 return (states, moved | (states.veh_speed_mps > 0.1)), None
+
             moved = jnp.zeros(states.veh_speed_mps.shape, bool)
             (states, moved), _ = jax.lax.scan(body, (states, moved), None, length=window)
             return states, moved.mean(-1)
+
         states = jax.vmap(lambda k: world.reset(k, town, CFG))(keys)
         return jax.lax.scan(one_window, states, None, length=num_windows)[1]
 
@@ -341,12 +356,15 @@ GRIDLOCK_STATE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "data"
 
 def _moving_and_boxes(state, town, num_steps):
     """(share of vehicles moving per 10 s window [num_steps / 100], boxes of every step [num_steps, N+1, 5])."""
+
     @jax.jit  # traced afresh on every call: it reads world.REROUTE_AFTER_S as it is now
     def run(state, town):
         def body(state, _):
             state = world.step(state, town)
             return state, (state.veh_speed_mps > 0.1, state.veh_box)
+
         return jax.lax.scan(body, state, None, length=num_steps)[1]
+
     moving, boxes = jax.tree.map(np.asarray, run(state, town))
     return moving.reshape(-1, 100, moving.shape[-1]).any(1).mean(-1), boxes
 
@@ -358,8 +376,11 @@ def test_a_ring_of_full_roads_clears_when_vehicles_take_other_exits(town0, monke
     have stood REROUTE_AFTER_S, with bodies apart and on the road."""
     saved = np.load(GRIDLOCK_STATE)
     # (saved before the ego had a plant: it drives with the exact one)
-    state = world.WorldState(**{name: jnp.asarray(saved[name]) for name in saved.files}, ego_actuator=jnp.zeros(2),
-                             ego_plant=world.draw_plant(jax.random.PRNGKey(0), WorldConfig(**EXACT_PLANT)))
+    state = world.WorldState(
+        **{name: jnp.asarray(saved[name]) for name in saved.files},
+        ego_actuator=jnp.zeros(2),
+        ego_plant=world.draw_plant(jax.random.PRNGKey(0), WorldConfig(**EXACT_PLANT)),
+    )
     plan = world._plan(state, town0)
     assert int(plan.exit_queued.sum()) == 27 and int((state.veh_speed_mps < world.STANDING_MPS).sum()) >= 100
 
@@ -372,6 +393,6 @@ def test_a_ring_of_full_roads_clears_when_vehicles_take_other_exits(town0, monke
     heads_wait = int(world.REROUTE_AFTER_S / world.DT_S) // 100
     assert moving[:heads_wait].max() <= 0.01, moving[:heads_wait]  # nothing changes before the heads re-route
     # Then the traffic flows and keeps flowing (measured: every window 0.31-0.70 moving, 0.52 on average).
-    assert moving[heads_wait + 1:].min() > 0.25 and moving[heads_wait + 1:].mean() > 0.4, moving
+    assert moving[heads_wait + 1 :].min() > 0.25 and moving[heads_wait + 1 :].mean() > 0.4, moving
     assert_no_overlaps(boxes)
     assert np.isin(sem_at(jax.tree.map(np.asarray, town0), corners(boxes)), DRIVABLE).all()

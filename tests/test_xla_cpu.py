@@ -1,5 +1,6 @@
 """xla_cpu.prefer_eigen_convolutions: which path convolutions take, in fresh processes (XLA reads its
 flags once, at start-up), and that a choice already made is never overridden."""
+
 import os
 import subprocess
 import sys
@@ -25,8 +26,9 @@ print(preferred, xla_cpu.convolution_path())
 
 def _run(mode, out_path):
     env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_PLATFORMS")}
-    out = subprocess.run([sys.executable, "-c", _CONV_GRADIENT, mode, out_path], capture_output=True, text=True,
-                         check=True, env=env).stdout.split()
+    out = subprocess.run(
+        [sys.executable, "-c", _CONV_GRADIENT, mode, out_path], capture_output=True, text=True, check=True, env=env
+    ).stdout.split()
     return out, np.load(out_path)
 
 
@@ -58,5 +60,6 @@ def test_other_platforms_and_unmeasured_jaxlib_are_left_alone(monkeypatch):
     assert os.environ["XLA_FLAGS"] == "--xla_force_host_platform_device_count=2"
     monkeypatch.setattr(xla_cpu, "MEASURED_JAXLIB", ((0, 0), (99, 0)))
     assert xla_cpu.prefer_eigen_convolutions() is True
-    assert os.environ["XLA_FLAGS"] == ("--xla_force_host_platform_device_count=2 "
-                                       "--xla_cpu_experimental_ynn_fusion_type=-individual_convolution")
+    assert os.environ["XLA_FLAGS"] == (
+        "--xla_force_host_platform_device_count=2 --xla_cpu_experimental_ynn_fusion_type=-individual_convolution"
+    )

@@ -16,6 +16,7 @@ independent worlds; a drive is revisited every K steps, K times, then replaced b
 alone: a stream resumed at s re-drives each slot's worlds from their reset, hand-overs included, without
 observing.
 """
+
 import functools
 
 import jax
@@ -24,13 +25,15 @@ import jax.numpy as jnp
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax.sim import rollout, sensors, world
 
-PLACE_STREAM = 2 ** 20  # fold_in data of the place frames' key: above every segment index
+PLACE_STREAM = 2**20  # fold_in data of the place frames' key: above every segment index
 
 
 def warm_up(key, town, cfg: config_lib.Config):
     """B worlds reset from ``key`` and driven ``warmup_steps`` steps, unobserved."""
+
     def one(k):
         return rollout.advance(world.reset(k, town, cfg.world), town, cfg.data.warmup_steps)
+
     return jax.vmap(one)(jax.random.split(key, cfg.data.batch_size))
 
 
@@ -45,8 +48,11 @@ def place_points(key, town, num: int):
     k_lane, k_arc, k_speed = jax.random.split(key, 3)
     length = town.lane_length_m
     lane = jax.random.choice(k_lane, length.shape[0], (num,), p=length / jnp.sum(length))
-    return (lane, jax.random.uniform(k_arc, (num,)) * length[lane],
-            jax.random.uniform(k_speed, (num,)) * town.lane_speed_limit_mps[lane])
+    return (
+        lane,
+        jax.random.uniform(k_arc, (num,)) * length[lane],
+        jax.random.uniform(k_speed, (num,)) * town.lane_speed_limit_mps[lane],
+    )
 
 
 def place_frames(states, key, town, cfg: config_lib.Config) -> dict:
@@ -94,9 +100,11 @@ def _hand_over(states, drive_key, segment, town, cfg: config_lib.Config):
 def start_drive(drive_key, town, cfg: config_lib.Config, segments):
     """A drive's B worlds ready for segment ``segments``: warmed up, then ``segments`` segments driven
     unobserved, each after its hand-over (``segments`` traced: one compilation for every resume)."""
+
     def segment(j, states):
         states = _hand_over(states, drive_key, j, town, cfg)
         return jax.vmap(lambda s: rollout.advance(s, town, cfg.data.seq_len + 1))(states)
+
     return jax.lax.fori_loop(0, segments, segment, warm_up(drive_key, town, cfg))
 
 

@@ -14,6 +14,7 @@ NumPy or JAX arrays (:func:`array_module`): given a JAX array or tracer among it
 ``jax.numpy`` (jit/vmap-able), else with NumPy in the inputs' dtype (float64 stays float64), so host-side
 per-frame code pays no JAX dispatch. The functions whose inputs are sizes only take the module as ``xp``.
 """
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -114,8 +115,9 @@ def boxes_overlap(box_a, box_b):
     ca, cb = box_corners(box_a), box_corners(box_b)  # [..., 4, 2]
 
     def separated_on_axes_of(box):
-        axes = xp.stack([rotate(xp.array([1.0, 0.0]), box[..., 2]),
-                         rotate(xp.array([0.0, 1.0]), box[..., 2])], axis=-2)  # [..., 2, 2]
+        axes = xp.stack(
+            [rotate(xp.array([1.0, 0.0]), box[..., 2]), rotate(xp.array([0.0, 1.0]), box[..., 2])], axis=-2
+        )  # [..., 2, 2]
         pa = xp.einsum("...cd,...ad->...ac", ca, axes)  # [..., 2 axes, 4 corners]
         pb = xp.einsum("...cd,...ad->...ac", cb, axes)
         gap = xp.maximum(pa.min(-1) - pb.max(-1), pb.min(-1) - pa.max(-1))
@@ -127,8 +129,7 @@ def boxes_overlap(box_a, box_b):
 def in_bev_view(xy_ego):
     """Whether ego-frame points ``[..., 2]`` lie inside the BEV view (rear and left edges included)."""
     xp = array_module(xy_ego)
-    return ((xy_ego[..., 0] >= -BEV_BEHIND_M) & (xy_ego[..., 0] < BEV_AHEAD_M)
-            & (xp.abs(xy_ego[..., 1]) < BEV_SIDE_M))
+    return (xy_ego[..., 0] >= -BEV_BEHIND_M) & (xy_ego[..., 0] < BEV_AHEAD_M) & (xp.abs(xy_ego[..., 1]) < BEV_SIDE_M)
 
 
 def bev_metres_per_px(image_size):

@@ -16,6 +16,7 @@ The model, per step, from the logged commands (pedal, steering command):
 
 Importing this module imports no world or town: ``e2e.load`` reads a run's model from its JSON file.
 """
+
 import dataclasses
 import json
 import os
@@ -33,6 +34,7 @@ FILE_NAME = "motion_model.json"  # in a run directory
 class MotionModel:
     """Fitted parameters of the ego's motion (module docstring). The defaults are the exact bicycle with
     no lag and no process noise: the world's plant with all its fields at zero."""
+
     lag_share: float = 1.0
     accel_per_pedal_mps2: float = 3.0  # world.EGO_ACCEL_LIMIT_MPS2: the pedal's full scale
     accel_bias_mps2: float = 0.0
@@ -77,7 +79,7 @@ def speed_and_distance(model: MotionModel, actuator, speed_mps):
 def curvature(model: MotionModel, steer_rad, mid_speed_mps):
     """Curvature (1/m) of the path under road-wheel command ``steer_rad`` at speed ``mid_speed_mps``."""
     tan = jnp.tan(steer_rad)
-    return (model.steer_gain * tan + model.steer_bias + model.understeer_s2pm2 * tan * mid_speed_mps ** 2) / WHEELBASE_M
+    return (model.steer_gain * tan + model.steer_bias + model.understeer_s2pm2 * tan * mid_speed_mps**2) / WHEELBASE_M
 
 
 def centre_move(ds_m, dyaw_rad, yaw_rad):
@@ -86,8 +88,7 @@ def centre_move(ds_m, dyaw_rad, yaw_rad):
     mid-step heading, the centre sits half a wheelbase ahead of it (the world's kinematic bicycle)."""
     unit = lambda a: jnp.stack([jnp.cos(a), jnp.sin(a)], -1)
     mid = yaw_rad + 0.5 * dyaw_rad[..., None]
-    return (ds_m[..., None, None] * unit(mid)
-            + 0.5 * WHEELBASE_M * (unit(yaw_rad + dyaw_rad[..., None]) - unit(yaw_rad)))
+    return ds_m[..., None, None] * unit(mid) + 0.5 * WHEELBASE_M * (unit(yaw_rad + dyaw_rad[..., None]) - unit(yaw_rad))
 
 
 def step(model: MotionModel, actuator, command, speed_mps, yaw_rad):

@@ -14,12 +14,12 @@ Decoding inverts this per pixel: centre = pixel centre + (dx, dy), yaw = atan2(s
 length = exp(log l), width = exp(log w). Boxes come out as ``(x, y, yaw, length, width)`` in the ego
 frame, like ``frame["boxes"]``. NMS is not done here (see metrics).
 """
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from e2e_percep_jax.sim import geometry as geo
-
 
 # Rasterisation by tiles: the BEV is cut into 2 m tiles; each tile tests its pixels only against the
 # (at most CANDIDATES_PER_TILE) boxes overlapping it, found by an exact separating-axis test. Vehicles do
@@ -39,10 +39,12 @@ def _tile_candidates(box_ego):
     dy = jnp.asarray(centres[1], jnp.float32)[None, None, :] - box_ego[:, None, None, 1]  # [N, 1, TILES]
     kx = lambda a: a[:, None, None]
     t = 0.5 * TILE_M
-    overlap = ((jnp.abs(dx) <= t + kx(half_l * jnp.abs(c) + half_w * jnp.abs(s)))  # tile axes
-               & (jnp.abs(dy) <= t + kx(half_l * jnp.abs(s) + half_w * jnp.abs(c)))
-               & (jnp.abs(kx(c) * dx + kx(s) * dy) <= kx(half_l + t * (jnp.abs(c) + jnp.abs(s))))  # box axes
-               & (jnp.abs(kx(c) * dy - kx(s) * dx) <= kx(half_w + t * (jnp.abs(c) + jnp.abs(s)))))  # [N, T, T]
+    overlap = (
+        (jnp.abs(dx) <= t + kx(half_l * jnp.abs(c) + half_w * jnp.abs(s)))  # tile axes
+        & (jnp.abs(dy) <= t + kx(half_l * jnp.abs(s) + half_w * jnp.abs(c)))
+        & (jnp.abs(kx(c) * dx + kx(s) * dy) <= kx(half_l + t * (jnp.abs(c) + jnp.abs(s))))  # box axes
+        & (jnp.abs(kx(c) * dy - kx(s) * dx) <= kx(half_w + t * (jnp.abs(c) + jnp.abs(s))))
+    )  # [N, T, T]
     k = box_ego.shape[0]
     ids = jnp.arange(k, dtype=jnp.int32)[:, None, None]
     found, last = [], jnp.full((TILES, TILES), -1, jnp.int32)
@@ -73,8 +75,9 @@ def targets(box_ego, image_size):
     dx, dy = x - cand[..., 0], y - cand[..., 1]  # [C, TILES, p, TILES, p]
     inside = (jnp.abs(c * dx + s * dy) <= 0.5 * cand[..., 3]) & (jnp.abs(c * dy - s * dx) <= 0.5 * cand[..., 4])
     slots = jnp.arange(CANDIDATES_PER_TILE).reshape(-1, 1, 1, 1, 1)
-    slot = jnp.min(jnp.where(inside & (idx < box_ego.shape[0])[:, :, None, :, None], slots, CANDIDATES_PER_TILE),
-                   axis=0)  # [TILES, p, TILES, p]
+    slot = jnp.min(
+        jnp.where(inside & (idx < box_ego.shape[0])[:, :, None, :, None], slots, CANDIDATES_PER_TILE), axis=0
+    )  # [TILES, p, TILES, p]
     positive = slot < CANDIDATES_PER_TILE
     per_box = jnp.stack([c, s, cand[..., 0], cand[..., 1], jnp.log(cand[..., 4]), jnp.log(cand[..., 3])], -1)
     pixel = jnp.stack(jnp.broadcast_arrays(0.0, 0.0, x, y, 0.0, 0.0), -1)

@@ -11,8 +11,8 @@ Everything that drives a world goes through here:
 
 All three work on one world; ``jax.vmap`` them over worlds.
 """
-from collections.abc import Mapping
-from typing import Callable
+
+from collections.abc import Callable, Mapping
 
 import flax.struct
 import jax
@@ -35,6 +35,7 @@ class Frames(Mapping):
     the N other vehicles in the ego frame (x m, y m, yaw rad, length m, width m); boxes_valid: bool
     [..., N], inside the bird-eye view; boxes_occluded: bool [..., N], no lidar return.
     """
+
     camera: jax.Array
     lidar: jax.Array
     roadmap: jax.Array
@@ -74,6 +75,7 @@ def drive(state: world.WorldState, town, num_frames: int, image_size: int, with_
     The world is stepped first and the sensors observe all recorded states at once: one wide vmapped
     pass instead of one narrow pass per scan step (the same frames, and a few % faster).
     """
+
     def body(state, _):
         next_state = world.step(state, town)
         return next_state, (state, next_state.ego_action)

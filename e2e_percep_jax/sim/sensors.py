@@ -24,6 +24,7 @@ masked sums rather than gathers; each image is produced by one fused pass (the c
 channels into one uint32 per pixel), with the few values that many consumers need computed by a
 reduction so that XLA materialises them once instead of recomputing them in every consumer.
 """
+
 import functools
 from typing import NamedTuple
 
@@ -33,8 +34,18 @@ import numpy as np
 
 from e2e_percep_jax.sim import geometry as geo
 from e2e_percep_jax.sim import pixor
-from e2e_percep_jax.sim.town import (MAP_RES_M, NUM_SEM_CLASSES, SEM_CENTRE_YELLOW, SEM_COLORS, SEM_LANE_WHITE,
-                                 SEM_OFFROAD, SEM_ROAD, SEM_SIDEWALK, SEM_STOP_LINE, Town)
+from e2e_percep_jax.sim.town import (
+    MAP_RES_M,
+    NUM_SEM_CLASSES,
+    SEM_CENTRE_YELLOW,
+    SEM_COLORS,
+    SEM_LANE_WHITE,
+    SEM_OFFROAD,
+    SEM_ROAD,
+    SEM_SIDEWALK,
+    SEM_STOP_LINE,
+    Town,
+)
 from e2e_percep_jax.sim.world import EGO, WorldState
 
 # Camera (frame contract): front pinhole, level, square image, focal length from the horizontal FOV.
@@ -80,6 +91,7 @@ class Obstacles(NamedTuple):
     color: float32 [M, 3], RGB 0..255. is_vehicle: bool [M]. valid: bool [M].
     vehicle_index: int32 [M], row in the surrounding-vehicle arrays (``veh_box[1:]``), -1 for buildings.
     """
+
     box: jax.Array
     height_m: jax.Array
     color: jax.Array
@@ -114,8 +126,9 @@ def ray_box_slab(origin_x, origin_y, dir_x, dir_y, box):
     s_out = jnp.minimum(jnp.maximum(tx0, tx1), jnp.maximum(ty0, ty1))
     hit = (s_out >= s_in) & (s_out > 0.0)
     x_face = near_x >= near_y  # entered through a face across the box's length axis
-    normal_x, normal_y = geo.rotate_xy(jnp.where(x_face, -jnp.sign(dx), 0.0), jnp.where(x_face, 0.0, -jnp.sign(dy)),
-                                    cos, sin)
+    normal_x, normal_y = geo.rotate_xy(
+        jnp.where(x_face, -jnp.sign(dx), 0.0), jnp.where(x_face, 0.0, -jnp.sign(dy)), cos, sin
+    )
     s_hit = jnp.where(hit, jnp.maximum(s_in, 0.0), 0.0)
     u_m = jnp.where(x_face, oy + s_hit * dy + half_w, ox + s_hit * dx + half_l)
     return jnp.where(hit, jnp.maximum(s_in, 0.0), jnp.inf), s_out, normal_x, normal_y, u_m
@@ -137,7 +150,7 @@ def _bitonic_sort(x):
     n = x.shape[0]
     if n == 1:
         return x
-    return _bitonic_merge(jnp.concatenate([_bitonic_sort(x[:n // 2]), _bitonic_sort(x[n // 2:])[::-1]], 0))
+    return _bitonic_merge(jnp.concatenate([_bitonic_sort(x[: n // 2]), _bitonic_sort(x[n // 2 :])[::-1]], 0))
 
 
 _INDEX_BITS = 6
@@ -154,8 +167,7 @@ def nearest_k(distance, k):
     m = distance.shape[0]
     assert m <= 1 << _INDEX_BITS and k & (k - 1) == 0, (m, k)
     ids = jnp.arange(m, dtype=jnp.int32).reshape((m,) + (1,) * (distance.ndim - 1))
-    keys = (jax.lax.bitcast_convert_type(distance.astype(jnp.float32), jnp.int32) & ~(
-        (1 << _INDEX_BITS) - 1)) | ids
+    keys = (jax.lax.bitcast_convert_type(distance.astype(jnp.float32), jnp.int32) & ~((1 << _INDEX_BITS) - 1)) | ids
     groups = 1
     while groups * k < m:
         groups *= 2
@@ -184,6 +196,7 @@ class Candidates(NamedTuple):
     idx: obstacle row. s_in: entry distance (inf: no candidate). height_m: the box's height. lo, hi,
     roof_thr: :func:`slope_cover`. normal_x, normal_y, u_m: the entry face (:func:`ray_box_slab`).
     """
+
     idx: jax.Array
     s_in: jax.Array
     height_m: jax.Array
@@ -209,8 +222,17 @@ def cast_rays(obstacles: Obstacles, origin_x, origin_y, dir_x, dir_y, sensor_hei
     idx, _ = nearest_k(s_in, min(HITS_PER_RAY, obstacles.box.shape[0]))  # [K, A]
     flat = idx * idx.shape[1] + jnp.arange(idx.shape[1])  # 1-D gathers: cheaper on XLA:CPU than take_along_axis
     take = lambda v: v.reshape(-1)[flat]
-    return Candidates(idx, take(s_in), obstacles.height_m[idx], take(lo), take(hi), take(roof_thr), take(normal_x),
-                      take(normal_y), take(u_m))
+    return Candidates(
+        idx,
+        take(s_in),
+        obstacles.height_m[idx],
+        take(lo),
+        take(hi),
+        take(roof_thr),
+        take(normal_x),
+        take(normal_y),
+        take(u_m),
+    )
 
 
 def _first_slot(slope, lo, hi):
@@ -228,8 +250,11 @@ def _candidate_depths(cand: Candidates, slope, sensor_height_m):
     if it passes by. As the candidates do not overlap, the smallest is the first surface met."""
     slope, lo, hi, roof_thr = slope[None], cand.lo[:, None, :], cand.hi[:, None, :], cand.roof_thr[:, None, :]
     roof = (cand.height_m[:, None, :] - sensor_height_m) / jnp.minimum(slope, -1e-6)
-    return jnp.where((slope >= lo) & (slope <= roof_thr), cand.s_in[:, None, :],
-                     jnp.where((slope > roof_thr) & (slope <= hi), roof, jnp.inf))
+    return jnp.where(
+        (slope >= lo) & (slope <= roof_thr),
+        cand.s_in[:, None, :],
+        jnp.where((slope > roof_thr) & (slope <= hi), roof, jnp.inf),
+    )
 
 
 def _pick(slot, values):
@@ -300,8 +325,7 @@ def render_camera(obstacles: Obstacles, town: Town, ego_xy, ego_yaw_rad, image_s
     # Vehicles: tinted windows in a band below the roof, dark tyres / bumper shadow at the bottom.
     # Buildings: a grid of windows on the facades, one row per storey above the ground floor.
     storey = z - _FLOOR_M * jnp.floor(z / _FLOOR_M)
-    glass = ~is_roof & (((kind == 1) & (z > 0.55 * top) & (z < 0.9 * top))
-                        | ((kind == 2) & (z > 2.0) & (storey > 1.0)))
+    glass = ~is_roof & (((kind == 1) & (z > 0.55 * top) & (z < 0.9 * top)) | ((kind == 2) & (z > 2.0) & (storey > 1.0)))
     tyre = (kind == 1) & (z < 0.3)
     light = jnp.where(is_roof, 1.0, light)
 
@@ -362,6 +386,7 @@ def _mark(index, size):
     Batched by offsetting each row's indices into its own block of one flat buffer: vmap's default
     rule for a scatter builds (batch, index) pairs, which XLA:CPU runs several times slower.
     """
+
     @jax.custom_batching.custom_vmap
     def mark(index):
         # Out-of-range indices go to `size`, which mode="drop" drops (a negative one would wrap around).
@@ -430,8 +455,9 @@ def render_roadmap(town: Town, ego_xy, ego_yaw_rad, ego_length_m, ego_width_m, i
     # The centre's class, or the samples' highest marking lifted above every class.
     lift = NUM_SEM_CLASSES
     samples = [class_at(dx, dy) for dx in offsets for dy in offsets]
-    best = functools.reduce(jnp.maximum, [jnp.where(c >= _FIRST_MARKING, c + lift, 0) for c in samples],
-                            class_at(0.0, 0.0))
+    best = functools.reduce(
+        jnp.maximum, [jnp.where(c >= _FIRST_MARKING, c + lift, 0) for c in samples], class_at(0.0, 0.0)
+    )
     ego = (jnp.abs(x) <= 0.5 * ego_length_m) & (jnp.abs(y) <= 0.5 * ego_width_m)  # geometry.points_in_boxes at yaw 0
     # A gather of whole RGB rows computes each pixel's class once (per-channel selects would repeat the look-ups).
     return jnp.asarray(_ROADMAP_RGB)[jnp.where(ego, NUM_SEM_CLASSES, jnp.where(best >= lift, best - lift, best))]
@@ -443,8 +469,11 @@ def render_roadmap(town: Town, ego_xy, ego_yaw_rad, ego_length_m, ego_width_m, i
 def _reaches_bev_view(box_ego):
     """Conservatively, whether boxes [..., 5] (ego frame) reach into the BEV view (bounding circle test)."""
     radius = 0.5 * jnp.hypot(box_ego[..., 3], box_ego[..., 4])
-    return ((box_ego[..., 0] + radius >= -geo.BEV_BEHIND_M) & (box_ego[..., 0] - radius <= geo.BEV_AHEAD_M)
-            & (jnp.abs(box_ego[..., 1]) - radius <= geo.BEV_SIDE_M))
+    return (
+        (box_ego[..., 0] + radius >= -geo.BEV_BEHIND_M)
+        & (box_ego[..., 0] - radius <= geo.BEV_AHEAD_M)
+        & (jnp.abs(box_ego[..., 1]) - radius <= geo.BEV_SIDE_M)
+    )
 
 
 def _select(box_ego, relevant, k):
@@ -464,28 +493,48 @@ def _obstacles(building_box_ego, vehicle_box_ego, state, town, relevant_b, relev
         color=jnp.concatenate([town.building_color[b_idx], state.veh_color[1:][v_idx]]).astype(jnp.float32),
         is_vehicle=jnp.concatenate([jnp.zeros(nb, bool), jnp.ones(nv, bool)]),
         valid=jnp.concatenate([b_ok, v_ok]),
-        vehicle_index=jnp.concatenate([jnp.full(nb, -1, jnp.int32), v_idx.astype(jnp.int32)]))
+        vehicle_index=jnp.concatenate([jnp.full(nb, -1, jnp.int32), v_idx.astype(jnp.int32)]),
+    )
 
 
 def _in_camera_wedge(box_ego):
     """Conservatively, whether boxes [..., 5] (ego frame) reach into the camera's view, within its depth."""
     radius = 0.5 * jnp.hypot(box_ego[..., 3], box_ego[..., 4])
     ahead = box_ego[..., 0] - CAMERA_X_M
-    return ((ahead + radius > 0.0) & (ahead - radius < CAMERA_MAX_DEPTH_M)
-            & (jnp.abs(box_ego[..., 1]) - radius <= np.tan(CAMERA_FOV_RAD / 2) * (ahead + radius)))
+    return (
+        (ahead + radius > 0.0)
+        & (ahead - radius < CAMERA_MAX_DEPTH_M)
+        & (jnp.abs(box_ego[..., 1]) - radius <= np.tan(CAMERA_FOV_RAD / 2) * (ahead + radius))
+    )
 
 
 def camera_obstacles(state: WorldState, town: Town, building_box_ego, vehicle_box_ego):
     """The buildings and surrounding vehicles the camera may see, nearest first (:class:`Obstacles`)."""
-    return _obstacles(building_box_ego, vehicle_box_ego, state, town, _in_camera_wedge(building_box_ego),
-                      _in_camera_wedge(vehicle_box_ego), CAMERA_BUILDINGS, CAMERA_VEHICLES)
+    return _obstacles(
+        building_box_ego,
+        vehicle_box_ego,
+        state,
+        town,
+        _in_camera_wedge(building_box_ego),
+        _in_camera_wedge(vehicle_box_ego),
+        CAMERA_BUILDINGS,
+        CAMERA_VEHICLES,
+    )
 
 
 def lidar_obstacles(state: WorldState, town: Town, building_box_ego, vehicle_box_ego):
     """The buildings and surrounding vehicles overlapping the BEV view: only they can stop a beam
     before it leaves the view, so only they shape the lidar image."""
-    return _obstacles(building_box_ego, vehicle_box_ego, state, town, _reaches_bev_view(building_box_ego),
-                      _reaches_bev_view(vehicle_box_ego), LIDAR_BUILDINGS, LIDAR_VEHICLES)
+    return _obstacles(
+        building_box_ego,
+        vehicle_box_ego,
+        state,
+        town,
+        _reaches_bev_view(building_box_ego),
+        _reaches_bev_view(vehicle_box_ego),
+        LIDAR_BUILDINGS,
+        LIDAR_VEHICLES,
+    )
 
 
 def observe(state: WorldState, town: Town, image_size: int):
@@ -512,8 +561,9 @@ def observe(state: WorldState, town: Town, image_size: int):
         "roadmap": render_roadmap(town, ego_xy, ego_yaw, ego[3], ego[4], image_size),
         "det_cls": det_cls,
         "det_reg": det_reg,
-        "pose": jnp.stack([ego_xy[0], ego_xy[1], jnp.cos(ego_yaw), jnp.sin(ego_yaw),
-                           state.veh_speed_mps[EGO]]).astype(jnp.float32),
+        "pose": jnp.stack([ego_xy[0], ego_xy[1], jnp.cos(ego_yaw), jnp.sin(ego_yaw), state.veh_speed_mps[EGO]]).astype(
+            jnp.float32
+        ),
         "boxes": boxes.astype(jnp.float32),
         "boxes_valid": geo.in_bev_view(boxes[:, :2]),
         "boxes_occluded": ~vehicle_returned,

@@ -22,6 +22,7 @@ What a town is (all procedural from the seed; right-hand traffic):
 - Buildings and landmarks (buildings, towers, kiosks, trees, poles, a monument in the roundabout) stand on
   offroad cells only, at least ``BUILDING_CLEARANCE_M`` from road and sidewalk.
 """
+
 import functools
 from typing import NamedTuple
 
@@ -42,14 +43,17 @@ SEM_STOP_LINE = 5  # white bar where a lane meets a junction
 NUM_SEM_CLASSES = 6
 
 # Roadmap colours per class (RGB), as in the reference's bird-eye view: black terrain, dark road.
-SEM_COLORS = np.array([
-    [0, 0, 0],  # offroad
-    [60, 60, 64],  # road
-    [130, 130, 130],  # sidewalk
-    [230, 230, 230],  # white lane divider
-    [230, 200, 40],  # yellow centre line
-    [255, 255, 255],  # stop line
-], dtype=np.uint8)
+SEM_COLORS = np.array(
+    [
+        [0, 0, 0],  # offroad
+        [60, 60, 64],  # road
+        [130, 130, 130],  # sidewalk
+        [230, 230, 230],  # white lane divider
+        [230, 200, 40],  # yellow centre line
+        [255, 255, 255],  # stop line
+    ],
+    dtype=np.uint8,
+)
 
 # Lane kinds (``Town.lane_kind``).
 LANE_ROAD = 0  # between two junction mouths
@@ -143,6 +147,7 @@ class Town(NamedTuple):
     ring_radius_m: float32 [], radius of the roundabout lane's centre line.
     spawn_lane: int32 [NP], spawn_s_m: float32 [NP], reset slots (SPAWN_SPACING_M apart, bodies on the lane).
     """
+
     sem_map: np.ndarray
     map_origin_m: np.ndarray
     map_res_m: np.ndarray
@@ -191,8 +196,11 @@ def light_states(town: Town, time_s):
     yellow for YELLOW_S, then red until its turn comes again (the all-red ALL_RED_S included).
     """
     phase_s = jnp.mod(time_s - town.light_green_start_s, town.light_cycle_s)
-    return jnp.where(phase_s < town.light_green_s, LIGHT_GREEN,
-                     jnp.where(phase_s < town.light_green_s + YELLOW_S, LIGHT_YELLOW, LIGHT_RED)).astype(jnp.int32)
+    return jnp.where(
+        phase_s < town.light_green_s,
+        LIGHT_GREEN,
+        jnp.where(phase_s < town.light_green_s + YELLOW_S, LIGHT_YELLOW, LIGHT_RED),
+    ).astype(jnp.int32)
 
 
 @functools.lru_cache(maxsize=8)
@@ -244,7 +252,7 @@ def _bezier(p0, h0, p3, h3):
     arm = chord / 3 if theta < 0.05 else 4 / 3 * np.tan(theta / 4) * chord / (2 * np.sin(theta / 2))
     t = np.linspace(0.0, 1.0, 400)[:, None]
     p1, p2 = p0 + arm * h0, p3 - arm * h3
-    pts = (1 - t) ** 3 * p0 + 3 * (1 - t) ** 2 * t * p1 + 3 * (1 - t) * t ** 2 * p2 + t ** 3 * p3
+    pts = (1 - t) ** 3 * p0 + 3 * (1 - t) ** 2 * t * p1 + 3 * (1 - t) * t**2 * p2 + t**3 * p3
     return _resample(pts, _DENSE_DS_M)
 
 
@@ -315,8 +323,14 @@ def _road_network(rng):
     keep = np.ones(len(roads), bool)
     for _ in range(_NUM_REMOVED_ROADS):
         degree = np.bincount(roads[keep].ravel(), minlength=len(node_xy))
-        removable = (keep & (lanes == 1) & (degree[roads[:, 0]] == 4) & (degree[roads[:, 1]] == 4)
-                     & (roads[:, 0] != ring_node) & (roads[:, 1] != ring_node))
+        removable = (
+            keep
+            & (lanes == 1)
+            & (degree[roads[:, 0]] == 4)
+            & (degree[roads[:, 1]] == 4)
+            & (roads[:, 0] != ring_node)
+            & (roads[:, 1] != ring_node)
+        )
         keep[rng.choice(np.flatnonzero(removable))] = False
     return node_xy, roads[keep], lanes[keep], ring_node, interior.ravel()
 
@@ -407,10 +421,12 @@ def _build_lanes(node_xy, roads, lanes_per_dir, node_kind, major_roads, mouth_m)
                     priority = PRIORITY_NORMAL if turn > np.pi / 4 else PRIORITY_MAJOR
                 for k_in, k_out in pairs:
                     lane_in, lane_out = into[(r_in, n)][k_in], out_of[(r_out, n)][k_out]
-                    pts = curve(L.pts[lane_in][-1], L.end_heading(lane_in),
-                                L.pts[lane_out][0], L.start_heading(lane_out))
-                    c = L.add(pts, LANE_CONNECTOR, _turn_speed(pts, min(road_speed[r_in], road_speed[r_out])), n,
-                              priority)
+                    pts = curve(
+                        L.pts[lane_in][-1], L.end_heading(lane_in), L.pts[lane_out][0], L.start_heading(lane_out)
+                    )
+                    c = L.add(
+                        pts, LANE_CONNECTOR, _turn_speed(pts, min(road_speed[r_in], road_speed[r_out])), n, priority
+                    )
                     L.succ[lane_in].append(c)
                     L.succ[c].append(lane_out)
     return L, in_lanes
@@ -453,8 +469,11 @@ def _build_roundabout(L, n, node_xy, roads, incident, into, out_of, mouth):
     arcs = []  # arcs[i] runs counter-clockwise from ports[i] to ports[i + 1]
     for i, (a0, _, _) in enumerate(ports):
         a1 = ports[(i + 1) % len(ports)][0]
-        arcs.append(L.add(_arc(centre, RING_RADIUS_M, a0, a1 + 2 * np.pi * (a1 <= a0)), LANE_RING, ring_speed, n,
-                          PRIORITY_MAJOR))
+        arcs.append(
+            L.add(
+                _arc(centre, RING_RADIUS_M, a0, a1 + 2 * np.pi * (a1 <= a0)), LANE_RING, ring_speed, n, PRIORITY_MAJOR
+            )
+        )
     for i, (_, kind, r) in enumerate(ports):
         arriving, leaving = arcs[i - 1], arcs[i]
         L.succ[arriving].append(leaving)
@@ -487,7 +506,7 @@ def _junction_kinds(rng, node_xy, roads, lanes_per_dir, ring_node, interior):
             kind[n] = NODE_PRIORITY
             # The through road: the straightest pair of roads (at a 4-way either pair, at random).
             away = {r: _angle(node_xy[roads[r].sum() - n] - node_xy[n]) for r in incident}
-            pairs = [(a, b) for i, a in enumerate(incident) for b in incident[i + 1:]]
+            pairs = [(a, b) for i, a in enumerate(incident) for b in incident[i + 1 :]]
             bend = [abs(np.pi - abs(wrap_angle(away[a] - away[b]))) + rng.uniform(0.0, 0.5) for a, b in pairs]
             major_roads[n] = set(pairs[int(np.argmin(bend))])
     return kind, major_roads
@@ -594,6 +613,7 @@ def _conflicts(L):
 
 class _Raster:
     """Town-frame drawing onto a cell grid with cv2 (sub-pixel coordinates, 4 fractional bits)."""
+
     SHIFT = 4
 
     def __init__(self, origin, shape):
@@ -614,8 +634,15 @@ class _Raster:
         cv2.polylines(img, [self.px(xy)], False, value, thickness, cv2.LINE_8, self.SHIFT)
 
     def disk(self, img, centre, radius_m, value):
-        cv2.circle(img, tuple(self.px(centre)), int(round(radius_m / MAP_RES_M * (1 << self.SHIFT))), value,
-                   -1, cv2.LINE_8, self.SHIFT)
+        cv2.circle(
+            img,
+            tuple(self.px(centre)),
+            int(round(radius_m / MAP_RES_M * (1 << self.SHIFT))),
+            value,
+            -1,
+            cv2.LINE_8,
+            self.SHIFT,
+        )
 
 
 def _disk_kernel(radius_m):
@@ -678,8 +705,20 @@ def _rasterise(node_xy, node_kind, roads, lanes_per_dir, mouth_m, L):
 
 # ----------------------------------------------------------------------------- buildings
 
-_FACADES = np.array([[196, 180, 150], [170, 90, 70], [150, 150, 155], [220, 215, 200], [120, 100, 85],
-                     [205, 170, 110], [90, 110, 140], [180, 120, 100], [230, 225, 215], [110, 120, 110]])
+_FACADES = np.array(
+    [
+        [196, 180, 150],
+        [170, 90, 70],
+        [150, 150, 155],
+        [220, 215, 200],
+        [120, 100, 85],
+        [205, 170, 110],
+        [90, 110, 140],
+        [180, 120, 100],
+        [230, 225, 215],
+        [110, 120, 110],
+    ]
+)
 _GLASS = np.array([[70, 110, 150], [90, 140, 170], [60, 70, 85], [140, 160, 175], [40, 90, 110]])
 _BRIGHT = np.array([[220, 50, 40], [240, 190, 30], [40, 150, 70], [240, 120, 30], [50, 90, 200]])
 _TREES = np.array([[40, 110, 40], [60, 130, 50], [30, 90, 45], [80, 120, 40]])
@@ -699,9 +738,12 @@ def _buildings(rng, sem, raster, node_xy, roads, ring_xy):
     """Rejection-samples landmark boxes on offroad cells; returns (box [NB, 5], height, color, kind)."""
     paved = (sem != SEM_OFFROAD).astype(np.uint8)
     free = cv2.dilate(paved, _disk_kernel(BUILDING_CLEARANCE_M)) == 0
-    (c_lo, r_lo), (c_hi, r_hi) = raster.cell(node_xy.min(0) - BUILDING_BELT_M), raster.cell(node_xy.max(0) + BUILDING_BELT_M)
+    (c_lo, r_lo), (c_hi, r_hi) = (
+        raster.cell(node_xy.min(0) - BUILDING_BELT_M),
+        raster.cell(node_xy.max(0) + BUILDING_BELT_M),
+    )
     in_belt = np.zeros_like(free)
-    in_belt[r_lo:r_hi + 1, c_lo:c_hi + 1] = True
+    in_belt[r_lo : r_hi + 1, c_lo : c_hi + 1] = True
     free &= in_belt
     verge = free & (cv2.dilate(paved, _disk_kernel(BUILDING_CLEARANCE_M + 2.5)) > 0)
     road_a, road_b = node_xy[roads[:, 0]], node_xy[roads[:, 1]]
@@ -719,7 +761,7 @@ def _buildings(rng, sem, raster, node_xy, roads, ring_xy):
             return False
         footprint = np.zeros((r1 - r0 + 1, c1 - c0 + 1), np.uint8)
         raster.poly(footprint, corners - np.array([c0, r0]) * MAP_RES_M, 1)
-        window = free[r0:r1 + 1, c0:c1 + 1]  # a view: clearing it clears ``free``
+        window = free[r0 : r1 + 1, c0 : c1 + 1]  # a view: clearing it clears ``free``
         if not window[footprint > 0].all():
             return False
         # Keep a gap to the next landmark: the footprint grown by gap_m is no longer free.
@@ -740,14 +782,26 @@ def _buildings(rng, sem, raster, node_xy, roads, ring_xy):
             r, c = pool[rng.integers(len(pool))]
             centre = raster.origin + (np.array([c, r]) + 0.5) * MAP_RES_M
             # Align with the nearest road, so blocks look like streets.
-            t = np.clip(np.einsum("rd,rd->r", centre - road_a, road_b - road_a)
-                        / np.einsum("rd,rd->r", road_b - road_a, road_b - road_a), 0, 1)
+            t = np.clip(
+                np.einsum("rd,rd->r", centre - road_a, road_b - road_a)
+                / np.einsum("rd,rd->r", road_b - road_a, road_b - road_a),
+                0,
+                1,
+            )
             nearest = np.argmin(np.linalg.norm(road_a + t[:, None] * (road_b - road_a) - centre, axis=1))
             yaw = _angle(road_b[nearest] - road_a[nearest])
             length, width = rng.uniform(*length_m), rng.uniform(*width_m)
             height = height_m[0] + (height_m[1] - height_m[0]) * rng.uniform() ** 1.5
-            placed += place(centre, yaw, length, width, height, palette[rng.integers(len(palette))],
-                            kind, 2.0 if where == "block" else 1.0)
+            placed += place(
+                centre,
+                yaw,
+                length,
+                width,
+                height,
+                palette[rng.integers(len(palette))],
+                kind,
+                2.0 if where == "block" else 1.0,
+            )
     return np.array(boxes), np.array(heights), np.array(colors), np.array(kinds)
 
 
@@ -757,7 +811,7 @@ def _buildings(rng, sem, raster, node_xy, roads, ring_xy):
 def _pad(rows, width, fill):
     out = np.full((len(rows), width), fill, dtype=np.asarray(fill).dtype)
     for i, row in enumerate(rows):
-        out[i, :len(row)] = row
+        out[i, : len(row)] = row
     return out
 
 
@@ -789,8 +843,11 @@ def _lane_lengths(L):
 
 def _spawn_slots(L, length):
     """(lane, arc position m) of every reset slot: along road lanes, SPAWN_SPACING_M apart."""
-    return [(lane, s) for lane in np.flatnonzero(np.array(L.kind) == LANE_ROAD)
-            for s in np.arange(4.0, length[lane] - 8.0, SPAWN_SPACING_M)]
+    return [
+        (lane, s)
+        for lane in np.flatnonzero(np.array(L.kind) == LANE_ROAD)
+        for s in np.arange(4.0, length[lane] - 8.0, SPAWN_SPACING_M)
+    ]
 
 
 def _build_town_np(seed):
@@ -818,24 +875,43 @@ def _build_town_np(seed):
     box, height, color, building_kind = buildings
     cycle, green_start, green, light_node, light_xy = lights
     return Town(
-        sem_map=sem, map_origin_m=origin.astype(f32), map_res_m=np.array(MAP_RES_M, f32),
-        building_box=box.astype(f32), building_height_m=height.astype(f32), building_color=color.astype(np.uint8),
+        sem_map=sem,
+        map_origin_m=origin.astype(f32),
+        map_res_m=np.array(MAP_RES_M, f32),
+        building_box=box.astype(f32),
+        building_height_m=height.astype(f32),
+        building_color=color.astype(np.uint8),
         building_kind=building_kind.astype(i32),
-        lane_xy_m=xy.astype(f32), lane_yaw_rad=yaw.astype(f32), lane_curv_1pm=curv.astype(f32),
+        lane_xy_m=xy.astype(f32),
+        lane_yaw_rad=yaw.astype(f32),
+        lane_curv_1pm=curv.astype(f32),
         lane_length_m=length.astype(f32),
-        lane_succ=_pad(L.succ, max(map(len, L.succ)), i32(-1)), lane_num_succ=np.array([len(s) for s in L.succ], i32),
-        lane_speed_limit_mps=np.array(L.speed, f32), lane_kind=kind.astype(i32), lane_priority=np.array(L.priority, i32),
-        lane_light=lane_light.astype(i32), lane_at_mouth=np.isin(np.arange(len(kind)), sorted(L.at_mouth)),
-        conf_lane=conf_lane, conf_mirror=_pad(mirror, width, i32(0)),
+        lane_succ=_pad(L.succ, max(map(len, L.succ)), i32(-1)),
+        lane_num_succ=np.array([len(s) for s in L.succ], i32),
+        lane_speed_limit_mps=np.array(L.speed, f32),
+        lane_kind=kind.astype(i32),
+        lane_priority=np.array(L.priority, i32),
+        lane_light=lane_light.astype(i32),
+        lane_at_mouth=np.isin(np.arange(len(kind)), sorted(L.at_mouth)),
+        conf_lane=conf_lane,
+        conf_mirror=_pad(mirror, width, i32(0)),
         conf_in_m=_pad([[c[1] for c in row] for row in table], width, f32(0)),
         conf_out_m=_pad([[c[2] for c in row] for row in table], width, f32(0)),
         conf_by_priority=_pad([[c[3] for c in row] for row in table], width, False),
-        light_cycle_s=cycle.astype(f32), light_green_start_s=green_start.astype(f32), light_green_s=green.astype(f32),
-        light_node=light_node.astype(i32), light_xy_m=light_xy.astype(f32),
-        stop_line_m=stop_line.astype(f32), stop_line_lane=stop_lane.astype(i32),
+        light_cycle_s=cycle.astype(f32),
+        light_green_start_s=green_start.astype(f32),
+        light_green_s=green.astype(f32),
+        light_node=light_node.astype(i32),
+        light_xy_m=light_xy.astype(f32),
+        stop_line_m=stop_line.astype(f32),
+        stop_line_lane=stop_lane.astype(i32),
         stop_line_light=lane_light[stop_lane].astype(i32),
-        road_xy_m=node_xy[roads].astype(f32), road_lanes_per_dir=lanes_per_dir.astype(i32),
-        node_xy_m=node_xy.astype(f32), node_kind=node_kind.astype(i32), node_degree=node_degree.astype(i32),
+        road_xy_m=node_xy[roads].astype(f32),
+        road_lanes_per_dir=lanes_per_dir.astype(i32),
+        node_xy_m=node_xy.astype(f32),
+        node_kind=node_kind.astype(i32),
+        node_degree=node_degree.astype(i32),
         ring_radius_m=np.array(RING_RADIUS_M, f32),
-        spawn_lane=np.array([l for l, _ in spawn], i32), spawn_s_m=np.array([s for _, s in spawn], f32),
+        spawn_lane=np.array([l for l, _ in spawn], i32),
+        spawn_s_m=np.array([s for _, s in spawn], f32),
     )

@@ -29,6 +29,7 @@ perceiver is given (the frame contract's ``action``); the plant's parameters nev
 Shapes: N + 1 vehicles (the ego is row EGO), L = ROUTE_LEN + 1 lanes on the known path (the current
 one first), MC conflicts per lane, NL lanes.
 """
+
 from typing import NamedTuple
 
 import jax
@@ -65,9 +66,23 @@ STANDING_MPS = 0.1  # slower than this counts as standing
 # exit within that time; a ring of full roads never does. No drive shorter than this can re-route.
 REROUTE_AFTER_S = 120.0
 
-_CAR_PAINTS = np.array([[235, 235, 235], [25, 25, 28], [170, 172, 178], [95, 98, 105], [30, 45, 110],
-                         [180, 25, 30], [40, 90, 190], [30, 100, 60], [230, 200, 40], [220, 110, 30],
-                         [110, 70, 45], [200, 185, 150]], np.int32)
+_CAR_PAINTS = np.array(
+    [
+        [235, 235, 235],
+        [25, 25, 28],
+        [170, 172, 178],
+        [95, 98, 105],
+        [30, 45, 110],
+        [180, 25, 30],
+        [40, 90, 190],
+        [30, 100, 60],
+        [230, 200, 40],
+        [220, 110, 30],
+        [110, 70, 45],
+        [200, 185, 150],
+    ],
+    np.int32,
+)
 
 
 class WorldState(NamedTuple):
@@ -94,6 +109,7 @@ class WorldState(NamedTuple):
     veh_standing_steps: int32 [N+1], steps since the vehicle last moved (or last re-routed).
     step: int32 [], time index; the clock (lights) reads ``step * DT_S`` seconds.
     """
+
     veh_box: jax.Array
     veh_speed_mps: jax.Array
     veh_height_m: jax.Array
@@ -120,6 +136,7 @@ class EgoPlant(NamedTuple):
     lateral acceleration v^2 kappa); the acceleration the pedal's actuator reaches moves the car
     ``distance_scale`` times as far as the nominal wheel radius says.
     """
+
     steer_offset_rad: jax.Array
     steer_gain: jax.Array
     distance_scale: jax.Array
@@ -145,7 +162,8 @@ def draw_plant(key, cfg: WorldConfig) -> EgoPlant:
         understeer_rad_s2pm=f32(np.deg2rad(cfg.ego_understeer_deg_per_g) / G_MPS2),
         lag_share=f32(1.0 - np.exp(-DT_S / cfg.ego_lag_s) if cfg.ego_lag_s > 0 else 1.0),
         accel_noise_mps2=f32(cfg.ego_accel_noise_mps2),
-        curvature_noise_1pm=f32(cfg.ego_curvature_noise_1pm))
+        curvature_noise_1pm=f32(cfg.ego_curvature_noise_1pm),
+    )
 
 
 def lane_point(town, lane, s_m):
@@ -186,8 +204,10 @@ def _row_hash(key, num_rows: int):
 
 def _check_fits(num_vehicles: int, num_slots: int) -> None:
     if num_vehicles + 1 > min(num_slots, MAX_VEHICLES):
-        raise ValueError(f"--world.num_vehicles={num_vehicles}: at most {min(num_slots, MAX_VEHICLES) - 1} "
-                         "fit (spawn slots of this town, and the world's vehicle limit)")
+        raise ValueError(
+            f"--world.num_vehicles={num_vehicles}: at most {min(num_slots, MAX_VEHICLES) - 1} "
+            "fit (spawn slots of this town, and the world's vehicle limit)"
+        )
 
 
 def check_vehicle_count(cfg: WorldConfig, town_seed: int) -> None:
@@ -208,7 +228,7 @@ def reset(key, town, cfg: WorldConfig) -> WorldState:
     size = jax.random.uniform(keys[1], (n,))
     length = 3.7 + 1.8 * size
     width = jnp.clip(1.6 + 0.5 * size + jax.random.uniform(keys[2], (n,), minval=-0.06, maxval=0.06), 1.6, 2.1)
-    height = jnp.clip(1.4 + 0.9 * size ** 2 + jax.random.uniform(keys[3], (n,), minval=-0.1, maxval=0.3), 1.4, 2.6)
+    height = jnp.clip(1.4 + 0.9 * size**2 + jax.random.uniform(keys[3], (n,), minval=-0.1, maxval=0.3), 1.4, 2.6)
     length, width, height = (a.at[EGO].set(v) for a, v in zip((length, width, height), EGO_SIZE_M))
     paint = jnp.asarray(_CAR_PAINTS)[jax.random.randint(keys[4], (n,), 0, _CAR_PAINTS.shape[0])]
     color = jnp.clip(paint + jax.random.randint(keys[5], (n, 3), -12, 13), 0, 255)
@@ -248,12 +268,12 @@ def reset(key, town, cfg: WorldConfig) -> WorldState:
 # _PACK_INDEX_BITS of vehicle index, so a min over keys is the rearmost body and whose it is. Positions on a
 # lane lie within [-_PACK_OFFSET_M, _PACK_OFFSET_M) (town.MAX_LANE_LENGTH_M is shorter); MAX_VEHICLES rows.
 _PACK_OFFSET_M, _PACK_STEPS_PER_M, _PACK_INDEX_BITS = 64.0, 1024, 9
-MAX_VEHICLES = 2 ** _PACK_INDEX_BITS - 1
-_NOBODY = np.int32(2 ** 31 - 1)
+MAX_VEHICLES = 2**_PACK_INDEX_BITS - 1
+_NOBODY = np.int32(2**31 - 1)
 
 
 def _pack(position_m, index):
-    q = jnp.clip(jnp.round((position_m + _PACK_OFFSET_M) * _PACK_STEPS_PER_M), 0, 2 ** 17 - 1).astype(jnp.int32)
+    q = jnp.clip(jnp.round((position_m + _PACK_OFFSET_M) * _PACK_STEPS_PER_M), 0, 2**17 - 1).astype(jnp.int32)
     return (q << _PACK_INDEX_BITS) | index
 
 
@@ -261,19 +281,21 @@ def _unpack(key):
     """(position m, +inf for nobody; vehicle index, -1 for nobody, which picks a caller's trailing pad row)."""
     nobody = key == _NOBODY
     position = (key >> _PACK_INDEX_BITS).astype(jnp.float32) / _PACK_STEPS_PER_M - _PACK_OFFSET_M
-    index = key & (2 ** _PACK_INDEX_BITS - 1)
+    index = key & (2**_PACK_INDEX_BITS - 1)
     return jnp.where(nobody, jnp.inf, position), jnp.where(nobody, -1, index)
 
 
 def _idm_braking(v, a_max, gap_m, closing_mps):
     """IDM's interaction term (s* / s)^2 for a gap [m] to an obstacle approached at ``closing_mps``."""
     desired_gap = IDM_MIN_GAP_M + jnp.maximum(
-        0.0, v * IDM_HEADWAY_S + v * closing_mps / (2 * jnp.sqrt(a_max * COMFORT_DECEL_MPS2)))
+        0.0, v * IDM_HEADWAY_S + v * closing_mps / (2 * jnp.sqrt(a_max * COMFORT_DECEL_MPS2))
+    )
     return (desired_gap / jnp.maximum(gap_m, 0.1)) ** 2
 
 
 class _Plan(NamedTuple):
     """What the autopilot decided for every vehicle [N+1] this step (distances from its front)."""
+
     accel_mps2: jax.Array  # IDM's acceleration, before the ego's action limits
     gap_lead_m: jax.Array  # to the leader's rear (inf: none on the known path)
     d_stop_m: jax.Array  # to the stop line it stops at (red light or queued junction exit), inf if none
@@ -294,7 +316,7 @@ def _plan(state: WorldState, town) -> _Plan:
     rear, front = s - half, s + half
     a_max = state.veh_max_accel_mps2
     max_decel = jnp.full(n, NPC_MAX_DECEL_MPS2).at[EGO].set(EGO_ACCEL_LIMIT_MPS2)
-    brake_m = v ** 2 / (2 * COMFORT_DECEL_MPS2) + v * DT_S  # room to stop without hard braking
+    brake_m = v**2 / (2 * COMFORT_DECEL_MPS2) + v * DT_S  # room to stop without hard braking
 
     # The known path: the current lane, then the route. Distances from the centre to each lane's ends [N+1, L].
     path = jnp.concatenate([lane[:, None], state.veh_route], 1)
@@ -311,11 +333,15 @@ def _plan(state: WorldState, town) -> _Plan:
     # [N+1, N+1] min: cheaper than a sort at this size). Per lane: the rearmost body point of the vehicles
     # whose centre is on it (tail), and of bodies that left it but still hang back onto it (spill).
     prev_length = town.lane_length_m[jnp.maximum(prev, 0)]
-    ahead = jnp.min(jnp.where((lane[None, :] == lane[:, None]) & (s[None, :] > s[:, None]),
-                              _pack(rear, idx)[None, :], _NOBODY), 1)
+    ahead = jnp.min(
+        jnp.where((lane[None, :] == lane[:, None]) & (s[None, :] > s[:, None]), _pack(rear, idx)[None, :], _NOBODY), 1
+    )
     tail = jnp.full(nl, _NOBODY).at[lane].min(_pack(rear, idx))
-    spill = jnp.full(nl, _NOBODY).at[jnp.where((rear < 0) & (prev >= 0), prev, nl)].min(
-        _pack(prev_length + rear, idx), mode="drop")
+    spill = (
+        jnp.full(nl, _NOBODY)
+        .at[jnp.where((rear < 0) & (prev >= 0), prev, nl)]
+        .min(_pack(prev_length + rear, idx), mode="drop")
+    )
     later = path[:, 1:]
     keys = jnp.concatenate([ahead[:, None], spill[lane][:, None], jnp.minimum(tail[later], spill[later])], 1)
     rear_m, owner = _unpack(keys)
@@ -333,7 +359,7 @@ def _plan(state: WorldState, town) -> _Plan:
     red = (signal == town_lib.LIGHT_RED) | ((signal == town_lib.LIGHT_YELLOW) & can_stop)
     # Do not enter a junction unless there is room behind where the leader will come to rest.
     exit_needs_m = to_end[:, 1:-1] + half[:, None] + IDM_MIN_GAP_M  # leader's rear beyond the junction lane
-    queued = (gap_lead + v_lead ** 2 / (2 * COMFORT_DECEL_MPS2))[:, None] < exit_needs_m
+    queued = (gap_lead + v_lead**2 / (2 * COMFORT_DECEL_MPS2))[:, None] < exit_needs_m
     blocked = town.lane_at_mouth[path[:, :-2]] & queued & can_stop[:, :-2]
     exit_queued = blocked[:, 0] & (gap_lead > front_to_end[:, 0])
     blocked = jnp.pad(blocked, ((0, 0), (0, 2)))
@@ -347,8 +373,14 @@ def _plan(state: WorldState, town) -> _Plan:
     rows = jnp.concatenate([jnp.maximum(prev, 0)[:, None], path[:, :CONFLICT_LANES]], 1)
     # (The barrier makes XLA gather each table row once, instead of once per element of every fused consumer.)
     foe, mirror, by_priority, zone_in, zone_out = jax.lax.optimization_barrier(
-        (town.conf_lane[rows], town.conf_mirror[rows], town.conf_by_priority[rows], town.conf_in_m[rows],
-         town.conf_out_m[rows]))
+        (
+            town.conf_lane[rows],
+            town.conf_mirror[rows],
+            town.conf_by_priority[rows],
+            town.conf_in_m[rows],
+            town.conf_out_m[rows],
+        )
+    )
     row_start = jnp.concatenate([(-s - prev_length)[:, None], to_start[:, :CONFLICT_LANES]], 1)  # to lane starts
     d_in = row_start[:, :, None] + zone_in - (half + BODY_MARGIN_M)[:, None, None]  # front to the zone
     d_out = row_start[:, :, None] + zone_out + (half + BODY_MARGIN_M)[:, None, None]  # rear past it
@@ -359,18 +391,18 @@ def _plan(state: WorldState, town) -> _Plan:
     # Entering a junction from a road is atomic: a vehicle waits at the mouth until nothing on its junction
     # lane must be yielded, so it never stops half-way between two zones.
     mouth_m = row_start - half[:, None]
-    at_mouth = jnp.concatenate([jnp.zeros((n, 2), bool), town.lane_at_mouth[path[:, :CONFLICT_LANES - 1]]], 1)
+    at_mouth = jnp.concatenate([jnp.zeros((n, 2), bool), town.lane_at_mouth[path[:, : CONFLICT_LANES - 1]]], 1)
     stop_m = jnp.where((at_mouth & (mouth_m >= 0))[:, :, None], mouth_m[:, :, None], d_in)
     # Priority, highest first: cannot stop before the zone any more; inside the junction lane already; the
     # lane's right of way; the lower vehicle index. A vehicle claims the zones it occupies above all, every
     # pending zone of its current lane, and those of a later lane once that lane is within its horizon (unless
     # its leader will come to rest before that lane: then the leader's claim is the one that matters).
-    committed = stop_m < (v ** 2 / (2 * max_decel) + v * DT_S)[:, None, None]
+    committed = stop_m < (v**2 / (2 * max_decel) + v * DT_S)[:, None, None]
     inside = (jnp.arange(rows.shape[1]) == 1)[None, :, None]
     priority = (committed * 8 + inside * 4 + town.lane_priority[rows][:, :, None]) * n + (n - 1 - idx)[:, None, None]
     occupied_claim = 16 * n  # above every priority
     horizon_m = brake_m + v * 1.0 + 10.0
-    leader_rest_m = gap_lead + v_lead ** 2 / (2 * COMFORT_DECEL_MPS2)
+    leader_rest_m = gap_lead + v_lead**2 / (2 * COMFORT_DECEL_MPS2)
     near = inside | ((mouth_m <= horizon_m[:, None]) & (mouth_m <= leader_rest_m[:, None]))[:, :, None]
     not_held = jnp.concatenate([jnp.zeros((n, 1), bool), ~beyond_stop[:, :CONFLICT_LANES]], 1)[:, :, None]
     approaching = pending & by_priority & near & not_held
@@ -389,8 +421,9 @@ def _plan(state: WorldState, town) -> _Plan:
     after_step_m = jnp.maximum(to_start[:, 1:] - v[:, None] * DT_S, 0.0)
     curve_mps = jnp.sqrt(desired[:, 1:] ** 2 + 2 * COMFORT_DECEL_MPS2 * after_step_m)
     free = jnp.minimum(a_max * (1 - (v / desired[:, 0]) ** 4), ((curve_mps - v[:, None]) / DT_S).min(1))
-    braking = jnp.maximum(_idm_braking(v, a_max, gap_lead, v - v_lead),
-                          _idm_braking(v, a_max, d_static - STOP_SHORT_M + IDM_MIN_GAP_M, v))
+    braking = jnp.maximum(
+        _idm_braking(v, a_max, gap_lead, v - v_lead), _idm_braking(v, a_max, d_static - STOP_SHORT_M + IDM_MIN_GAP_M, v)
+    )
     accel = jnp.clip(free - a_max * braking, -max_decel, a_max)
     return _Plan(accel, gap_lead, d_stop, d_yield, path, limit, exit_queued, _unpack(jnp.minimum(tail, spill))[0])
 
@@ -405,9 +438,11 @@ def _reroute(state: WorldState, town, plan: _Plan, key):
     junction = town.lane_succ[lane]  # [N+1, MS], -1 padded
     exit_lane = town.lane_succ[jnp.maximum(junction, 0), 0]
     need_m = state.veh_box[:, 3] + IDM_MIN_GAP_M
-    room = ((jnp.arange(junction.shape[1])[None] < town.lane_num_succ[lane][:, None])
-            & jnp.isinf(plan.lane_rear_m[jnp.maximum(junction, 0)])
-            & (plan.lane_rear_m[exit_lane] >= need_m[:, None]))
+    room = (
+        (jnp.arange(junction.shape[1])[None] < town.lane_num_succ[lane][:, None])
+        & jnp.isinf(plan.lane_rear_m[jnp.maximum(junction, 0)])
+        & (plan.lane_rear_m[exit_lane] >= need_m[:, None])
+    )
     waited = plan.exit_queued & (state.veh_standing_steps >= int(REROUTE_AFTER_S / DT_S))
     rerouted = waited & room.any(1)
     # The k-th exit with room, k uniform over how many there are.
@@ -433,17 +468,22 @@ def step(state: WorldState, town) -> WorldState:
 
     # NPCs: on the centre line, never into the leader's rear, a red stop line or a zone they yield at.
     v_new = jnp.maximum(v + accel * DT_S, 0.0)
-    room = jnp.maximum(jnp.minimum(plan.gap_lead_m - LEADER_CLEARANCE_M, jnp.minimum(plan.d_stop_m, plan.d_yield_m)), 0.0)
+    room = jnp.maximum(
+        jnp.minimum(plan.gap_lead_m - LEADER_CLEARANCE_M, jnp.minimum(plan.d_stop_m, plan.d_yield_m)), 0.0
+    )
     ds = jnp.minimum(0.5 * (v + v_new) * DT_S, room)
     v_new = jnp.where(0.5 * (v + v_new) * DT_S > room, jnp.minimum(v_new, room / DT_S), v_new)
 
     # The ego: clipped commands through the plant.
     ego_limit = jnp.where(s[EGO] + v[EGO] * DT_S + 0.5 > length[EGO, 0], limit[EGO, :2].min(), limit[EGO, 0])
-    ego_accel = jnp.clip(jnp.minimum(accel[EGO], (ego_limit - v[EGO]) / DT_S), -EGO_ACCEL_LIMIT_MPS2, EGO_ACCEL_LIMIT_MPS2)
+    ego_accel = jnp.clip(
+        jnp.minimum(accel[EGO], (ego_limit - v[EGO]) / DT_S), -EGO_ACCEL_LIMIT_MPS2, EGO_ACCEL_LIMIT_MPS2
+    )
     ego_accel = jnp.maximum(ego_accel, -v[EGO] / DT_S)  # stop, do not reverse
     # (A key folded from the route key, as the re-routing's: the world's other draws stay as they were.)
     ego_command, ego_actuator, ego_xy, ego_yaw, ego_ds, ego_v = _drive_ego(
-        state, town, ego_accel, jax.random.fold_in(route_key, 2))
+        state, town, ego_accel, jax.random.fold_in(route_key, 2)
+    )
     ds = ds.at[EGO].set(ego_ds)
     v_new = v_new.at[EGO].set(ego_v)
 
@@ -489,10 +529,15 @@ def hand_over_ego(state: WorldState, vehicle, town) -> WorldState:
     return state._replace(
         ego_actuator=jnp.stack([0.0, _lane_steer(town, state.veh_lane[vehicle], state.veh_s_m[vehicle])]),
         veh_box=jnp.concatenate([state.veh_box[order, :3], state.veh_box[:, 3:]], 1),
-        veh_speed_mps=swap(state.veh_speed_mps), veh_lane=swap(state.veh_lane), veh_s_m=swap(state.veh_s_m),
-        veh_prev_lane=swap(state.veh_prev_lane), veh_route=swap(state.veh_route),
+        veh_speed_mps=swap(state.veh_speed_mps),
+        veh_lane=swap(state.veh_lane),
+        veh_s_m=swap(state.veh_s_m),
+        veh_prev_lane=swap(state.veh_prev_lane),
+        veh_route=swap(state.veh_route),
         veh_standing_steps=swap(state.veh_standing_steps),
-        veh_max_accel_mps2=swap(state.veh_max_accel_mps2), veh_speed_frac=swap(state.veh_speed_frac))
+        veh_max_accel_mps2=swap(state.veh_max_accel_mps2),
+        veh_speed_frac=swap(state.veh_speed_frac),
+    )
 
 
 PLACE_CLEAR_M = 8.0  # place_ego moves every NPC whose centre is nearer than this off the map
@@ -506,8 +551,12 @@ def place_ego(state: WorldState, town, lane, s_m, speed_mps) -> WorldState:
     near = jnp.linalg.norm(state.veh_box[:, :2] - xy, axis=-1) < PLACE_CLEAR_M
     far = jnp.where(near[:, None], jnp.float32(-1e4), state.veh_box[:, :2])
     box = jnp.concatenate([far, state.veh_box[:, 2:]], 1).at[EGO, :3].set(jnp.concatenate([xy, yaw[None]]))
-    return state._replace(veh_box=box, veh_speed_mps=state.veh_speed_mps.at[EGO].set(speed_mps),
-                          veh_lane=state.veh_lane.at[EGO].set(lane), veh_s_m=state.veh_s_m.at[EGO].set(s_m))
+    return state._replace(
+        veh_box=box,
+        veh_speed_mps=state.veh_speed_mps.at[EGO].set(speed_mps),
+        veh_lane=state.veh_lane.at[EGO].set(lane),
+        veh_s_m=state.veh_s_m.at[EGO].set(s_m),
+    )
 
 
 def _lane_steer(town, lane, s_m):
@@ -531,13 +580,13 @@ def _drive_ego(state, town, accel, noise_key):
     ref_xy, ref_yaw, ref_curv = lane_point(town, lane, s - 0.5 * WHEELBASE_M)
     offset = rear_axle - ref_xy
     lateral_m = jnp.cos(ref_yaw) * offset[1] - jnp.sin(ref_yaw) * offset[0]  # > 0: left of the lane
-    curvature = (ref_curv - STEER_GAIN_LATERAL * lateral_m
-                 - STEER_GAIN_HEADING * jnp.sin(wrap_angle(box[2] - ref_yaw)))
+    curvature = ref_curv - STEER_GAIN_LATERAL * lateral_m - STEER_GAIN_HEADING * jnp.sin(wrap_angle(box[2] - ref_yaw))
     steer_command = jnp.clip(jnp.arctan(WHEELBASE_M * curvature), -EGO_STEER_LIMIT_RAD, EGO_STEER_LIMIT_RAD)
     command = jnp.stack([accel, steer_command])
     # (where, not the lag formula at share 1: the exact plant takes the commands bit for bit)
-    actuator = jnp.where(plant.lag_share == 1.0, command,
-                         state.ego_actuator + plant.lag_share * (command - state.ego_actuator))
+    actuator = jnp.where(
+        plant.lag_share == 1.0, command, state.ego_actuator + plant.lag_share * (command - state.ego_actuator)
+    )
     steer = jnp.clip(plant.steer_gain * actuator[1] + plant.steer_offset_rad, -EGO_STEER_LIMIT_RAD, EGO_STEER_LIMIT_RAD)
     noise = jax.random.normal(noise_key, (2,)) * jnp.stack([plant.accel_noise_mps2, plant.curvature_noise_1pm])
     # accel >= -v / DT_S: without lag or noise only rounding is clipped here
@@ -546,8 +595,11 @@ def _drive_ego(state, town, accel, noise_key):
     # Understeer: the curvature is tan(steer) / (wheelbase + K v^2), not tan(steer) / wheelbase. (where: XLA
     # divides by a traced value otherwise than by the constant, so K = 0 takes the constant's quotient.)
     dyaw = ds * jnp.tan(steer) / WHEELBASE_M
-    dyaw = jnp.where(plant.understeer_rad_s2pm == 0.0, dyaw,
-                     dyaw / (1.0 + plant.understeer_rad_s2pm * (0.5 * (v + v_new)) ** 2 / WHEELBASE_M))
+    dyaw = jnp.where(
+        plant.understeer_rad_s2pm == 0.0,
+        dyaw,
+        dyaw / (1.0 + plant.understeer_rad_s2pm * (0.5 * (v + v_new)) ** 2 / WHEELBASE_M),
+    )
     yaw_new = box[2] + dyaw + noise[1] * ds
     mid = 0.5 * (box[2] + yaw_new)
     rear_new = rear_axle + ds * jnp.stack([jnp.cos(mid), jnp.sin(mid)])
