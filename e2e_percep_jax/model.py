@@ -6,8 +6,8 @@ One frame t flows as (R = image size, F = ``feature_dim``, Z = ``z1_dim + z2_dim
     posterior step: (z1, z2 of frame t-1, action t-1, features t) -> z1_t ~ q(z1), z2_t ~ p(z2)
     decode: z_t = [z1_t, z2_t] [B, Z] -> images, PIXOR maps, normalised pose
 
-Layers match the torch peer (``shared/peer/torch_peer_bench.py``) layer for layer, so the parameter
-counts are equal: torch's stride-2 ``Conv2d(k, 2, k // 2)`` is a flax ``Conv`` with explicit padding,
+Layers match the eager PyTorch peer that ``experiments/bench.py`` times against, layer for layer, so the
+parameter counts are equal: torch's stride-2 ``Conv2d(k, 2, k // 2)`` is a flax ``Conv`` with explicit padding,
 its ``ConvTranspose2d(k, 2, k // 2, output_padding=1)`` is :class:`Deconv2x` (a stride-2 layer halves /
 doubles the size exactly), and the encoder's last ``Conv2d(4)`` (4 x 4 -> 1 x 1) and the trunks' first
 ``ConvTranspose2d(4)`` (1 x 1 -> 4 x 4) are matmuls (:class:`WholeMapConv`, :class:`WholeMapConvTranspose`).

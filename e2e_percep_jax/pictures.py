@@ -150,7 +150,6 @@ def frame_panel(frame, panel_px=256, pred_boxes=None, pred_scores=None, titles=T
     frame: dict with camera, lidar, roadmap [R, R, 3] and boxes [N, 5], boxes_valid, boxes_occluded [N]
     (NumPy or JAX). pred_boxes [M, 5] (ego frame) and pred_scores [M] are optional predictions.
     """
-    r = frame["camera"].shape[0]
     up = lambda im, how: cv2.resize(np.asarray(im), (panel_px, panel_px), interpolation=how)
     camera = up(frame["camera"], cv2.INTER_LINEAR)
     lidar = up(frame["lidar"], cv2.INTER_NEAREST)  # keep single returns crisp

@@ -443,8 +443,8 @@ def test_bad_input_fails_in_one_line_naming_it_and_writes_nothing(name, request,
         lines = err.splitlines()
         # JAX_LOG_COMPILES logs tracing too: evaluate traces the train state's shapes (jax.eval_shape) to
         # restore a checkpoint; that is not a compilation, and without the variable it prints nothing.
-        compiled = [l for l in lines if "Compiling " in l or "XLA compilation" in l or "MLIR module" in l]
-        said = [l for l in lines if "Finished tracing" not in l]
+        compiled = [ln for ln in lines if "Compiling " in ln or "XLA compilation" in ln or "MLIR module" in ln]
+        said = [ln for ln in lines if "Finished tracing" not in ln]
         assert status == 1 and len(said) == 1 and said[0].startswith("error: ") and says(said[0][7:], case.expect), (
             status,
             err,
@@ -524,7 +524,7 @@ def test_a_resume_sets_a_damaged_latest_checkpoint_aside(run, tmp_path, capfd, h
     state = train_lib.train(CFG, workdir, batches=synthetic_batches)
     out, err = capfd.readouterr()
     step2 = os.path.join(workdir, "checkpoints", "2")
-    ours = [l for l in err.splitlines() if l.startswith("checkpoint ")]
+    ours = [ln for ln in err.splitlines() if ln.startswith("checkpoint ")]
     assert len(ours) == 1 and f"checkpoint {step2}: cannot be restored" in ours[0], err
     assert f"kept as {step2}.damaged" in ours[0], err
     assert f"resumed from step 1 in {workdir}" in out

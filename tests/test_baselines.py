@@ -76,7 +76,7 @@ def test_single_frame_output_ignores_other_frames_while_the_filter_remembers(cli
             np.testing.assert_array_equal(after[k][:, t], before[k][:, t], err_msg=f"{head} {k}")
             assert not np.allclose(after[k][:, t + 1], before[k][:, t + 1]), (head, k)  # the inputs do matter
     params = model.init_params(jax.random.PRNGKey(0), cfg)
-    z = jax.jit(lambda c, l: model.filter_sequence(params, c, l, batch["action"], None, cfg)["z2"][:, t])
+    z = jax.jit(lambda c, li: model.filter_sequence(params, c, li, batch["action"], None, cfg)["z2"][:, t])
     assert np.max(np.abs(z(changed["camera"], changed["lidar"]) - z(batch["camera"], batch["lidar"]))) > 1e-3
 
 

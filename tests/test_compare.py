@@ -59,13 +59,13 @@ def runs(tmp_path):
 
 
 def _cells(text, row):
-    line = next(l for l in text.splitlines() if l.startswith(f"| {row} |"))
+    line = next(ln for ln in text.splitlines() if ln.startswith(f"| {row} |"))
     return [c.strip() for c in line.strip("|").split("|")][1:]
 
 
 def test_cells_are_the_seed_means_per_town(runs):
     text = compare.table(compare.collect(*runs))
-    header = next(l for l in text.splitlines() if l.startswith("| metric"))
+    header = next(ln for ln in text.splitlines() if ln.startswith("| metric"))
     assert [c.strip() for c in header.strip("|").split("|")][1:] == ["full", "detector", "constant pose"]
     assert _cells(text, "AP@0.5 all (%)") == ["60.0 / 30.0", "25.0 / n/a", "0.0 / 0.0"]
     assert _cells(text, "location mean (m)") == ["15.0 / 40.0", "n/a / n/a", "99.0 / 99.0"]

@@ -64,12 +64,11 @@ _MEMORY_SCRIPT = textwrap.dedent(
     for n, out in ((0, os.path.join(run, "warmup")), (200, os.path.join(run, "eval200")),
                    (2000, os.path.join(run, "eval"))):
         samples[n] = []
-        ev.evaluate(C.replace(cfg, eval=dict(num_frames=n or 200)), params, out, video_frames=%d, workdir=run,
+        ev.evaluate(C.replace(cfg, eval=dict(num_frames=n or 200)), params, out, video_frames=int(sys.argv[2]), workdir=run,
                     checkpoint_step=step, log=lambda line: samples[n].append(rss()))
     print("RESULT " + json.dumps({"samples": samples,
                                   "maxrss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
 """
-    % VIDEO_FRAMES
 )
 
 
@@ -80,7 +79,7 @@ def memory_run(tmp_path_factory):
     # Two malloc arenas: with glibc's default (one per thread under contention) a new 64 MB arena can
     # appear at any time on a loaded machine, which says nothing about the evaluation.
     proc = subprocess.Popen(
-        [sys.executable, "-c", _MEMORY_SCRIPT, run],
+        [sys.executable, "-c", _MEMORY_SCRIPT, run, str(VIDEO_FRAMES)],
         cwd=REPO,
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
@@ -93,7 +92,7 @@ def memory_run(tmp_path_factory):
         if not result:
             output, _ = proc.communicate(timeout=600)
             assert proc.returncode == 0, output[-3000:]
-            line = [l for l in output.splitlines() if l.startswith("RESULT ")][-1]
+            line = [ln for ln in output.splitlines() if ln.startswith("RESULT ")][-1]
             result.update(json.loads(line[len("RESULT ") :]), run=run)
         return result
 

@@ -68,7 +68,7 @@ def test_every_network_output_shape(r):
     b, t1 = 2, 4
     seq = jax.ShapeDtypeStruct((b, t1, r, r, 3), jnp.uint8)
     out = jax.eval_shape(
-        lambda p, c, l, a: model.filter_sequence(p, c, l, a, jax.random.PRNGKey(0), cfg),
+        lambda p, c, li, a: model.filter_sequence(p, c, li, a, jax.random.PRNGKey(0), cfg),
         params,
         seq,
         seq,

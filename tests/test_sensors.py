@@ -334,11 +334,11 @@ def test_roadmap_keeps_thin_solid_lines_solid(r):
 def scene():
     """Ego at (5, 2) heading north-west; a wall ahead hiding one car; one car in the open; one far away."""
     ego_yaw = 2.3
-    to_town = lambda x, y, yaw, l, w: [
+    to_town = lambda x, y, yaw, length, width: [
         *np.asarray(geo.ego_to_town(np.array([x, y]), np.array([5.0, 2.0]), ego_yaw)),
         yaw + ego_yaw,
-        l,
-        w,
+        length,
+        width,
     ]
     buildings = [
         (to_town(9.0, 0.0, 0.0, 1.0, 12.0), 4.0, [120, 110, 100]),

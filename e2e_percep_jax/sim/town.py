@@ -912,6 +912,6 @@ def _build_town_np(seed):
         node_kind=node_kind.astype(i32),
         node_degree=node_degree.astype(i32),
         ring_radius_m=np.array(RING_RADIUS_M, f32),
-        spawn_lane=np.array([l for l, _ in spawn], i32),
+        spawn_lane=np.array([lane for lane, _ in spawn], i32),
         spawn_s_m=np.array([s for _, s in spawn], f32),
     )
