@@ -1,10 +1,11 @@
 """End-to-end driving perception by sequential latent representation learning, in JAX.
 
 For other JAX code: ``perceiver, params = e2e_percep_jax.load(workdir)``, then the pure
-``perceiver.init`` / ``perceiver.step`` / ``perceiver.boxes`` (see :mod:`e2e_percep_jax.api`).
+``perceiver.init`` / ``perceiver.step`` / ``perceiver.boxes`` (see :mod:`e2e_percep_jax.api`), whose outputs
+are a ``PerceiverOutputs``.
 """
 
-__all__ = ["Perceiver", "load"]
+__all__ = ["Perceiver", "PerceiverOutputs", "load"]
 
 
 def __getattr__(name):

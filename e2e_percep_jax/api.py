@@ -2,8 +2,9 @@
 
     import e2e_percep_jax as e2e
     perceiver, params = e2e.load("runs/demo")           # latest checkpoint of a training run
-    state = perceiver.init(batch_size=4)                 # a filter state for 4 streams
+    state = perceiver.init(batch_size=4)                 # a model.FilterState for 4 streams
     state, out = perceiver.step(params, state, camera, lidar, action, key=None)
+    out.pose, state.pose.belief                          # a PerceiverOutputs; the pose belief's filter state
     boxes = perceiver.boxes(out)                         # per stream: (boxes [M, 5], scores [M])
 
 ``Perceiver.step`` is a pure function of its arguments (the perceiver itself holds only the frozen
@@ -16,6 +17,7 @@ returns sharpens as a drive goes on. The online evaluation perceives through thi
 
 import dataclasses
 
+import flax.struct
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -34,6 +36,38 @@ def _check(name, x, shape, dtype):
         )
 
 
+@flax.struct.dataclass
+class PerceiverOutputs:
+    """What :meth:`Perceiver.step` returns for a frame of B streams (R = ``data.image_size``; a pytree).
+    The baselines' perceivers (:mod:`e2e_percep_jax.baselines`) return it too, without what they lack.
+
+    det_cls: float32 [B, R, R, 1], the vehicle probability of each bird's-eye pixel.
+    det_reg: float32 [B, R, R, 6], the PIXOR regression (units in :mod:`e2e_percep_jax.sim.pixor`).
+    pose: float32 [B, 5], the ego pose in the town frame (x m, y m, cos ψ, sin ψ, speed m/s). With the
+        belief head: at the filtered belief's mode, or under ``--model.pose_filter=none`` the head's own
+        mode this frame. NaN from a perceiver without a pose estimate.
+    z: float32 [B, z1_dim + z2_dim], the latent (z1, z2) the maps are decoded from; None without a latent.
+    camera, lidar, roadmap: float32 [B, R, R, 3] in [0, 1], the reconstructed images: those the variant
+        reconstructs (``model.reconstructed_images``), the others None.
+    pose_place: float32 [B, n, n], the pose belief's probability of each cell (row i along y, column j
+        along x, ``pose_belief.Grid.cell_centres``); None without the belief head.
+    """
+
+    det_cls: jax.Array
+    det_reg: jax.Array
+    pose: jax.Array
+    z: jax.Array | None = None
+    camera: jax.Array | None = None
+    lidar: jax.Array | None = None
+    roadmap: jax.Array | None = None
+    pose_place: jax.Array | None = None
+
+
+def _leaf_names(state) -> list:
+    """The names of a filter state's arrays, as its checks name them (``state.pose.belief``)."""
+    return [f"state{jax.tree_util.keystr(path)}" for path, _ in jax.tree_util.tree_flatten_with_path(state)[0]]
+
+
 @dataclasses.dataclass(frozen=True)
 class Perceiver:
     """The perception model of ``cfg`` as pure functions of (params, filter state, inputs). ``motion_model``:
@@ -48,35 +82,35 @@ class Perceiver:
     def belief(self) -> bool:
         return self.cfg.model.pose_head == "belief"
 
-    def init(self, batch_size: int) -> dict:
-        """The filter state before the first frame of ``batch_size`` streams.
-
-        A dict of arrays: z1 [B, z1_dim], z2 [B, z2_dim], first [B] bool, and with the belief pose head
-        ``pose``: {belief [B, H, n, n] probabilities over (heading bin, cell row, cell column), speed_mps
-        [B]} (see :mod:`e2e_percep_jax.pose_belief`). Setting ``first[i]`` to True restarts stream i's
-        filter, pose belief included (e.g. at a new drive).
+    def init(self, batch_size: int) -> model_lib.FilterState:
+        """The filter state (:class:`~e2e_percep_jax.model.FilterState`) before the first frame of
+        ``batch_size`` streams; with the belief pose head its ``pose`` is the pose belief's
+        (:class:`~e2e_percep_jax.pose_belief.PoseBeliefState`), else None.
         """
         if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) or batch_size < 1:
             raise ValueError(f"batch_size={batch_size!r}: must be a positive integer")
         state = model_lib.init_filter_state(batch_size, self.cfg)
         if self.belief:
-            state["pose"] = pose_belief.init_state(batch_size, pose_belief.grid_of(self.cfg.model))
+            state = state.replace(pose=pose_belief.init_state(batch_size, pose_belief.grid_of(self.cfg.model)))
         return state
 
-    def step(self, params, state: dict, camera, lidar, action, key=None, start_pose=None, measure: bool = True):
+    def step(
+        self,
+        params,
+        state: model_lib.FilterState,
+        camera,
+        lidar,
+        action,
+        key=None,
+        start_pose=None,
+        measure: bool = True,
+    ) -> tuple[model_lib.FilterState, PerceiverOutputs]:
         """Filters one frame of B streams and decodes it.
 
-        camera, lidar: uint8 [B, R, R, 3] (the frame contract's images); action: float32 [B, 2], the
-        ego's commands from the previous frame to this one, as the car logs them (pedal in [-1, 1],
-        steering command rad; ignored on a stream's first frame); key: a PRNG key to sample the latents, or None for the
-        posterior means. Returns (state, outputs) with outputs:
-        ``det_cls`` [B, R, R, 1] vehicle probability, ``det_reg`` [B, R, R, 6] PIXOR regression
-        (units in :mod:`e2e_percep_jax.sim.pixor`), ``pose`` [B, 5] (x m, y m, cos ψ, sin ψ, speed m/s,
-        town frame; with the belief head: at the filtered belief's mode, or under ``--model.pose_filter=none``
-        the head's own mode this frame), ``z`` [B, z1_dim + z2_dim], the
-        reconstructed images the variant has (``roadmap``, ``camera``, ``lidar``: float32 [B, R, R, 3] in
-        [0, 1]), and with the belief head ``pose_place`` [B, n, n], the belief's probability of each cell
-        (row i along y, column j along x, ``pose_belief.Grid.cell_centres``).
+        state: :meth:`init`'s or the last step's; camera, lidar: uint8 [B, R, R, 3] (the frame contract's
+        images); action: float32 [B, 2], the ego's commands from the previous frame to this one, as the car
+        logs them (pedal in [-1, 1], steering command rad; ignored on a stream's first frame); key: a PRNG
+        key to sample the latents, or None for the posterior means. Returns (state, :class:`PerceiverOutputs`).
 
         ``start_pose`` [B, 5] (belief head only): the known-start protocol. Streams starting a drive start
         their belief at this pose; it then follows the commands through the motion model and, with
@@ -85,7 +119,7 @@ class Perceiver:
         motion model, with the head's speed.
         """
         camera, lidar, action = jnp.asarray(camera), jnp.asarray(lidar), jnp.asarray(action)
-        first = state.get("first") if isinstance(state, dict) else None
+        first = state.first if isinstance(state, model_lib.FilterState) else None
         b, r = (first.shape[0] if getattr(first, "ndim", 0) == 1 else camera.shape[0]), self.cfg.data.image_size
         _check("camera", camera, (b, r, r, 3), jnp.uint8)
         _check("lidar", lidar, (b, r, r, 3), jnp.uint8)
@@ -97,58 +131,65 @@ class Perceiver:
         latent_state, latent = model_lib.filter_step(params, state, camera, lidar, action, key, self.cfg)
         z = jnp.concatenate([latent["z1"], latent["z2"]], -1)
         decoded = model_lib.decode(params, z, self.cfg)
-        outputs = {"det_cls": decoded["det_cls"], "det_reg": decoded["det_reg"], "z": z}
-        outputs.update(
+        common = dict(det_cls=decoded["det_cls"], det_reg=decoded["det_reg"], z=z)
+        common.update(
             {k: jnp.clip(decoded[k], 0.0, 1.0) for k in model_lib.reconstructed_images(self.cfg.model.variant)}
         )
         if not self.belief:
-            return latent_state, dict(outputs, pose=model_lib.pose_to_metres(decoded["pose_normalised"]))
+            return latent_state, PerceiverOutputs(pose=model_lib.pose_to_metres(decoded["pose_normalised"]), **common)
         head, grid = model_lib.pose_belief_head(params, latent, self.cfg), pose_belief.grid_of(self.cfg.model)
         if self.cfg.model.pose_filter == "histogram":
-            pose_state, outputs["pose"] = pose_belief.filter_step(
-                state["pose"],
+            pose_state, pose = pose_belief.filter_step(
+                state.pose,
                 head,
                 action,
-                state["first"],
+                state.first,
                 grid,
                 self.motion_model,
                 start_pose=start_pose,
                 measure=measure,
             )
         else:  # the frame's head alone: its own distribution is the belief
-            pose_state, outputs["pose"] = pose_belief.head_state(head, grid), pose_belief.decode(head, grid)
-        outputs["pose_place"] = pose_belief.place_marginal(pose_state["belief"])
-        return dict(latent_state, pose=pose_state), outputs
+            pose_state, pose = pose_belief.head_state(head, grid), pose_belief.decode(head, grid)
+        pose_place = pose_belief.place_marginal(pose_state.belief)
+        return latent_state.replace(pose=pose_state), PerceiverOutputs(pose=pose, pose_place=pose_place, **common)
 
-    def pose_nll(self, state: dict, pose):
+    def pose_nll(self, state: model_lib.FilterState, pose):
         """-log density [B] of the true poses [B, 5] (metres) under the filtered pose belief (per m² and
         radian), NaN without the belief head."""
         if not self.belief:
             return jnp.full(pose.shape[:1], jnp.nan)
-        return pose_belief.negative_log_likelihood(state["pose"], pose, pose_belief.grid_of(self.cfg.model))
+        return pose_belief.negative_log_likelihood(state.pose, pose, pose_belief.grid_of(self.cfg.model))
 
-    def pose_coverage(self, state: dict, pose):
+    def pose_coverage(self, state: model_lib.FilterState, pose):
         """Whether the true poses [B, 5] lie in the pose belief's 95 % region: bool [B, 2], for the place
         and for the place with heading (:func:`pose_belief.in_region`); False without the belief head."""
         if not self.belief:
             return jnp.zeros(pose.shape[:1] + (2,), bool)
-        return pose_belief.in_region(state["pose"], pose, pose_belief.grid_of(self.cfg.model))
+        return pose_belief.in_region(state.pose, pose, pose_belief.grid_of(self.cfg.model))
 
     def _check_state(self, state, batch_size: int):
         """Trace-time check of a filter state against :meth:`init`'s for ``batch_size`` streams."""
         expected = jax.eval_shape(lambda: self.init(batch_size))
-        if not isinstance(state, dict) or jax.tree.structure(state) != jax.tree.structure(expected):
-            keys = sorted(state) if isinstance(state, dict) else type(state).__name__
-            raise ValueError(f"state: expected the dict of Perceiver.init (keys {sorted(expected)}), got {keys}")
+        if not isinstance(state, model_lib.FilterState):
+            raise ValueError(f"state: expected the FilterState of Perceiver.init, got {type(state).__name__}")
+        if jax.tree.structure(state) != jax.tree.structure(expected):
+            want, got = _leaf_names(expected), _leaf_names(state)
+            raise ValueError(
+                f"state: expected the FilterState of Perceiver.init; missing {[n for n in want if n not in got]}, "
+                f"unexpected {[n for n in got if n not in want]}"
+            )
         for (path, want), got in zip(jax.tree_util.tree_flatten_with_path(expected)[0], jax.tree.leaves(state)):
             _check(f"state{jax.tree_util.keystr(path)}", jnp.asarray(got), want.shape, want.dtype)
 
-    def boxes(self, outputs, score_threshold: float | None = None, iou_threshold: float = detection.NMS_IOU):
+    def boxes(
+        self, outputs: PerceiverOutputs, score_threshold: float | None = None, iou_threshold: float = detection.NMS_IOU
+    ):
         """Host-side box decoding of :meth:`step`'s outputs: for each of the B streams, (boxes [M, 5]
         in the ego frame (x m, y m, yaw rad, length m, width m), scores [M]), highest score first,
         after greedy NMS on exact rotated IoU. ``score_threshold`` defaults to the config's."""
         threshold = self.cfg.eval.score_threshold if score_threshold is None else score_threshold
-        cls_maps, reg_maps = np.asarray(outputs["det_cls"]), np.asarray(outputs["det_reg"])
+        cls_maps, reg_maps = np.asarray(outputs.det_cls), np.asarray(outputs.det_reg)
         return [
             detection.thresholded_boxes(cls_map, reg_map, threshold, iou_threshold)
             for cls_map, reg_map in zip(cls_maps, reg_maps)

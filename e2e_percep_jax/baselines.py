@@ -14,7 +14,7 @@ Baselines (``BASELINES``), each run in ``<workdir>/<baseline>/``:
 - ``dead_reckoning``: no network, on the same information as the pose belief's motion: from each drive's
   true first pose and speed, the logged commands through the same calibrated motion model
   (:class:`CommandOdometry`, :mod:`e2e_percep_jax.sim.motion`). Evaluated under the known-start protocol.
-- ``wheel_odometry``: no network; ``tracking.DeadReckoner`` from each drive's true first pose, integrating
+- ``wheel_odometry``: no network; ``odometry.DeadReckoner`` from each drive's true first pose, integrating
   wheel-speed and yaw-rate sensors: the true speed and yaw rate with a per-drive wheel-radius error and
   gyro bias, and per-sample noise (:func:`wheel_odometry_host`). Evaluated under the known-start protocol.
 
@@ -29,6 +29,7 @@ import functools
 import os
 
 import flax.linen as nn
+import flax.struct
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -39,8 +40,10 @@ from e2e_percep_jax import evaluate as eval_lib
 from e2e_percep_jax import loss as loss_lib
 from e2e_percep_jax import model as model_lib
 from e2e_percep_jax import train as train_lib
+from e2e_percep_jax.api import PerceiverOutputs
 from e2e_percep_jax.config import Config, ModelConfig
 from e2e_percep_jax.sim import motion as motion_lib
+from e2e_percep_jax.sim import odometry
 
 HEADS = ("detection", "pose")
 BASELINES = ("detector", "tracker", "pose", "dead_reckoning", "wheel_odometry")
@@ -138,28 +141,27 @@ OBJECTIVES = {
 @dataclasses.dataclass(frozen=True)
 class SingleFramePerceiver:
     """The inference API's ``init`` / ``step`` for a baseline ``head`` (None: no network, for dead
-    reckoning): each frame on its own, nothing carried. A head it does not have gives empty maps (no
-    boxes) or a NaN pose."""
+    reckoning): each frame on its own, nothing carried (the state is None). A head it does not have gives
+    empty maps (no boxes) or a NaN pose."""
 
     cfg: Config
     head: str | None
 
-    def init(self, batch_size: int) -> dict:
-        return {}
+    def init(self, batch_size: int) -> None:
+        return None
 
     def step(self, params, state, camera, lidar, action, key=None, start_pose=None, measure=True):
-        """(state, outputs): det_cls [B, R, R, 1], det_reg [B, R, R, 6], pose [B, 5] (metres); ``action``,
-        ``key``, ``start_pose`` and ``measure`` are unused."""
+        """(state, :class:`PerceiverOutputs` with det_cls, det_reg and pose); ``action``, ``key``,
+        ``start_pose`` and ``measure`` are unused."""
         out = {} if self.head is None else predict(params, camera, lidar, self.cfg, self.head)
-        if "pose_normalised" in out:
-            out = {"pose": model_lib.pose_to_metres(out["pose_normalised"])}
         b, r = camera.shape[0], self.cfg.data.image_size
-        empty = {
-            "det_cls": jnp.zeros((b, r, r, 1)),
-            "det_reg": jnp.zeros((b, r, r, 6)),
-            "pose": jnp.full((b, 5), jnp.nan),
-        }
-        return state, {**empty, **out}
+        if "pose_normalised" in out:
+            pose = model_lib.pose_to_metres(out["pose_normalised"])
+        else:
+            pose = jnp.full((b, 5), jnp.nan)
+        det_cls = out["det_cls"] if "det_cls" in out else jnp.zeros((b, r, r, 1))
+        det_reg = out["det_reg"] if "det_reg" in out else jnp.zeros((b, r, r, 6))
+        return state, PerceiverOutputs(det_cls=det_cls, det_reg=det_reg, pose=pose)
 
 
 def tracker_host(tracker_cfg=None):
@@ -180,6 +182,20 @@ def tracker_host(tracker_cfg=None):
     return per_drive
 
 
+@flax.struct.dataclass
+class OdometryState:
+    """:class:`CommandOdometry`'s state of B streams (a pytree).
+
+    pose: float32 [B, 5], the last frame's pose in the town frame (x m, y m, cos ψ, sin ψ, speed m/s).
+    actuator: float32 [B, 2], the actuators' state (pedal, steering rad), as in the pose belief's filter.
+    started: bool [B], whether the stream's drive has started (False: its next frame is a first one).
+    """
+
+    pose: jax.Array
+    actuator: jax.Array
+    started: jax.Array
+
+
 @dataclasses.dataclass(frozen=True)
 class CommandOdometry:
     """Dead reckoning on the logged commands, as the inference API's ``init`` / ``step``: each stream
@@ -189,25 +205,25 @@ class CommandOdometry:
     cfg: Config
     motion_model: motion_lib.MotionModel
 
-    def init(self, batch_size: int) -> dict:
-        return {
-            "pose": jnp.zeros((batch_size, 5)),
-            "actuator": jnp.zeros((batch_size, 2)),
-            "started": jnp.zeros((batch_size,), bool),
-        }
+    def init(self, batch_size: int) -> OdometryState:
+        return OdometryState(
+            pose=jnp.zeros((batch_size, 5)),
+            actuator=jnp.zeros((batch_size, 2)),
+            started=jnp.zeros((batch_size,), bool),
+        )
 
     def step(self, params, state, camera, lidar, action, key=None, start_pose=None, measure=True):
         if start_pose is None:
             raise ValueError("dead reckoning starts from the true pose: evaluate it with --eval.known_start")
         # (the first commands of a drive set the actuators, as in the pose belief's filter)
-        actuator = jnp.where(state["started"][:, None], state["actuator"], action)
-        actuator, moved = motion_lib.advance_pose(self.motion_model, actuator, action, state["pose"])
-        first = ~state["started"]
+        actuator = jnp.where(state.started[:, None], state.actuator, action)
+        actuator, moved = motion_lib.advance_pose(self.motion_model, actuator, action, state.pose)
+        first = ~state.started
         pose = jnp.where(first[:, None], start_pose, moved)
         b, r = camera.shape[0], self.cfg.data.image_size
         return (
-            {"pose": pose, "actuator": jnp.where(first[:, None], 0.0, actuator), "started": jnp.ones_like(first)},
-            {"det_cls": jnp.zeros((b, r, r, 1)), "det_reg": jnp.zeros((b, r, r, 6)), "pose": pose},
+            OdometryState(pose=pose, actuator=jnp.where(first[:, None], 0.0, actuator), started=jnp.ones_like(first)),
+            PerceiverOutputs(det_cls=jnp.zeros((b, r, r, 1)), det_reg=jnp.zeros((b, r, r, 6)), pose=pose),
         )
 
 
@@ -218,8 +234,8 @@ def wheel_odometry_host(
     speed_noise_std_mps: float = SPEED_NOISE_STD_MPS,
     yaw_rate_noise_std_rps: float = YAW_RATE_NOISE_STD_RPS,
 ):
-    """``evaluate``'s ``host_fn``: per drive, a ``tracking.DeadReckoner`` started at the drive's true first
-    pose and stepped with wheel-speed and yaw-rate readings: ``tracking.noisy_odometry`` of consecutive
+    """``evaluate``'s ``host_fn``: per drive, an ``odometry.DeadReckoner`` started at the drive's true first
+    pose and stepped with wheel-speed and yaw-rate readings: ``odometry.noisy_odometry`` of consecutive
     true poses, the speed scaled by a per-drive wheel-radius error and the yaw rate offset by a per-drive
     gyro bias (all drawn from ``default_rng([seed, world])``); its pose replaces the predicted one."""
 
@@ -231,9 +247,9 @@ def wheel_odometry_host(
 
         def post(boxes, scores, pose_pred, pose):
             if not drive:
-                drive.update(reckoner=tracking.DeadReckoner(pose), previous=pose)
+                drive.update(reckoner=odometry.DeadReckoner(pose), previous=pose)
                 return boxes, scores, drive["reckoner"].pose
-            speed, yaw_rate = tracking.noisy_odometry(
+            speed, yaw_rate = odometry.noisy_odometry(
                 np.stack([drive["previous"], pose]), speed_noise_std_mps, yaw_rate_noise_std_rps, rng
             )
             drive["previous"] = pose

@@ -49,6 +49,7 @@ from e2e_percep_jax import detection, report, summary
 from e2e_percep_jax import metrics as metrics_lib
 from e2e_percep_jax.api import Perceiver, run_perceiver
 from e2e_percep_jax.config import Config, WorldConfig
+from e2e_percep_jax.launch import eta
 from e2e_percep_jax.sim import rollout, world
 from e2e_percep_jax.sim import town as town_lib
 
@@ -88,9 +89,9 @@ def make_chunk_fn(cfg: Config, town, perceiver, sample: bool, detect: detection.
     candidate), with those two worlds' images [C, 2, R, R, 3] uint8: camera, lidar, roadmap, the perceiver's reconstructions
     ``recon_<name>`` and its pose belief ``pose_place`` [C, 2, n, n] where it has them.
 
-    ``heads(outputs, frame) -> outputs``, traced inside the program, may replace the perceiver's
-    det_cls / det_reg / pose (metres) before scoring: an oracle (the world's own targets) goes through
-    the same candidate / NMS / matching path.
+    ``heads(outputs, frame) -> outputs``, traced inside the program, may replace the det_cls / det_reg /
+    pose (metres) of the perceiver's :class:`~e2e_percep_jax.api.PerceiverOutputs` before scoring: an
+    oracle (the world's own targets) goes through the same candidate / NMS / matching path.
     """
     pose_nll = getattr(perceiver, "pose_nll", None)
 
@@ -109,7 +110,7 @@ def make_chunk_fn(cfg: Config, town, perceiver, sample: bool, detect: detection.
         if heads is not None:
             outputs = heads(outputs, frame)
         cand_boxes, cand_scores, saturated = detection.candidates(
-            outputs["det_cls"], outputs["det_reg"], detect.top_k, detect.score_floor
+            outputs.det_cls, outputs.det_reg, detect.top_k, detect.score_floor
         )
         nll = jnp.full(frame["pose"].shape[:1], jnp.nan) if pose_nll is None else pose_nll(pstate, frame["pose"])
         cover = (
@@ -127,17 +128,16 @@ def make_chunk_fn(cfg: Config, town, perceiver, sample: bool, detect: detection.
             "boxes_valid": frame["boxes_valid"],
             "boxes_occluded": frame["boxes_occluded"],
             "pose": frame["pose"],
-            "pose_pred": outputs["pose"],
+            "pose_pred": outputs.pose,
             "pose_nll": nll,
             "pose_cover": cover,
             "pictured": pictured,
         }
         out.update({k: frame[k][pictured] for k in ("camera", "lidar", "roadmap")})
-        out.update(
-            {f"recon_{k}": _to_uint8(outputs[k][pictured]) for k in ("camera", "lidar", "roadmap") if k in outputs}
-        )
-        if "pose_place" in outputs:
-            out["pose_place"] = outputs["pose_place"][pictured]
+        recons = {k: getattr(outputs, k) for k in ("camera", "lidar", "roadmap")}
+        out.update({f"recon_{k}": _to_uint8(image[pictured]) for k, image in recons.items() if image is not None})
+        if outputs.pose_place is not None:
+            out["pose_place"] = outputs.pose_place[pictured]
         return pstate, out
 
     def chunk(params, wstate, pstate, key, warm):
@@ -179,8 +179,8 @@ def evaluate(
     ``out_dir``; returns the metrics dict (also written to metrics.json).
 
     ``perceiver``: anything with the inference API's ``init(batch_size)`` and ``step(params, state, camera,
-    lidar, action, key=None, start_pose=None) -> (state, outputs)`` (outputs: det_cls, det_reg, pose in
-    metres; optionally the reconstructions and ``pose_place``), and optionally ``pose_nll(state, pose)``
+    lidar, action, key=None, start_pose=None) -> (state, outputs)`` (state: any pytree the perceiver
+    carries; outputs: a :class:`~e2e_percep_jax.api.PerceiverOutputs`), and optionally ``pose_nll(state, pose)``
     and ``pose_coverage(state, pose)``
     (default: the filtered model, with the motion model of the run in ``workdir``, or the exact bicycle
     without one: :func:`api.run_perceiver`). ``video_frames``: frames of world 0 in
@@ -301,7 +301,7 @@ def evaluate(
         rate = done / max(now - tick, 1e-9)
         log(
             f"eval: {done}/{ev.num_frames} frames ({100 * done / ev.num_frames:.0f}%)  {rate:.1f} frames/s  "
-            f"ETA {_eta((ev.num_frames - done) / max(rate, 1e-9))}"
+            f"ETA {eta((ev.num_frames - done) / max(rate, 1e-9))}"
         )
     seconds = time.perf_counter() - tick
     examples = pictures.close()
@@ -380,9 +380,3 @@ def evaluate(
         f"heading error {report.fmt(metrics['pose']['heading_rad']['mean'], digits=3)} rad"
     )
     return metrics
-
-
-def _eta(seconds):
-    m, s = divmod(int(seconds), 60)
-    h, m = divmod(m, 60)
-    return f"{h}h{m:02d}m" if h else f"{m}m{s:02d}s"

@@ -17,8 +17,8 @@ head's output and the PIXOR class logit (a sigmoid).
 Public API (``cfg`` is the full :class:`~e2e_percep_jax.config.Config`; params are a plain pytree):
 
 - :func:`init_params` ``(key, cfg) -> params``
-- :func:`init_filter_state` / :func:`filter_step`: streaming posterior filtering, one frame a call;
-  :func:`filter_sequence` is the same recursion as one ``lax.scan`` over a batch of sequences.
+- :func:`init_filter_state` / :func:`filter_step`: streaming posterior filtering, one frame a call, of a
+  :class:`FilterState`; :func:`filter_sequence` is the same recursion as one ``lax.scan`` over a batch of sequences.
 - :func:`decode` ``(params, z, cfg)``: every decoder head from latents.
 - :func:`normalise_pose` / :func:`pose_to_metres`: the fixed affine map between the pose head's
   output and the frame contract's pose.
@@ -29,6 +29,7 @@ import math
 
 import distrax
 import flax.linen as nn
+import flax.struct
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -276,7 +277,7 @@ class PerceptionModel(nn.Module):
 
     def posterior_step(self, state, features, prev_action, key):
         """One filtering step from encoded features; see :func:`filter_step` for the arguments."""
-        z2_prev, first = state["z2"], state["first"]
+        z2_prev, first = state.z2, state.first
         k1, k2 = (None, None) if key is None else jax.random.split(key)
         p1_loc, p1_scale = self.z1_prior(z2_prev, prev_action, first)
         q1_loc, q1_scale = self.z1_posterior(features, z2_prev, prev_action, first)
@@ -284,7 +285,7 @@ class PerceptionModel(nn.Module):
         # q(z2) is p(z2) itself (SLAC), so the z2 KL is zero and is not part of the loss.
         z2_loc, z2_scale = self.z2_prior(z1, z2_prev, prev_action, first)
         z2 = _sample(z2_loc, z2_scale, k2)
-        new_state = {"z1": z1, "z2": z2, "first": jnp.zeros_like(first)}
+        new_state = FilterState(z1=z1, z2=z2, first=jnp.zeros_like(first))
         outputs = {
             "z1": z1,
             "z2": z2,
@@ -327,17 +328,33 @@ def build_model(cfg: Config) -> PerceptionModel:
     return PerceptionModel(cfg.model, cfg.data.image_size)
 
 
-def init_filter_state(batch_size: int, cfg: Config) -> dict:
-    """Filter state before a sequence's first frame: z1 [B, z1], z2 [B, z2] zeros, first [B] True.
+@flax.struct.dataclass
+class FilterState:
+    """The streaming filter's state of B streams (a pytree: it goes through ``jit`` and ``lax.scan``).
 
-    Set ``first`` to True for any row to restart that row's filter (e.g. after a world reset).
+    z1: float32 [B, z1_dim], z2: float32 [B, z2_dim]: the latents of each stream's last frame (zeros
+        before its first).
+    first: bool [B], the next frame starts the stream: its filter restarts, the pose belief's included
+        (``state.replace(first=state.first.at[i].set(True))`` restarts stream i, e.g. at a new drive).
+    pose: the pose belief's histogram filter (:class:`pose_belief.PoseBeliefState`), which the inference
+        API (``api.Perceiver``) keeps with the belief pose head; None otherwise, and in the latent filter
+        of this module (:func:`filter_step`, :func:`filter_sequence`).
     """
+
+    z1: jax.Array
+    z2: jax.Array
+    first: jax.Array
+    pose: pose_belief.PoseBeliefState | None = None
+
+
+def init_filter_state(batch_size: int, cfg: Config) -> FilterState:
+    """The latent filter's state before a sequence's first frame: zero latents, ``first`` True, no pose."""
     m = cfg.model
-    return {
-        "z1": jnp.zeros((batch_size, m.z1_dim)),
-        "z2": jnp.zeros((batch_size, m.z2_dim)),
-        "first": jnp.ones((batch_size,), bool),
-    }
+    return FilterState(
+        z1=jnp.zeros((batch_size, m.z1_dim)),
+        z2=jnp.zeros((batch_size, m.z2_dim)),
+        first=jnp.ones((batch_size,), bool),
+    )
 
 
 @functools.partial(jax.jit, static_argnames="cfg")
@@ -369,12 +386,13 @@ def init_params(key, cfg: Config):
     return jax.tree.unflatten(treedef, values)
 
 
-def filter_step(params, state, camera, lidar, prev_action, key, cfg: Config):
+def filter_step(params, state: FilterState, camera, lidar, prev_action, key, cfg: Config):
     """Streaming posterior filtering: one frame for B rows.
 
     camera, lidar: uint8 [B, R, R, 3] at frame t; prev_action: float32 [B, 2], the action applied
     from frame t-1 to t (ignored on first frames); key: PRNG key for z1 ~ q and z2 ~ p, or None for
-    the means. Returns (state, outputs) with outputs z1 [B, z1], z2 [B, z2], the z1 posterior and prior
+    the means. ``state.pose`` is not read, and the state returned has none. Returns (state, outputs)
+    with outputs z1 [B, z1], z2 [B, z2], the z1 posterior and prior
     (``q_z1_loc``/``q_z1_scale``, ``p_z1_loc``/``p_z1_scale``), z2's (``z2_loc``/``z2_scale``) and the
     frame's ``features`` [B, 2 feature_dim].
     """
@@ -391,9 +409,10 @@ def filter_sequence(params, camera, lidar, action, key, cfg: Config, start=None)
     camera, lidar: uint8 [B, T+1, R, R, 3]; action: float32 [B, T+1, 2], action t applied from frame t
     to t+1 (the last one is unused); key: PRNG key or None (means). Frame t uses
     ``jax.random.split(key, T+1)[t]``, so streaming :func:`filter_step` with those keys gives the same
-    result. ``start`` (default: a fresh :func:`init_filter_state`): (filter state before frame 0, action
-    [B, 2] from that state's frame to frame 0), to continue a sequence; :func:`end_state` of the outputs
-    continues this one. Returns :func:`filter_step`'s outputs stacked to [B, T+1, ...].
+    result. ``start`` (default: a fresh :func:`init_filter_state`): (:class:`FilterState` before frame 0,
+    without ``pose``; action [B, 2] from that state's frame to frame 0), to continue a sequence;
+    :func:`end_state` of the outputs continues this one. Returns :func:`filter_step`'s outputs stacked to
+    [B, T+1, ...].
     """
     model = build_model(cfg)
     b, t1 = camera.shape[:2]
@@ -416,10 +435,8 @@ def filter_sequence(params, camera, lidar, action, key, cfg: Config, start=None)
 def end_state(outputs: dict, action):
     """The ``start`` that continues :func:`filter_sequence`'s sequence into the next frame: (its last
     frame's filter state, the sequence's last action [B, 2])."""
-    return (
-        {"z1": outputs["z1"][:, -1], "z2": outputs["z2"][:, -1], "first": jnp.zeros(outputs["z1"].shape[:1], bool)},
-        action[:, -1],
-    )
+    first = jnp.zeros(outputs["z1"].shape[:1], bool)
+    return FilterState(z1=outputs["z1"][:, -1], z2=outputs["z2"][:, -1], first=first), action[:, -1]
 
 
 def decode(params, z, cfg: Config) -> dict:

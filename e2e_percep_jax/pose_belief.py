@@ -16,8 +16,8 @@ Training (:func:`loss_terms`): cross-entropy against Gaussian soft targets for p
 on the offsets of the true cell and bin, smooth-L1 on the speed. Read alone (:func:`decode`), the pose is
 the mode cell refined by its offset.
 
-The histogram filter (:func:`init_state`, :func:`filter_step`) keeps a belief [B, H, n, n] (probabilities),
-a speed track [B], a heading offset [B] shared by all bins and the actuators' state [B, 2]. Motion: the
+The histogram filter (:func:`init_state`, :func:`filter_step`) keeps a :class:`PoseBeliefState`: the belief,
+a speed track, a heading offset shared by all bins and the actuators' state. Motion: the
 run's calibrated motion model (:mod:`e2e_percep_jax.sim.motion`, fitted on training drives, not the world's
 plant) driven by the logged commands, each heading bin's mass moved by its own displacement (a bilinear
 split over the neighbouring cells, which keeps the mass's mean exact) and the common yaw change added to
@@ -32,6 +32,7 @@ the mode bin refined by the head's offset. Pure JAX; it runs inside a ``lax.scan
 import dataclasses
 import math
 
+import flax.struct
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -186,19 +187,37 @@ def decode(head: dict, grid: Grid):
 # ----------------------------------------------------------------------------- the histogram filter
 
 
-def init_state(batch_size: int, grid: Grid) -> dict:
-    """Before a drive's first frame: a uniform belief [B, H, n, n], a zero speed track [B] (m/s), a zero
-    heading offset [B] (rad: bin k of the belief stands for heading ``bin_centres[k] + yaw_offset_rad``)
-    and the actuators [B, 2] (pedal, steering rad: the commands seen through the model's lag), with whether
-    they have been set [B] (from a drive's first logged commands)."""
+@flax.struct.dataclass
+class PoseBeliefState:
+    """The histogram filter's state of B streams (a pytree: it goes through ``jit`` and ``lax.scan``).
+
+    belief: float32 [B, H, n, n], each stream's probabilities over (heading bin k, cell row i along y, cell
+        column j along x), summing to 1 (the grid: :class:`Grid`).
+    speed_mps: float32 [B], the speed track, m/s.
+    yaw_offset_rad: float32 [B], the heading offset shared by all bins: bin k stands for heading
+        ``bin_centres[k] + yaw_offset_rad``, within half a bin of 0.
+    actuator: float32 [B, 2], the actuators' state (pedal, steering rad): the commands seen through the
+        motion model's lag.
+    actuator_set: bool [B], whether ``actuator`` has been set (from a drive's first logged commands).
+    """
+
+    belief: jax.Array
+    speed_mps: jax.Array
+    yaw_offset_rad: jax.Array
+    actuator: jax.Array
+    actuator_set: jax.Array
+
+
+def init_state(batch_size: int, grid: Grid) -> PoseBeliefState:
+    """Before a drive's first frame: a uniform belief, zero speed and heading offset, actuators not set."""
     shape = (batch_size, grid.heading_bins, grid.n, grid.n)
-    return {
-        "belief": jnp.full(shape, 1.0 / math.prod(shape[1:]), jnp.float32),
-        "speed_mps": jnp.zeros((batch_size,), jnp.float32),
-        "yaw_offset_rad": jnp.zeros((batch_size,), jnp.float32),
-        "actuator": jnp.zeros((batch_size, 2), jnp.float32),
-        "actuator_set": jnp.zeros((batch_size,), bool),
-    }
+    return PoseBeliefState(
+        belief=jnp.full(shape, 1.0 / math.prod(shape[1:]), jnp.float32),
+        speed_mps=jnp.zeros((batch_size,), jnp.float32),
+        yaw_offset_rad=jnp.zeros((batch_size,), jnp.float32),
+        actuator=jnp.zeros((batch_size, 2), jnp.float32),
+        actuator_set=jnp.zeros((batch_size,), bool),
+    )
 
 
 def _shift(x, axis: int, direction: int):
@@ -272,7 +291,7 @@ def _normalised(belief):
 
 
 def filter_step(
-    state: dict,
+    state: PoseBeliefState,
     head: dict,
     prev_action,
     first,
@@ -303,20 +322,20 @@ def filter_step(
     if start_pose is None and not measure:
         raise ValueError("measure=False: only the known-start protocol (a start_pose) goes without measurements")
     rows = lambda x: first.reshape(first.shape + (1,) * (x.ndim - 1))
-    actuator = jnp.where(state["actuator_set"][:, None], state["actuator"], prev_action)
-    started = {
-        "actuator": jnp.where(rows(prev_action), 0.0, motion_lib.actuate(model, actuator, prev_action)),
-        "actuator_set": ~first,
-    }
+    actuator = jnp.where(state.actuator_set[:, None], state.actuator, prev_action)
+    started = dict(
+        actuator=jnp.where(rows(prev_action), 0.0, motion_lib.actuate(model, actuator, prev_action)),
+        actuator_set=~first,
+    )
     if start_pose is not None and not measure:
         _, moved = motion_lib.advance_pose(model, actuator, prev_action, mean_pose(state, grid))
         pose = jnp.where(rows(moved), start_pose, moved)
         belief, offset = start_at(pose, grid)
-        return dict(started, belief=belief, speed_mps=pose[:, 4], yaw_offset_rad=offset), pose
-    yaw = jnp.asarray(grid.bin_centres()) + state["yaw_offset_rad"][:, None]
-    _, v_new, ds, move, dyaw = motion_lib.step(model, actuator, prev_action, state["speed_mps"], yaw)
+        return PoseBeliefState(belief=belief, speed_mps=pose[:, 4], yaw_offset_rad=offset, **started), pose
+    yaw = jnp.asarray(grid.bin_centres()) + state.yaw_offset_rad[:, None]
+    _, v_new, ds, move, dyaw = motion_lib.step(model, actuator, prev_action, state.speed_mps, yaw)
     moved, offset = jax.vmap(lambda b, m, o, d: predict(b, m, o, d, model, grid, heading_noise_scale))(
-        state["belief"], move, state["yaw_offset_rad"] + dyaw, ds
+        state.belief, move, state.yaw_offset_rad + dyaw, ds
     )
     prior = (1.0 - relocation) * moved + relocation * jnp.mean(moved, axis=-3, keepdims=True)
     head_speed = head["speed"] * SPEED_SCALE_MPS
@@ -326,25 +345,25 @@ def filter_step(
         first_belief, first_offset = start_at(start_pose, grid)
         first_speed = start_pose[:, 4]
     measured = likelihood(head, grid, floor, power) if measure else 1.0
-    new = dict(
-        started,
+    new = PoseBeliefState(
         belief=_normalised(jnp.where(rows(moved), first_belief, prior) * measured),
         speed_mps=jnp.where(first, first_speed, v_new + speed_gain * (head_speed - v_new)),
         yaw_offset_rad=jnp.where(first, first_offset, offset),
+        **started,
     )
-    return new, estimate(new["belief"], head, new["speed_mps"], grid, position)
+    return new, estimate(new.belief, head, new.speed_mps, grid, position)
 
 
-def head_state(head: dict, grid: Grid) -> dict:
-    """The filter state [B] that is the head's own distribution (place x heading, no filtering), its speed
-    and no heading offset: the belief of ``--model.pose_filter=none``."""
-    return {
-        "belief": _normalised(likelihood(head, grid, floor=0.0, power=1.0)),
-        "speed_mps": head["speed"] * SPEED_SCALE_MPS,
-        "yaw_offset_rad": jnp.zeros_like(head["speed"]),
-        "actuator": jnp.zeros(head["speed"].shape + (2,)),
-        "actuator_set": jnp.zeros(head["speed"].shape, bool),
-    }
+def head_state(head: dict, grid: Grid) -> PoseBeliefState:
+    """The filter state of B streams that is the head's own distribution (place x heading, no filtering),
+    its speed, no heading offset and no actuators: the belief of ``--model.pose_filter=none``."""
+    return PoseBeliefState(
+        belief=_normalised(likelihood(head, grid, floor=0.0, power=1.0)),
+        speed_mps=head["speed"] * SPEED_SCALE_MPS,
+        yaw_offset_rad=jnp.zeros_like(head["speed"]),
+        actuator=jnp.zeros(head["speed"].shape + (2,)),
+        actuator_set=jnp.zeros(head["speed"].shape, bool),
+    )
 
 
 POSITIONS = ("local_mean", "head_offset")
@@ -387,10 +406,10 @@ def start_at(pose, grid: Grid):
     return wk[:, :, None, None] * wy[:, None, :, None] * wx[:, None, None, :], (offset - near) * grid.bin_rad
 
 
-def mean_pose(state: dict, grid: Grid):
+def mean_pose(state: PoseBeliefState, grid: Grid):
     """The belief's mean pose [B, 5]: position over the cell centres; heading over the bins within half a
     turn of the heading marginal's mode (unwrapped there), plus the heading offset."""
-    belief = state["belief"]
+    belief = state.belief
     place = place_marginal(belief).reshape(belief.shape[0], -1)
     xy = place @ jnp.asarray(grid.cell_centres()) / jnp.sum(place, -1, keepdims=True)
     heading = jnp.sum(belief, axis=(-2, -1))  # [B, H]
@@ -398,8 +417,8 @@ def mean_pose(state: dict, grid: Grid):
     mode = jnp.argmax(heading, -1)
     rel = (jnp.arange(h)[None, :] - mode[:, None] + h // 2) % h - h // 2  # bins from the mode
     shift = jnp.sum(heading * rel, -1) / jnp.sum(heading, -1)
-    yaw = jnp.asarray(grid.bin_centres())[mode] + shift * grid.bin_rad + state["yaw_offset_rad"]
-    return jnp.concatenate([xy, jnp.stack([jnp.cos(yaw), jnp.sin(yaw), state["speed_mps"]], -1)], -1)
+    yaw = jnp.asarray(grid.bin_centres())[mode] + shift * grid.bin_rad + state.yaw_offset_rad
+    return jnp.concatenate([xy, jnp.stack([jnp.cos(yaw), jnp.sin(yaw), state.speed_mps], -1)], -1)
 
 
 def place_marginal(belief):
@@ -407,24 +426,24 @@ def place_marginal(belief):
     return jnp.sum(belief, axis=-3)
 
 
-def negative_log_likelihood(state: dict, pose, grid: Grid):
+def negative_log_likelihood(state: PoseBeliefState, pose, grid: Grid):
     """-log density [B] of the true poses [B, 5] under the filter's belief (per m² and radian: each cell's
     probability spread uniformly over its cell_m² x bin_rad)."""
-    belief = state["belief"]
+    belief = state.belief
     cell, _ = true_cell(pose[:, :2], grid)
-    k, _ = true_bin(pose_yaw(pose) - state["yaw_offset_rad"], grid)
+    k, _ = true_bin(pose_yaw(pose) - state.yaw_offset_rad, grid)
     p = belief.reshape(belief.shape[0], grid.heading_bins, -1)[jnp.arange(belief.shape[0]), k, cell]
     return -jnp.log(jnp.maximum(p, 1e-30)) + math.log(grid.cell_m**2 * grid.bin_rad)
 
 
-def in_region(state: dict, pose, grid: Grid, mass: float = 0.95):
+def in_region(state: PoseBeliefState, pose, grid: Grid, mass: float = 0.95):
     """Whether true poses [B, 5] lie in the belief's highest-probability region holding ``mass``, at the
     grid's resolution: bool [B, 2], for the place (the cell, under the place marginal) and for the place
     with heading (the (heading bin, cell) pair, under the whole belief). A cell is in the region when the
     cells more probable than it hold less than ``mass``."""
-    belief = state["belief"].reshape(state["belief"].shape[0], grid.heading_bins, -1)
+    belief = state.belief.reshape(state.belief.shape[0], grid.heading_bins, -1)
     cell, _ = true_cell(pose[:, :2], grid)
-    k, _ = true_bin(pose_yaw(pose) - state["yaw_offset_rad"], grid)
+    k, _ = true_bin(pose_yaw(pose) - state.yaw_offset_rad, grid)
     inside = lambda p, p_true: jnp.sum(jnp.where(p > p_true[:, None], p, 0.0), -1) < mass * jnp.sum(p, -1)
     place = jnp.sum(belief, 1)
     flat = belief.reshape(belief.shape[0], -1)

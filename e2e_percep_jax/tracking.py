@@ -1,33 +1,26 @@
-"""Classical modular baselines, in NumPy on the host: a bird-eye Kalman tracker and dead reckoning.
+"""The classical modular pipeline's tracker, in NumPy on the host: a bird-eye Kalman tracker in the style of
+AB3DMOT (:class:`Tracker`).
 
-Tracker (AB3DMOT style, :class:`Tracker`)
 - State per track, town frame: ``(x_m, y_m, yaw_rad, length_m, width_m, vx_mps, vy_mps)``, constant velocity.
 - Ego motion: detections arrive in the ego frame of their frame together with that frame's ego pose
   ``[5] = (x_m, y_m, cos psi, sin psi, speed_mps)`` (the frame contract). They are moved to the town
   frame with that pose, tracked there, and the tracks are moved back into the current ego frame for output.
   With the true pose this compensates ego motion exactly (a static car stays static in the filter). With an
-  estimated pose (the model's, or dead reckoning) the pose error enters as a detection error in the town frame
-  that the filter does not model: the tracker then sees apparent motion of static cars.
+  estimated pose (the model's, or dead reckoning: :mod:`e2e_percep_jax.sim.odometry`) the pose error enters
+  as a detection error in the town frame that the filter does not model: the tracker then sees apparent
+  motion of static cars.
 - Association: rotated IoU (``metrics.rotated_iou``) between the predicted tracks and the detections, solved
-  by an exact maximum-total-IoU assignment (:func:`hungarian`, Jonker-Volgenant style shortest augmenting
-  paths; ``scipy`` is not a dependency) or greedily, highest IoU first (:func:`greedy_assignment`). Pairs under
-  ``iou_threshold`` never match. IoU is blind to a heading flip (a rectangle turned by pi is the same set), so
-  flips do not disturb association. Tracks and detections left over are then matched by the Mahalanobis
-  distance of their centres (:func:`associate_by_centre`, ``centre_gate``). Before the update a matched
-  detection's yaw is folded to within pi/2 of the track's (:func:`fold_heading`), and the yaw innovation is
-  wrapped.
+  by an exact maximum-total-IoU assignment (``scipy.optimize.linear_sum_assignment``, in :func:`associate`).
+  Pairs under ``iou_threshold`` never match. IoU is blind to a heading flip (a rectangle turned by pi is the
+  same set), so flips do not disturb association. Tracks and detections left over are then matched by the
+  Mahalanobis distance of their centres (:func:`associate_by_centre`, ``centre_gate``). Before the update a
+  matched detection's yaw is folded to within pi/2 of the track's (:func:`fold_heading`), and the yaw
+  innovation is wrapped.
 - Track life: a detection that matches no track opens a tentative track. It is born (confirmed, reported)
   once it has ``min_hits`` consecutive hits; a tentative track dies at its first miss. A confirmed track coasts
   (predict only) while unmatched and is still reported, with score ``last detection score * score_decay **
   misses``; it dies on its ``max_age + 1``-th consecutive miss (so it is reported through ``max_age`` missed
   frames, SORT's convention). The reported score is what AP ranks.
-
-Dead reckoning (:func:`dead_reckon`, :class:`DeadReckoner`)
-- Integrates the ego pose from measured speeds and yaw rates, given the true start pose, with the world's own
-  kinematic bicycle update (``world._drive_ego``): the rear axle moves along the mid-step heading, the centre
-  sits half a wheelbase ahead of it. With exact measurements (:func:`odometry_from_poses`) it reproduces the
-  world's path up to float rounding; :func:`noisy_odometry` adds white Gaussian noise from an explicit
-  ``np.random.Generator``.
 
 Everything is float64 NumPy: per-frame host logic with small varying sizes, where JAX dispatch and
 per-shape compilation would dominate (as in ``metrics``).
@@ -37,10 +30,11 @@ import dataclasses
 from typing import NamedTuple
 
 import numpy as np
+from scipy.optimize import linear_sum_assignment  # scipy: a dependency of jax
 
 from e2e_percep_jax import metrics
 from e2e_percep_jax.sim import geometry as geo
-from e2e_percep_jax.sim.motion import DT_S, WHEELBASE_M
+from e2e_percep_jax.sim.motion import DT_S
 
 STATE_DIM = 7  # x, y, yaw, length, width, vx, vy
 MEAS_DIM = 5  # x, y, yaw, length, width (a box)
@@ -67,92 +61,13 @@ def boxes_town_to_ego(boxes_town, pose):
 # Assignment
 
 
-def hungarian(score):
-    """Maximum-total-score assignment of rows to columns of ``score [N, M]`` (rectangular allowed).
-
-    Shortest augmenting paths with dual potentials (the O(N^2 M) Hungarian / Jonker-Volgenant scheme), the
-    inner loop over columns vectorised. Every row is assigned when N <= M (every column when N > M), so
-    callers drop pairs they do not accept afterwards (e.g. IoU under a threshold: give those pairs score 0 so
-    they cannot displace an acceptable pair).
-
-    Returns:
-      rows, cols: int64 ``[min(N, M)]``, the assigned pairs, rows ascending.
-    """
-    score = np.asarray(score, dtype=np.float64)
-    if score.ndim != 2:
-        raise ValueError(f"expected a [N, M] score matrix, got {score.shape}")
-    if not np.all(np.isfinite(score)):
-        raise ValueError("scores must be finite")
-    n, m = score.shape
-    if n == 0 or m == 0:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    if n > m:
-        cols, rows = hungarian(score.T)
-        order = np.argsort(rows)
-        return rows[order], cols[order]
-    cost = -score
-    u = np.zeros(n + 1)  # row potentials (1-based, 0 unused)
-    v = np.zeros(m + 1)  # column potentials; column 0 is the virtual start
-    row_of_col = np.zeros(m + 1, np.int64)  # 1-based row assigned to each column, 0 = free
-    way = np.zeros(m + 1, np.int64)
-    for i in range(1, n + 1):
-        row_of_col[0] = i
-        j0 = 0
-        min_slack = np.full(m + 1, np.inf)
-        used = np.zeros(m + 1, dtype=bool)
-        while True:
-            used[j0] = True
-            i0 = row_of_col[j0]
-            slack = cost[i0 - 1] - u[i0] - v[1:]
-            free = ~used[1:]
-            better = free & (slack < min_slack[1:])
-            min_slack[1:][better] = slack[better]
-            way[1:][better] = j0
-            j1 = int(np.argmin(np.where(free, min_slack[1:], np.inf))) + 1
-            delta = min_slack[j1]
-            u[row_of_col[used]] += delta
-            v[used] -= delta
-            min_slack[~used] -= delta
-            j0 = j1
-            if row_of_col[j0] == 0:
-                break
-        while j0:  # augment along the path
-            j1 = way[j0]
-            row_of_col[j0] = row_of_col[j1]
-            j0 = j1
-    cols = np.nonzero(row_of_col[1:])[0]
-    rows = row_of_col[1:][cols] - 1
-    order = np.argsort(rows)
-    return rows[order].astype(np.int64), cols[order].astype(np.int64)
-
-
-def greedy_assignment(score, min_score=0.0):
-    """Greedy assignment: pairs of ``score [N, M]`` taken by decreasing score (ties: row-major order) while
-    both ends are free and the score is ``>= min_score``. Returns rows, cols int64 ``[K]``, rows ascending."""
-    score = np.asarray(score, dtype=np.float64)
-    n, m = score.shape
-    order = np.argsort(-score, axis=None, kind="stable")
-    row_used, col_used = np.zeros(n, bool), np.zeros(m, bool)
-    rows, cols = [], []
-    for flat in order:
-        r, c = divmod(int(flat), m)
-        if score[r, c] < min_score:
-            break
-        if not row_used[r] and not col_used[c]:
-            row_used[r] = col_used[c] = True
-            rows.append(r)
-            cols.append(c)
-    rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
-    order = np.argsort(rows)
-    return rows[order], cols[order]
-
-
-def associate(track_boxes, det_boxes, iou_threshold, method="hungarian"):
-    """Matches predicted track boxes ``[T, 5]`` to detections ``[D, 5]`` (same frame) by rotated IoU.
+def associate(track_boxes, det_boxes, iou_threshold):
+    """Matches predicted track boxes ``[T, 5]`` to detections ``[D, 5]`` (same frame) by rotated IoU: the
+    matching of maximum total IoU among the pairs with IoU ``>= iou_threshold`` (more tracks than detections
+    or fewer, either way).
 
     Args:
       iou_threshold: pairs with IoU below this never match (must be > 0).
-      method: "hungarian" (maximum total IoU) or "greedy" (highest IoU first).
     Returns:
       matches int64 ``[K, 2]`` (track index, detection index); unmatched tracks ``[T - K]``; unmatched
       detections ``[D - K]``; all ascending.
@@ -162,13 +77,10 @@ def associate(track_boxes, det_boxes, iou_threshold, method="hungarian"):
     num_tracks, num_dets = len(track_boxes), len(det_boxes)
     if num_tracks and num_dets:
         iou = metrics.rotated_iou(track_boxes, det_boxes)
-        gain = np.where(iou >= iou_threshold, iou, 0.0)  # an unacceptable pair gains nothing
-        if method == "hungarian":
-            rows, cols = hungarian(gain)
-        elif method == "greedy":
-            rows, cols = greedy_assignment(gain, min_score=iou_threshold)
-        else:
-            raise ValueError(f"unknown association method {method!r}")
+        # An unacceptable pair gains nothing, so it cannot displace an acceptable one; the solver assigns
+        # min(T, D) pairs, and those unacceptable pairs are dropped after.
+        gain = np.where(iou >= iou_threshold, iou, 0.0)
+        rows, cols = linear_sum_assignment(gain, maximize=True)
         keep = iou[rows, cols] >= iou_threshold
         rows, cols = rows[keep], cols[keep]
     else:
@@ -181,20 +93,17 @@ def associate(track_boxes, det_boxes, iou_threshold, method="hungarian"):
     )
 
 
-def associate_by_centre(track_xy, track_cov_xy, det_xy, meas_cov_xy, gate, method="hungarian"):
+def associate_by_centre(track_xy, track_cov_xy, det_xy, meas_cov_xy, gate):
     """Matches track centres ``[T, 2]`` (covariances ``[T, 2, 2]``) to detection centres ``[D, 2]`` (noise
-    ``[2, 2]``) by Mahalanobis distance ``d2 = y^T (P + R)^-1 y`` below ``gate``, minimising the total d2 of
-    the matched pairs (as gains ``gate - d2``). Returns matches int64 ``[K, 2]`` (track, detection)."""
+    ``[2, 2]``) by Mahalanobis distance ``d2 = y^T (P + R)^-1 y``: the matching of pairs with ``d2 < gate``
+    of maximum total gain ``gate - d2``. Returns matches int64 ``[K, 2]`` (track, detection), tracks ascending."""
     if len(track_xy) == 0 or len(det_xy) == 0 or gate <= 0.0:
         return np.zeros((0, 2), np.int64)
     y = det_xy[None, :, :] - track_xy[:, None, :]  # [T, D, 2]
     s_inv = np.linalg.inv(track_cov_xy + meas_cov_xy)  # [T, 2, 2]
     d2 = np.einsum("tdi,tij,tdj->td", y, s_inv, y)
     gain = np.where(d2 < gate, gate - d2, 0.0)
-    if method == "hungarian":
-        rows, cols = hungarian(gain)
-    else:
-        rows, cols = greedy_assignment(gain, min_score=np.finfo(np.float64).tiny)
+    rows, cols = linear_sum_assignment(gain, maximize=True)
     keep = d2[rows, cols] < gate
     return np.stack([rows[keep], cols[keep]], axis=1)
 
@@ -237,9 +146,8 @@ class TrackerConfig:
     max_age: missed frames a confirmed track survives (coasting, reported); it dies at the next miss.
       1 s at 10 Hz outlasts short occlusions without spawning many stale false positives.
     score_decay: reported score of a coasting track is the last detection score times this per missed frame.
-    association: "hungarian" or "greedy".
     centre_gate: second association stage (0 disables it): tracks and detections left unmatched by IoU are
-      matched (same method) by the Mahalanobis distance of the centre innovation, ``y^T S^-1 y`` with
+      matched by the Mahalanobis distance of the centre innovation, ``y^T S^-1 y`` with
       ``S = P_xy + R_xy``, when it is below this (9.21: the 99% quantile of chi-square with 2 degrees of
       freedom). It catches young tracks whose first velocity estimate (from two noisy boxes: ~4 m/s error
       at 0.3 m noise) carries the prediction off its car (IoU 0); their wide covariance gives a wide gate,
@@ -258,7 +166,6 @@ class TrackerConfig:
     min_hits: int = 3
     max_age: int = 10
     score_decay: float = 0.9
-    association: str = "hungarian"
     centre_gate: float = 9.21
 
 
@@ -389,16 +296,13 @@ class Tracker:
             self.mean, self.cov = kf_predict(self.mean, self.cov, self._f, self._q)
         self.num_frames += 1
 
-        matches, unmatched_tracks, unmatched_dets = associate(
-            self.mean[:, :5], det_town, cfg.iou_threshold, cfg.association
-        )
+        matches, unmatched_tracks, unmatched_dets = associate(self.mean[:, :5], det_town, cfg.iou_threshold)
         second = associate_by_centre(
             self.mean[unmatched_tracks, :2],
             self.cov[unmatched_tracks, :2, :2],
             det_town[unmatched_dets, :2],
             self._r[:2, :2],
             cfg.centre_gate,
-            cfg.association,
         )
         if len(second):
             matches = np.concatenate(
@@ -435,91 +339,3 @@ class Tracker:
         shown = self.confirmed
         scores = np.clip(self.det_score[shown] * cfg.score_decay ** self.misses[shown], 0.0, 1.0)
         return TrackerOutput(boxes_town_to_ego(self.mean[shown, :5], ego_pose), scores, self.ids[shown].copy())
-
-
-# ----------------------------------------------------------------------------------------------------------
-# Privileged dead reckoning
-
-
-def odometry_from_poses(poses, dt_s=DT_S):
-    """Exact odometry of a pose sequence ``[T+1, 5]``: (speed_mps ``[T]``, yaw_rate_rps ``[T]``).
-
-    speed_mps[k] is the speed at frame k+1 (a wheel-speed sample); yaw_rate_rps[k] the mean yaw rate over the
-    step k -> k+1 (a gyro integrated over the step), ``wrap(psi[k+1] - psi[k]) / dt``.
-    """
-    poses = np.asarray(poses, dtype=np.float64)
-    return poses[1:, 4].copy(), geo.wrap_angle(np.diff(geo.pose_yaw(poses))) / dt_s
-
-
-def noisy_odometry(poses, speed_noise_std_mps, yaw_rate_noise_std_rps, rng: np.random.Generator, dt_s=DT_S):
-    """:func:`odometry_from_poses` plus independent zero-mean Gaussian noise of the given stds per sample
-    (unclipped: a noisy speed may be negative, so the noise stays unbiased at standstill)."""
-    speed, yaw_rate = odometry_from_poses(poses, dt_s)
-    return (
-        speed + speed_noise_std_mps * rng.standard_normal(speed.shape),
-        yaw_rate + yaw_rate_noise_std_rps * rng.standard_normal(yaw_rate.shape),
-    )
-
-
-def dead_reckon(start_pose, speed_mps, yaw_rate_rps, dt_s=DT_S, wheelbase_m=WHEELBASE_M):
-    """Integrates the ego pose from odometry with the world's bicycle kinematics (``world._drive_ego``).
-
-    Per step k: arc ``ds = (v_k + v_{k+1}) / 2 * dt`` (v_0 from the start pose, v_{k+1} = speed_mps[k]),
-    yaw change ``dpsi = yaw_rate_rps[k] * dt``; the rear axle (half a wheelbase behind the centre) advances
-    ``ds`` along the mid-step heading ``psi + dpsi / 2``, and the centre is half a wheelbase ahead of the new
-    rear axle along the new heading. Vectorised with cumulative sums.
-
-    Args:
-      start_pose: ``[5] = (x_m, y_m, cos psi, sin psi, speed_mps)``, the true pose at frame 0.
-      speed_mps: ``[T]`` measured speeds at frames 1..T. yaw_rate_rps: ``[T]`` measured mean yaw rates of
-        steps 0->1 .. T-1->T.
-    Returns:
-      poses float64 ``[T+1, 5]`` (frame 0 is the start pose), speed = the measured one.
-    """
-    start_pose = np.asarray(start_pose, dtype=np.float64)
-    speed_mps = np.asarray(speed_mps, dtype=np.float64)
-    yaw_rate_rps = np.asarray(yaw_rate_rps, dtype=np.float64)
-    if speed_mps.shape != yaw_rate_rps.shape or speed_mps.ndim != 1:
-        raise ValueError("speed_mps and yaw_rate_rps must both be [T]")
-    psi0 = geo.pose_yaw(start_pose)
-    speeds = np.concatenate([start_pose[4:5], speed_mps])  # [T+1]
-    ds = 0.5 * (speeds[:-1] + speeds[1:]) * dt_s
-    dpsi = yaw_rate_rps * dt_s
-    psi = psi0 + np.concatenate([[0.0], np.cumsum(dpsi)])  # [T+1], unwrapped
-    mid = psi[:-1] + 0.5 * dpsi
-    half = 0.5 * wheelbase_m
-    rear0 = start_pose[:2] - half * np.array([np.cos(psi0), np.sin(psi0)])
-    step = ds[:, None] * np.stack([np.cos(mid), np.sin(mid)], axis=1)
-    rear = rear0 + np.concatenate([np.zeros((1, 2)), np.cumsum(step, axis=0)])
-    heading = np.stack([np.cos(psi), np.sin(psi)], axis=1)
-    centre = rear + half * heading
-    return np.concatenate([centre, heading, speeds[:, None]], axis=1)
-
-
-class DeadReckoner:
-    """Streaming :func:`dead_reckon` for online evaluation: one odometry sample per frame, O(1) memory.
-
-    ``DeadReckoner(start_pose).step(speed_mps, yaw_rate_rps)`` returns the pose ``[5]`` of the next frame.
-    """
-
-    def __init__(self, start_pose, dt_s=DT_S, wheelbase_m=WHEELBASE_M):
-        start_pose = np.asarray(start_pose, dtype=np.float64)
-        self.dt_s, self.half_wheelbase_m = dt_s, 0.5 * wheelbase_m
-        self.yaw_rad = float(geo.pose_yaw(start_pose))
-        self.speed_mps = float(start_pose[4])
-        self.rear_xy = start_pose[:2] - self.half_wheelbase_m * np.array([np.cos(self.yaw_rad), np.sin(self.yaw_rad)])
-
-    def step(self, speed_mps, yaw_rate_rps):
-        ds = 0.5 * (self.speed_mps + speed_mps) * self.dt_s
-        dpsi = yaw_rate_rps * self.dt_s
-        mid = self.yaw_rad + 0.5 * dpsi
-        self.rear_xy = self.rear_xy + ds * np.array([np.cos(mid), np.sin(mid)])
-        self.yaw_rad = float(geo.wrap_angle(self.yaw_rad + dpsi))
-        self.speed_mps = float(speed_mps)
-        return self.pose
-
-    @property
-    def pose(self):
-        heading = np.array([np.cos(self.yaw_rad), np.sin(self.yaw_rad)])
-        centre = self.rear_xy + self.half_wheelbase_m * heading
-        return np.array([centre[0], centre[1], heading[0], heading[1], self.speed_mps])

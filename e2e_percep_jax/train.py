@@ -49,7 +49,9 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from e2e_percep_jax import board as board_lib
 from e2e_percep_jax import calibration, checkpoint
 from e2e_percep_jax import loss as loss_lib
+from e2e_percep_jax import model as model_lib
 from e2e_percep_jax.config import Config, TrainConfig, validate
+from e2e_percep_jax.launch import eta
 from e2e_percep_jax.sim import batch as batch_lib
 from e2e_percep_jax.sim import town as town_lib
 from e2e_percep_jax.sim import world
@@ -104,11 +106,11 @@ def _carried_loss(state: CarriedTrainState, batch: dict, key: jax.Array, cfg: Co
     slot, segment = state.step % per_drive, (state.step // per_drive) % per_drive
     carried = jax.tree.map(lambda x: x[slot], state.carry)
     first = jnp.full(carried["action"].shape[:1], segment == 0)
-    start = ({"z1": carried["z1"], "z2": carried["z2"], "first": first}, carried["action"])
+    start = (model_lib.FilterState(z1=carried["z1"], z2=carried["z2"], first=first), carried["action"])
     (total, (metrics, (end, action))), grads = jax.value_and_grad(loss_lib.sequence_loss, has_aux=True)(
         state.params, batch, key, cfg, start
     )
-    ended = {"z1": end["z1"], "z2": end["z2"], "action": action}
+    ended = {"z1": end.z1, "z2": end.z2, "action": action}
     # A non-finite end (a skipped step's) would poison the chain: its rows restart from zeros.
     carry = jax.tree.map(lambda c, e: c.at[slot].set(jnp.where(jnp.isfinite(e), e, 0.0)), state.carry, ended)
     return ((total, metrics), grads), carry
@@ -241,12 +243,6 @@ def _truncate_metrics(path: str, last_step: int) -> None:
         f.writelines(lines)
 
 
-def _eta(seconds: float) -> str:
-    m, s = divmod(int(seconds), 60)
-    h, m = divmod(m, 60)
-    return f"{h}h{m:02d}m" if h else f"{m}m{s:02d}s"
-
-
 class _StopSignals:
     """Turns SIGTERM / SIGINT into a flag checked between steps, so a step is never cut in half."""
 
@@ -367,7 +363,7 @@ def train(cfg: Config, workdir: str, batches: Batches | None = None, objective: 
                         f.write(json.dumps(record) + "\n")
                     print(
                         f"step {done}/{t.num_steps}  loss {record['total']:.6g}  {steps_per_s:.2f} steps/s  "
-                        f"ETA {_eta((t.num_steps - done) / steps_per_s)}",
+                        f"ETA {eta((t.num_steps - done) / steps_per_s)}",
                         flush=True,
                     )
                 pending, tick = [], now

@@ -17,7 +17,7 @@ import sys
 
 from absl import app, flags
 
-from e2e_percep_jax import allocator, baselines, report, xla_cpu
+from e2e_percep_jax import baselines, launch, report
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import train as train_lib
 
@@ -29,10 +29,8 @@ FLAGS = flags.FLAGS
 
 
 def main(argv):
-    allocator.keep_freed_buffers()
-    xla_cpu.prefer_eigen_convolutions()
     try:
-        config_lib.check_launch(argv)
+        launch.prepare(argv)
         if FLAGS.video_frames < 0:
             raise ValueError(f"--video_frames={FLAGS.video_frames}: must be >= 0")
         cfg = baselines.without_place_stream(config_lib.from_flags())

@@ -16,7 +16,7 @@ import sys
 
 from absl import app, flags
 
-from e2e_percep_jax import allocator, checkpoint, detection, report, xla_cpu
+from e2e_percep_jax import checkpoint, detection, launch, report
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import evaluate as eval_lib
 from e2e_percep_jax.sim import world
@@ -43,10 +43,8 @@ INFERENCE_FIELDS = ("model.pose_filter",) + tuple(f"world.{name}" for name in co
 
 
 def main(argv):
-    allocator.keep_freed_buffers()
-    xla_cpu.prefer_eigen_convolutions()
     try:
-        config_lib.check_launch(argv)
+        launch.prepare(argv)
         if FLAGS["config"].present:
             raise ValueError("--config: the run's config.json is the config; only --eval.* may change")
         overrides = {}

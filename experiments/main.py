@@ -14,7 +14,7 @@ import sys
 
 from absl import app, flags
 
-from e2e_percep_jax import allocator, checkpoint, report, xla_cpu
+from e2e_percep_jax import checkpoint, launch, report
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import evaluate as eval_lib
 from e2e_percep_jax import train as train_lib
@@ -43,10 +43,8 @@ def run(cfg: config_lib.Config, workdir: str, video_frames: int = 300, log=print
 
 
 def main(argv):
-    allocator.keep_freed_buffers()
-    xla_cpu.prefer_eigen_convolutions()
     try:
-        config_lib.check_launch(argv)
+        launch.prepare(argv)
         if FLAGS.video_frames < 0:
             raise ValueError(f"--video_frames={FLAGS.video_frames}: must be >= 0")
         cfg = config_lib.from_flags()

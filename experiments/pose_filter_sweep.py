@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 from absl import app, flags
 
-from e2e_percep_jax import allocator, checkpoint, metrics, pose_belief, xla_cpu
+from e2e_percep_jax import checkpoint, launch, metrics, pose_belief
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import model as model_lib
 from e2e_percep_jax.sim import batch as batch_lib
@@ -50,10 +50,8 @@ FLAGS = flags.FLAGS
 
 
 def main(argv):
-    allocator.keep_freed_buffers()
-    xla_cpu.prefer_eigen_convolutions()
     try:
-        config_lib.check_launch(argv)
+        launch.prepare(argv)
         settings = [
             tuple(map(float, s))
             for s in itertools.product(

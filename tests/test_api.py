@@ -55,7 +55,31 @@ def test_batch_of_streams_equals_each_stream_alone(params):
     for i in range(3):
         alone = _stream(perceiver, params, camera[i : i + 1], lidar[i : i + 1], action[i : i + 1])
         for k in ("det_cls", "det_reg", "pose", "z", "roadmap"):
-            np.testing.assert_allclose(together[k][i : i + 1], alone[k], rtol=1e-5, atol=1e-5, err_msg=k)
+            got, want = getattr(together, k)[i : i + 1], getattr(alone, k)
+            np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5, err_msg=k)
+
+
+@pytest.mark.parametrize(
+    "variant, pose_head, pose_filter",
+    [("full", "belief", "histogram"), ("no_input_recon", "belief", "none"), ("no_roadmap_recon", "regression", "none")],
+)
+def test_state_and_outputs_hold_what_the_config_has(variant, pose_head, pose_filter):
+    """Traced only (``jax.eval_shape``): the step returns a state of ``init``'s structure, with the pose
+    belief (``state.pose``) and ``pose_place`` only with the belief head, and the reconstructions the
+    variant has; the fields it lacks are None."""
+    model = dict(variant=variant, pose_head=pose_head, pose_filter=pose_filter)
+    cfg = config_lib.replace(CFG, model=model, data=dict(place_frames=CFG.data.place_frames * (pose_head == "belief")))
+    perceiver = e2e.Perceiver(cfg)
+    params = jax.eval_shape(lambda: model_lib.init_params(jax.random.PRNGKey(0), cfg))
+    camera, lidar, action = (x[:, 0] for x in _inputs(2, 1))
+    state = perceiver.init(2)
+    stepped, out = jax.eval_shape(perceiver.step, params, state, camera, lidar, action)
+    assert jax.tree.structure(stepped) == jax.tree.structure(state)
+    belief = pose_head == "belief"
+    assert (state.pose is not None) == belief and (out.pose_place is not None) == belief
+    for name in ("camera", "lidar", "roadmap"):
+        assert (getattr(out, name) is not None) == (name in model_lib.reconstructed_images(variant)), name
+    assert out.pose.shape == (2, 5) and out.z.shape == (2, cfg.model.z1_dim + cfg.model.z2_dim)
 
 
 @pytest.mark.slow
@@ -69,7 +93,7 @@ def test_streaming_equals_the_training_scan(params, sampled):
     keys = None if key is None else jax.random.split(key, 5)  # filter_sequence's per-frame keys
     streamed = _stream(perceiver, params, camera, lidar, prev_action, keys)
     z = jnp.concatenate([scanned["z1"], scanned["z2"]], -1)
-    np.testing.assert_allclose(streamed["z"], z, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(streamed.z, z, rtol=1e-5, atol=1e-5)
 
 
 @pytest.mark.slow
@@ -81,14 +105,14 @@ def test_step_inside_a_users_jit_and_scan(params):
     def user_rollout(params, camera, lidar, action):
         def body(state, xs):
             state, out = perceiver.step(params, state, *xs)
-            return state, out["pose"]
+            return state, out.pose
 
         xs = tuple(jnp.swapaxes(x, 0, 1) for x in (camera, lidar, action))
         return jax.lax.scan(body, perceiver.init(camera.shape[0]), xs)[1]
 
     poses = jnp.swapaxes(user_rollout(params, camera, lidar, action), 0, 1)
     streamed = _stream(perceiver, params, camera, lidar, action)
-    np.testing.assert_allclose(poses, streamed["pose"], rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(poses, streamed.pose, rtol=1e-5, atol=1e-4)
     assert poses.shape == (2, 3, 5)
 
 
@@ -141,18 +165,18 @@ def test_pose_belief_through_the_api_known_start_and_global(params):
     for t in range(6):
         odometry, out = step(params, odometry, camera[:, t], lidar[:, t], action[:, t], start_pose=start, measure=False)
         want = np.stack([_odometry(np.asarray(start[b]), np.asarray(action[b, : t + 1]))[-1] for b in range(2)])
-        np.testing.assert_allclose(out["pose"], want, rtol=1e-5, atol=2e-4)
+        np.testing.assert_allclose(out.pose, want, rtol=1e-5, atol=2e-4)
         measured, m_out = step(params, measured, camera[:, t], lidar[:, t], action[:, t], start_pose=start)
         if t == 0:
             cell = np.floor((np.asarray(start[:, :2]) - pose_belief.AREA_ORIGIN_M) / grid.cell_m).astype(int)
             for b in range(2):  # the start's bilinear cells only: the measurement cannot add mass elsewhere
-                place = np.asarray(m_out["pose_place"][b])
+                place = np.asarray(m_out.pose_place[b])
                 near = place[max(cell[b, 1] - 1, 0) : cell[b, 1] + 2, max(cell[b, 0] - 1, 0) : cell[b, 0] + 2]
                 np.testing.assert_allclose(near.sum(), 1.0, rtol=1e-5)
         global_state, global_out = step(params, global_state, camera[:, t], lidar[:, t], action[:, t])
-        np.testing.assert_allclose(jnp.sum(global_out["pose_place"], (1, 2)), 1.0, rtol=1e-5)
-        assert global_out["pose_place"].shape == (2, grid.n, grid.n)
-    assert np.linalg.norm(np.asarray(out["pose"][:, :2] - start[:, :2]), axis=-1).min() > 1.0  # it moved
+        np.testing.assert_allclose(jnp.sum(global_out.pose_place, (1, 2)), 1.0, rtol=1e-5)
+        assert global_out.pose_place.shape == (2, grid.n, grid.n)
+    assert np.linalg.norm(np.asarray(out.pose[:, :2] - start[:, :2]), axis=-1).min() > 1.0  # it moved
 
 
 @pytest.mark.slow
@@ -170,9 +194,9 @@ def test_pose_filter_none_reads_the_head_frame_by_frame(params):
             params, latent_state, camera[:, t], lidar[:, t], action[:, t], None, cfg
         )
         head = model_lib.pose_belief_head(params, latent, cfg)
-        np.testing.assert_allclose(out["pose"], pose_belief.decode(head, grid), rtol=1e-5, atol=1e-4)
+        np.testing.assert_allclose(out.pose, pose_belief.decode(head, grid), rtol=1e-5, atol=1e-4)
         place = np.asarray(jax.nn.softmax(head["place_logit"], -1)).reshape(2, grid.n, grid.n)
-        np.testing.assert_allclose(out["pose_place"], place, rtol=1e-4, atol=1e-7)
+        np.testing.assert_allclose(out.pose_place, place, rtol=1e-4, atol=1e-7)
 
 
 @pytest.fixture(scope="module")
@@ -196,7 +220,7 @@ def test_load_returns_the_trained_params_and_boxes_decode(trained_run):
     )
     camera, lidar, action = _inputs(2, 1, seed=3)
     _, out = perceiver.step(params, perceiver.init(2), camera[:, 0], lidar[:, 0], action[:, 0])
-    assert out["det_cls"].shape == (2, R, R, 1) and out["pose"].shape == (2, 5)
+    assert out.det_cls.shape == (2, R, R, 1) and out.pose.shape == (2, 5)
 
 
 def test_boxes_recover_the_cars_behind_pixor_maps():
@@ -204,7 +228,11 @@ def test_boxes_recover_the_cars_behind_pixor_maps():
     perceiver = e2e.Perceiver(CFG)
     cars = np.array([[6.0, 4.0, 0.3, 4.6, 1.9], [-5.0, -6.0, -1.2, 5.5, 2.2]], np.float32)
     det_cls, det_reg = pixor.targets(jnp.asarray(cars), R)
-    outputs = {"det_cls": jnp.stack([det_cls, jnp.zeros_like(det_cls)]), "det_reg": jnp.stack([det_reg, det_reg])}
+    outputs = e2e.PerceiverOutputs(
+        det_cls=jnp.stack([det_cls, jnp.zeros_like(det_cls)]),
+        det_reg=jnp.stack([det_reg, det_reg]),
+        pose=jnp.zeros((2, 5)),
+    )
     (boxes, scores), (none, _) = perceiver.boxes(outputs)
     assert len(none) == 0
     assert len(boxes) == 2 and np.all(scores == 1.0)

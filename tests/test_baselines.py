@@ -115,7 +115,7 @@ def test_baseline_losses_are_the_perception_loss_terms_in_numpy():
 
 def oracle_heads(outputs, frame):
     """The world's own PIXOR targets as detections (score 1 on every vehicle in view); no pose."""
-    return dict(outputs, det_cls=frame["det_cls"], det_reg=frame["det_reg"])
+    return outputs.replace(det_cls=frame["det_cls"], det_reg=frame["det_reg"])
 
 
 ORACLE_CFG = config.replace(TINY, world=dict(num_vehicles=100), eval=dict(num_frames=160, num_worlds=2, chunk_steps=20))

@@ -1,10 +1,10 @@
-"""The training step's per-op profile (bench.py --what=train_profile): ops put in parts by their HLO
-metadata, and thread-pool tasks given to the op that started them, on a hand-made trace."""
+"""The training step's per-op profile (e2e_percep_jax/trace_attribution.py, behind bench.py
+--what=train_profile): ops put in parts by their HLO metadata, and thread-pool tasks given to the op that
+started them, on a hand-made trace."""
 
 import jax
-from helpers import load_experiment
 
-bench = load_experiment("bench")
+from e2e_percep_jax import trace_attribution
 
 _HLO = """
   %conv.1 = f32[8,4,4,16]{3,2,1,0} convolution(%p.1, %w.1), metadata={op_name="jit(step)/jvp(jit(loss_fn))/camera_encoder/Conv_1/conv_general_dilated"}
@@ -45,7 +45,7 @@ def _trace(lines):
 
 
 def test_ops_are_put_in_parts_by_their_metadata():
-    parts = bench._op_parts(_HLO)
+    parts = trace_attribution.op_parts(_HLO)
     # The first matching scope wins: the decode inside the scan is the scan's.
     assert parts == {"conv.1": "encoders", "add.2": "optimizer", "copy.3": "made by XLA", "fusion.4": "latent scan"}
 
@@ -70,5 +70,20 @@ def test_pool_tasks_are_given_to_the_op_that_started_them():
         _event("start", 30, _c=9),
         _event("stop", 33),
     ]
-    core_ns = bench._op_core_ns(_trace([a, b]))
+    core_ns = trace_attribution.op_core_ns(_trace([a, b]))
     assert core_ns == {"conv.1": (10 + 10 + 4) * 1000, "add.2": 5 * 1000, None: (3 + 4) * 1000}
+
+
+def test_core_time_is_summed_by_part_and_by_kind_of_op():
+    parts = {"conv.1": "encoders", "fusion.2": "encoders", "fusion.3": "encoders", "add.4": "optimizer"}
+    core_ns = {"conv.1": 10, "fusion.2": 20, "fusion.3": 30, "add.4": 4, "copy.9": 5, None: 7}
+    part_ns, kind_ns = trace_attribution.core_ns_by_part(core_ns, parts)
+    # copy.9 is no op of the traced program's text; None is pool time that leads to no op
+    assert part_ns == {"encoders": 60, "optimizer": 4, "other programs": 5, "pool tasks of no op": 7}
+    assert kind_ns == {
+        ("encoders", "conv"): 10,
+        ("encoders", "fusion"): 50,
+        ("optimizer", "add"): 4,
+        ("other programs", "copy"): 5,
+        ("pool tasks of no op", ""): 7,
+    }

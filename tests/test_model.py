@@ -345,7 +345,7 @@ def test_first_flag_restarts_a_row_and_none_key_gives_means(filtered):
     np.testing.assert_array_equal(out0["z1"], out0["q_z1_loc"])
     np.testing.assert_array_equal(out0["z2"], out0["z2_loc"])
     running, _ = model.filter_step(params, fresh, cam, lidar, act, None, cfg)
-    restarted = dict(running, first=jnp.array([True, False]))
+    restarted = running.replace(first=jnp.array([True, False]))
     _, out = model.filter_step(params, restarted, cam, lidar, act, None, cfg)
     _, cont = model.filter_step(params, running, cam, lidar, act, None, cfg)
     np.testing.assert_allclose(out["z2"][0], out0["z2"][0], rtol=1e-6)

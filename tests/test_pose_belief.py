@@ -159,7 +159,7 @@ def test_measurement_update_is_bayes_rule_against_brute_force():
         "heading_offset": np.zeros((b, h)),
         "speed": np.zeros(b),
     }
-    state = dict(pose_belief.init_state(b, grid), belief=jnp.asarray(prior, jnp.float32))
+    state = pose_belief.init_state(b, grid).replace(belief=jnp.asarray(prior, jnp.float32))
     f32 = {k: jnp.asarray(v, jnp.float32) for k, v in head.items()}
     floor, power, relocation = 0.1, 0.7, 0.01
     new, _ = pose_belief.filter_step(
@@ -182,7 +182,7 @@ def test_measurement_update_is_bayes_rule_against_brute_force():
                 for j in range(n):
                     mixed = (1 - relocation) * prior[row, k, i, j] + relocation * prior[row, :, i, j].mean()
                     want[k, i, j] = mixed * (place[i * n + j] * heading[k]) ** power
-        np.testing.assert_allclose(new["belief"][row], want / want.sum(), rtol=1e-4, atol=1e-9)
+        np.testing.assert_allclose(new.belief[row], want / want.sum(), rtol=1e-4, atol=1e-9)
 
 
 def np_transition(move_m, ds_m, yaw_after_rad, model, n, cell_m, h, relocation, heading_noise_scale, stats):
@@ -357,12 +357,12 @@ def test_filter_step_is_brute_force_bayes_through_the_motion_model(name, monkeyp
             posterior = w["belief"] * (heading[:, None, None] * place.reshape(n, n)[None]) ** power
             w["belief"] = posterior / posterior.sum()
             where = f"frame {t} row {row}"
-            np.testing.assert_allclose(state["belief"][row], w["belief"], rtol=2e-4, atol=1e-8, err_msg=where)
-            np.testing.assert_allclose(state["speed_mps"][row], w["speed"], rtol=1e-5, err_msg=where)
+            np.testing.assert_allclose(state.belief[row], w["belief"], rtol=2e-4, atol=1e-8, err_msg=where)
+            np.testing.assert_allclose(state.speed_mps[row], w["speed"], rtol=1e-5, err_msg=where)
             np.testing.assert_allclose(pose[row, 4], w["speed"], rtol=1e-5, err_msg=where)
-            np.testing.assert_allclose(state["yaw_offset_rad"][row], w["offset"], atol=1e-5, err_msg=where)
-            np.testing.assert_allclose(state["actuator"][row], w["actuator"], atol=1e-6, err_msg=where)
-            assert bool(state["actuator_set"][row]) == w["actuator_set"], where
+            np.testing.assert_allclose(state.yaw_offset_rad[row], w["offset"], atol=1e-5, err_msg=where)
+            np.testing.assert_allclose(state.actuator[row], w["actuator"], atol=1e-6, err_msg=where)
+            assert bool(state.actuator_set[row]) == w["actuator_set"], where
     # the test exercised what it claims: rolls both ways, the split's spread both short of and above the noise
     assert {-1, 1} <= stats["rolls"], stats
     assert stats["position_diffused"]
@@ -412,8 +412,8 @@ def test_in_region_against_sorting():
     y = pose_belief.AREA_ORIGIN_M + (i + rng.uniform(0.05, 0.95, b)) * grid.cell_m
     yaw = -np.pi + (k + rng.uniform(0.05, 0.95, b)) * grid.bin_rad + offset
     pose = np.stack([x, y, np.cos(yaw), np.sin(yaw), np.zeros(b)], -1).astype(np.float32)
-    state = dict(
-        pose_belief.init_state(b, grid), belief=jnp.asarray(belief), yaw_offset_rad=jnp.asarray(offset, jnp.float32)
+    state = pose_belief.init_state(b, grid).replace(
+        belief=jnp.asarray(belief), yaw_offset_rad=jnp.asarray(offset, jnp.float32)
     )
     # the true cell and bin from the pose, by hand
     column = lambda u: np.floor((u - pose_belief.AREA_ORIGIN_M) / grid.cell_m).astype(int)
@@ -444,7 +444,7 @@ def known_start_track(model, start, commands, grid, restart_at=None):
         first = jnp.asarray([t == 0 or t == restart_at])
         state, pose = step(state, jnp.asarray(action, jnp.float32), first, jnp.asarray(start[None], jnp.float32))
         poses.append(np.asarray(pose[0]))
-        actuators.append(np.asarray(state["actuator"][0]))
+        actuators.append(np.asarray(state.actuator[0]))
     return np.array(poses), np.array(actuators)
 
 
@@ -487,22 +487,19 @@ def histogram_track(model, start, commands, grid):
     """The histogram's own motion (``predict`` moved by ``motion.step``) of a point mass at ``start`` [5]
     driven by ``commands`` [T, 2] (actuators starting at the first): the belief's mean poses [T+1, 5]."""
     belief, offset = pose_belief.start_at(jnp.asarray(start[None], jnp.float32), grid)
-    state = dict(
-        pose_belief.init_state(1, grid),
-        belief=belief,
-        yaw_offset_rad=offset,
-        speed_mps=jnp.asarray(start[None, 4], jnp.float32),
+    state = pose_belief.init_state(1, grid).replace(
+        belief=belief, yaw_offset_rad=offset, speed_mps=jnp.asarray(start[None, 4], jnp.float32)
     )
     predict = jax.jit(lambda b, m, o, d: pose_belief.predict(b, m, o, d, model, grid))
     actuator = jnp.asarray(commands[:1], jnp.float32)
     poses = [pose_belief.mean_pose(state, grid)[0]]
     for command in commands:
-        yaw = jnp.asarray(grid.bin_centres())[None] + state["yaw_offset_rad"][:, None]
+        yaw = jnp.asarray(grid.bin_centres())[None] + state.yaw_offset_rad[:, None]
         actuator, speed, ds, move, dyaw = motion_lib.step(
-            model, actuator, jnp.asarray(command[None], jnp.float32), state["speed_mps"], yaw
+            model, actuator, jnp.asarray(command[None], jnp.float32), state.speed_mps, yaw
         )
-        belief, offset = predict(state["belief"][0], move[0], state["yaw_offset_rad"][0] + dyaw[0], ds[0])
-        state = dict(state, belief=belief[None], yaw_offset_rad=offset[None], speed_mps=speed)
+        belief, offset = predict(state.belief[0], move[0], state.yaw_offset_rad[0] + dyaw[0], ds[0])
+        state = state.replace(belief=belief[None], yaw_offset_rad=offset[None], speed_mps=speed)
         poses.append(pose_belief.mean_pose(state, grid)[0])
     return np.array(poses)
 

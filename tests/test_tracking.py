@@ -1,24 +1,20 @@
-"""Tests of the classical baselines: Kalman tracker and privileged dead reckoning.
+"""Tests of the classical baseline tracker (the Kalman tracker and its association).
 
 Independent truths: the closed-form steady state of the discrete white-noise-acceleration alpha-beta filter
 (Bar-Shalom, Li & Kirubarajan, "Estimation with Applications to Tracking and Navigation", §6.5.3) and of a
-scalar random walk; the Riccati recursion iterated here; brute-force assignment; hand-built scenes; the
-world's own ego path (world.reset / world.step).
+scalar random walk; the Riccati recursion iterated here; assignments enumerated by brute force; the IoU of
+aligned boxes in closed form; hand-built scenes.
 """
 
 import itertools
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from e2e_percep_jax import metrics
 from e2e_percep_jax import tracking as tr
-from e2e_percep_jax.config import DEFAULT_TOWN_SEED, WorldConfig
 from e2e_percep_jax.sim import geometry as geo
-from e2e_percep_jax.sim import town as town_lib
-from e2e_percep_jax.sim import world
 
 DT = 0.1
 CAR_LW = (4.5, 1.9)
@@ -55,46 +51,104 @@ def test_frame_helpers_match_geometry():
 # ------------------------------------------------------------------------------------------- assignment
 
 
-def _brute_force_best(score):
-    n, m = score.shape
-    if n <= m:
-        return max((sum(score[i, p[i]] for i in range(n)) for p in itertools.permutations(range(m), n)), default=0.0)
-    return _brute_force_best(score.T)
+def _best_matching_total(gain, allowed):
+    """Maximum total ``gain [N, M]`` over every matching of ``allowed [N, M]`` pairs (each row and column
+    used at most once), by enumeration: each row takes a column of its own, or none."""
+    best = 0.0
+    for choice in itertools.product([None, *range(gain.shape[1])], repeat=gain.shape[0]):
+        pairs = [(row, col) for row, col in enumerate(choice) if col is not None]
+        cols = [col for _, col in pairs]
+        if len(set(cols)) == len(cols) and all(allowed[pair] for pair in pairs):
+            best = max(best, sum(gain[pair] for pair in pairs))
+    return best
+
+
+def _check_is_matching(matches, num_rows, num_cols):
+    assert matches.shape[1] == 2 and matches.dtype == np.int64
+    assert len(set(matches[:, 0].tolist())) == len(matches) and len(set(matches[:, 1].tolist())) == len(matches)
+    assert np.all(np.diff(matches[:, 0]) > 0)  # rows ascending
+    assert np.all((matches >= 0) & (matches < [num_rows, num_cols]))
+
+
+def _random_boxes(rng, num_boxes):
+    """Car-sized boxes ``[N, 5]`` crowded in a 6 m square: most pairs overlap, many ambiguously."""
+    return np.column_stack(
+        [
+            rng.uniform(-3, 3, (num_boxes, 2)),
+            rng.uniform(-0.5, 0.5, num_boxes),
+            rng.uniform(3.0, 5.0, num_boxes),
+            rng.uniform(1.5, 2.2, num_boxes),
+        ]
+    )
 
 
 @pytest.mark.parametrize("seed", range(3))
-def test_hungarian_is_optimal(seed):
+def test_associate_maximises_total_iou(seed):
+    """Against brute force over all matchings, for every shape up to 4 x 4 (empty, more tracks than
+    detections and the reverse) and with ties (detections that copy tracks: IoU 1 several times)."""
     rng = np.random.default_rng(seed)
-    for trial in range(100):
-        n, m = (int(k) for k in rng.integers(0, 6, 2))
-        score = rng.random((n, m)) * (rng.random((n, m)) < 0.6)
-        if trial % 3 == 0:
-            score = np.round(score, 1)  # ties
-        rows, cols = tr.hungarian(score)
-        assert len(rows) == min(n, m)
-        assert len(set(rows.tolist())) == len(rows) and len(set(cols.tolist())) == len(cols)
-        assert np.all(np.diff(rows) > 0)
-        assert score[rows, cols].sum() == pytest.approx(_brute_force_best(score), abs=1e-12)
+    threshold = 0.1
+    for trial in range(80):
+        num_tracks, num_dets = (int(k) for k in rng.integers(0, 5, 2))
+        tracks, dets = _random_boxes(rng, num_tracks), _random_boxes(rng, num_dets)
+        if trial % 4 == 0 and num_tracks:
+            dets[: min(num_tracks, num_dets)] = tracks[rng.integers(0, num_tracks, min(num_tracks, num_dets))]
+        matches, unmatched_tracks, unmatched_dets = tr.associate(tracks, dets, threshold)
+        iou = metrics.rotated_iou(tracks, dets)
+        _check_is_matching(matches, num_tracks, num_dets)
+        assert np.all(iou[matches[:, 0], matches[:, 1]] >= threshold)
+        np.testing.assert_array_equal(unmatched_tracks, np.setdiff1d(np.arange(num_tracks), matches[:, 0]))
+        np.testing.assert_array_equal(unmatched_dets, np.setdiff1d(np.arange(num_dets), matches[:, 1]))
+        best = _best_matching_total(iou, iou >= threshold)
+        assert iou[matches[:, 0], matches[:, 1]].sum() == pytest.approx(best, abs=1e-12)
 
 
-def test_greedy_takes_highest_first():
-    score = np.array([[0.9, 0.8], [0.85, 0.0]])
-    rows, cols = tr.greedy_assignment(score, min_score=0.5)  # (1, 0) blocked by (0, 0); (1, 1) too low
-    assert list(zip(rows.tolist(), cols.tolist())) == [(0, 0)]
-    rows, cols = tr.hungarian(score)
-    assert list(zip(rows.tolist(), cols.tolist())) == [(0, 1), (1, 0)]  # 0.8 + 0.85 > 0.9
+@pytest.mark.parametrize("seed", range(3))
+def test_associate_by_centre_maximises_total_gain_in_the_gate(seed):
+    """Against brute force: the matching of gated pairs (d2 < gate, d2 computed here pair by pair) of
+    maximum total ``gate - d2``."""
+    rng = np.random.default_rng(seed)
+    gate, meas_cov = 9.21, np.diag([0.09, 0.09])
+    for _ in range(80):
+        num_tracks, num_dets = (int(k) for k in rng.integers(0, 5, 2))
+        track_xy, det_xy = rng.uniform(-3, 3, (num_tracks, 2)), rng.uniform(-3, 3, (num_dets, 2))
+        root = rng.normal(0.0, 0.6, (num_tracks, 2, 2))
+        track_cov = root @ root.transpose(0, 2, 1) + 0.01 * np.eye(2)
+        matches = tr.associate_by_centre(track_xy, track_cov, det_xy, meas_cov, gate)
+        d2 = np.array(
+            [[y @ np.linalg.solve(track_cov[t] + meas_cov, y) for y in det_xy - track_xy[t]] for t in range(num_tracks)]
+        ).reshape(num_tracks, num_dets)
+        _check_is_matching(matches, num_tracks, num_dets)
+        assert np.all(d2[matches[:, 0], matches[:, 1]] < gate)
+        best = _best_matching_total(gate - d2, d2 < gate)
+        assert (gate - d2[matches[:, 0], matches[:, 1]]).sum() == pytest.approx(best, abs=1e-9)
+
+
+def test_associate_prefers_total_iou_to_the_best_pair():
+    """Aligned boxes of one size offset by dx along their length: IoU = (L - dx) / (L + dx). Track 0 and
+    detection 0 are the best pair (0.84), but taking it leaves track 1 with detection 1 (0.29): 1.12 in all,
+    against 0.50 + 0.76 = 1.26 the other way round."""
+    length, width = CAR_LW
+    tracks = np.array([[0.0, 0.0, 0.0, length, width], [1.0, 0.0, 0.0, length, width]])
+    dets = np.array([[0.4, 0.0, 0.0, length, width], [-1.5, 0.0, 0.0, length, width]])
+    dx = np.abs(tracks[:, None, 0] - dets[None, :, 0])
+    np.testing.assert_allclose(metrics.rotated_iou(tracks, dets), (length - dx) / (length + dx), atol=1e-12)
+    matches, unmatched_tracks, unmatched_dets = tr.associate(tracks, dets, 0.1)
+    np.testing.assert_array_equal(matches, [[0, 1], [1, 0]])
+    assert unmatched_tracks.size == 0 and unmatched_dets.size == 0
 
 
 def test_associate_threshold_and_empty():
     tracks = np.array([[0.0, 0.0, 0.0, 4.5, 1.9], [20.0, 0.0, 0.0, 4.5, 1.9]])
     dets = np.array([[0.3, 0.1, 0.05, 4.4, 1.8], [50.0, 0.0, 0.0, 4.5, 1.9]])
-    for method in ("hungarian", "greedy"):
-        matches, ut, ud = tr.associate(tracks, dets, 0.1, method)
-        np.testing.assert_array_equal(matches, [[0, 0]])
-        np.testing.assert_array_equal(ut, [1])
-        np.testing.assert_array_equal(ud, [1])
+    matches, ut, ud = tr.associate(tracks, dets, 0.1)
+    np.testing.assert_array_equal(matches, [[0, 0]])
+    np.testing.assert_array_equal(ut, [1])
+    np.testing.assert_array_equal(ud, [1])
     matches, ut, ud = tr.associate(tracks, np.zeros((0, 5)), 0.1)
     assert matches.shape == (0, 2) and ut.tolist() == [0, 1] and ud.size == 0
+    matches, ut, ud = tr.associate(np.zeros((0, 5)), dets, 0.1)
+    assert matches.shape == (0, 2) and ut.size == 0 and ud.tolist() == [0, 1]
 
 
 def test_fold_heading():
@@ -256,24 +310,23 @@ def test_crossing_tracks_keep_ids():
     poses = _ego_path(num_frames)
     speed, cross_frame = 10.0, 20
     headings = np.array([0.25, -0.25])
-    for method in ("hungarian", "greedy"):
-        tracker = tr.Tracker(tr.TrackerConfig(min_hits=1, association=method))
-        first_ids = None
-        for k in range(num_frames):
-            s = (k - cross_frame) * DT * speed
-            town = np.stack([_box(30 + s * np.cos(h), 10 + s * np.sin(h), h) for h in headings])
-            town[:, :2] += 0.05 * rng.standard_normal((2, 2))
-            det = tr.boxes_town_to_ego(town, poses[k])
-            out = tracker.update(det, np.array([0.9, 0.8]), poses[k])
-            assert len(out.track_ids) == 2
-            # Which reported track lies on which car (nearest heading in the ego frame).
-            owner = np.argmin(np.abs(geo.wrap_angle(out.boxes[:, None, 2] - det[None, :, 2])), axis=1)
-            ids = out.track_ids[np.argsort(owner)]
-            if first_ids is None:
-                first_ids = ids
-            np.testing.assert_array_equal(ids, first_ids, err_msg=f"{method}, frame {k}")
-            if k > 5:
-                np.testing.assert_allclose(out.boxes[np.argsort(owner), :2], det[:, :2], atol=0.3)
+    tracker = tr.Tracker(tr.TrackerConfig(min_hits=1))
+    first_ids = None
+    for k in range(num_frames):
+        s = (k - cross_frame) * DT * speed
+        town = np.stack([_box(30 + s * np.cos(h), 10 + s * np.sin(h), h) for h in headings])
+        town[:, :2] += 0.05 * rng.standard_normal((2, 2))
+        det = tr.boxes_town_to_ego(town, poses[k])
+        out = tracker.update(det, np.array([0.9, 0.8]), poses[k])
+        assert len(out.track_ids) == 2
+        # Which reported track lies on which car (nearest heading in the ego frame).
+        owner = np.argmin(np.abs(geo.wrap_angle(out.boxes[:, None, 2] - det[None, :, 2])), axis=1)
+        ids = out.track_ids[np.argsort(owner)]
+        if first_ids is None:
+            first_ids = ids
+        np.testing.assert_array_equal(ids, first_ids, err_msg=f"frame {k}")
+        if k > 5:
+            np.testing.assert_allclose(out.boxes[np.argsort(owner), :2], det[:, :2], atol=0.3)
 
 
 def test_hidden_target_recovered_with_identity():
@@ -374,90 +427,3 @@ def test_min_hits_one_reports_immediately_and_output_is_ego_frame():
         out = tracker.update(det_k, [0.6], pose_k)
         np.testing.assert_allclose(out.boxes, det_k, atol=1e-9)
     np.testing.assert_allclose(tracker.mean[0, 5:], 0.0, atol=1e-9)
-
-
-# --------------------------------------------------------------------------------------- dead reckoning
-
-
-def _bicycle_path_float64(num_steps, rng):
-    """The world's ego update (world._drive_ego) re-implemented here in float64 under random controls."""
-    half = 0.5 * world.WHEELBASE_M
-    x, y, psi, v = 10.0, -5.0, 2.9, 6.0
-    poses = [pose_of(x, y, psi, v)]
-    for _ in range(num_steps):
-        steer = rng.uniform(-0.3, 0.3)
-        v_new = max(v + rng.uniform(-3, 3) * DT, 0.0)
-        ds = 0.5 * (v + v_new) * DT
-        psi_new = psi + ds * np.tan(steer) / world.WHEELBASE_M
-        mid = 0.5 * (psi + psi_new)
-        rx, ry = x - half * np.cos(psi) + ds * np.cos(mid), y - half * np.sin(psi) + ds * np.sin(mid)
-        x, y, psi, v = rx + half * np.cos(psi_new), ry + half * np.sin(psi_new), geo.wrap_angle(psi_new), v_new
-        poses.append(pose_of(x, y, psi, v))
-    return np.stack(poses)
-
-
-def test_dead_reckoning_exact_on_float64_bicycle():
-    poses = _bicycle_path_float64(300, np.random.default_rng(0))
-    est = tr.dead_reckon(poses[0], *tr.odometry_from_poses(poses))
-    np.testing.assert_allclose(est, poses, atol=1e-9)
-    reckoner = tr.DeadReckoner(poses[0])
-    speed, yaw_rate = tr.odometry_from_poses(poses)
-    streamed = np.stack([poses[0]] + [reckoner.step(v, w) for v, w in zip(speed, yaw_rate)])
-    np.testing.assert_allclose(streamed, est, atol=1e-9)
-
-
-@pytest.fixture(scope="module")
-def world_ego_path():
-    """Ego poses [201, 5] of a real world driven 200 steps (float32, as the world runs)."""
-    town = town_lib.build_town(DEFAULT_TOWN_SEED)
-    cfg = WorldConfig(num_vehicles=10)
-
-    @jax.jit
-    def roll(key):
-        state = world.reset(key, town, cfg)
-
-        def body(s, _):
-            s = world.step(s, town)
-            return s, (s.veh_box[world.EGO], s.veh_speed_mps[world.EGO])
-
-        _, (boxes, speeds) = jax.lax.scan(body, state, None, length=200)
-        boxes = jnp.concatenate([state.veh_box[world.EGO][None], boxes])
-        return boxes, jnp.concatenate([state.veh_speed_mps[world.EGO][None], speeds])
-
-    boxes, speeds = (np.asarray(a, np.float64) for a in roll(jax.random.PRNGKey(3)))
-    poses = np.column_stack([boxes[:, :2], np.cos(boxes[:, 2]), np.sin(boxes[:, 2]), speeds])
-    assert np.sum(np.linalg.norm(np.diff(poses[:, :2], axis=0), axis=1)) > 50.0  # it really drove
-    return poses
-
-
-@pytest.mark.slow
-def test_dead_reckoning_reproduces_world_path(world_ego_path):
-    poses = world_ego_path
-    est = tr.dead_reckon(poses[0], *tr.odometry_from_poses(poses))
-    # The world integrates in float32 (positions of a few hundred metres: ulp ~3e-5 m); the residual is its
-    # rounding, accumulated over 200 steps.
-    assert np.abs(est[:, :2] - poses[:, :2]).max() < 2e-3
-    assert np.abs(geo.wrap_angle(geo.pose_yaw(est) - geo.pose_yaw(poses))).max() < 1e-5
-    np.testing.assert_array_equal(est[:, 4], poses[:, 4])
-
-
-@pytest.mark.slow
-def test_dead_reckoning_error_grows_with_noise(world_ego_path):
-    poses = world_ego_path
-    rng = np.random.default_rng(7)
-    errors = np.stack(
-        [
-            np.linalg.norm(
-                tr.dead_reckon(poses[0], *tr.noisy_odometry(poses, 0.2, 0.02, rng))[:, :2] - poses[:, :2], axis=1
-            )
-            for _ in range(64)
-        ]
-    )  # [runs, 201]
-    mean_err = errors.mean(0)
-    assert mean_err[0] == 0.0
-    assert 0.0 < mean_err[20] < mean_err[100] < mean_err[200]
-    # Same seed, same noise: reproducible.
-    a = tr.noisy_odometry(poses, 0.2, 0.02, np.random.default_rng(1))
-    b = tr.noisy_odometry(poses, 0.2, 0.02, np.random.default_rng(1))
-    np.testing.assert_array_equal(a[0], b[0])
-    np.testing.assert_array_equal(a[1], b[1])

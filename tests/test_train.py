@@ -427,7 +427,7 @@ def test_carried_state_chains_segments_and_resumes_bit_identically(tmp_path):
         state, metrics = step_fn(state, b, key)
         np.testing.assert_allclose(metrics["total"], expected, rtol=1e-6)
     start = (
-        {"z1": state.carry["z1"][0], "z2": state.carry["z2"][0], "first": np.zeros(2, bool)},
+        model.FilterState(z1=state.carry["z1"][0], z2=state.carry["z2"][0], first=np.zeros(2, bool)),
         state.carry["action"][0],
     )
     np.testing.assert_array_equal(state.carry["action"][0], batches[0]["action"][:, -1])

@@ -2,7 +2,8 @@
 
 In the order the data flows: ``geometry`` (frames, boxes, the bird-eye grid), ``town`` (the static town,
 NumPy, built once per seed), ``world`` (traffic and the ego plant: ``reset``, ``step``), ``motion`` (the
-ego's motion as an estimator models it), ``sensors`` (camera, lidar, roadmap: ``observe``), ``pixor``
+ego's motion as an estimator models it), ``odometry`` (the ego pose integrated from measured speed and yaw
+rate through motion's step), ``sensors`` (camera, lidar, roadmap: ``observe``), ``pixor``
 (detection targets), ``rollout`` (the loop that drives a world and observes it) and ``batch`` (training
 batches, made on the fly). Used on its own, as a simulator::
 

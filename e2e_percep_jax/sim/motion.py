@@ -1,6 +1,8 @@
-"""The ego's motion as the estimators see it: the world's time step and wheelbase, and the motion model that
-the pose filter and dead reckoning use, whose parameters are fitted on training drives
-(:mod:`e2e_percep_jax.calibration`), never taken from the world's plant (which a car does not know).
+"""The ego's motion as the estimators see it: the world's time step and wheelbase, the bicycle step
+(:func:`centre_move`) and the motion model that the pose filter and dead reckoning on the commands use, whose
+parameters are fitted on training drives (:mod:`e2e_percep_jax.calibration`), never taken from the world's
+plant (which a car does not know). Wheel odometry (:mod:`e2e_percep_jax.sim.odometry`) drives the same step
+with measured speeds and yaw rates.
 
 The model, per step, from the logged commands (pedal, steering command):
 
@@ -23,7 +25,7 @@ import os
 
 import jax.numpy as jnp
 
-from e2e_percep_jax.sim.geometry import pose_yaw
+from e2e_percep_jax.sim.geometry import array_module, pose_yaw
 
 DT_S = 0.1  # the world's time step (s): one frame
 WHEELBASE_M = 2.7  # the kinematic bicycle model's wheelbase
@@ -85,8 +87,10 @@ def curvature(model: MotionModel, steer_rad, mid_speed_mps):
 def centre_move(ds_m, dyaw_rad, yaw_rad):
     """Displacement [..., K, 2] of the car's centre for K headings ``yaw_rad`` [..., K], given the distance
     ``ds_m`` [...] its rear axle drives and its yaw change ``dyaw_rad`` [...]: the rear axle moves along the
-    mid-step heading, the centre sits half a wheelbase ahead of it (the world's kinematic bicycle)."""
-    unit = lambda a: jnp.stack([jnp.cos(a), jnp.sin(a)], -1)
+    mid-step heading, the centre sits half a wheelbase ahead of it (the world's kinematic bicycle). NumPy
+    inputs give NumPy in their dtype (float64 stays float64), JAX inputs give JAX (``geometry.array_module``)."""
+    xp = array_module(ds_m, dyaw_rad, yaw_rad)
+    unit = lambda a: xp.stack([xp.cos(a), xp.sin(a)], -1)
     mid = yaw_rad + 0.5 * dyaw_rad[..., None]
     return ds_m[..., None, None] * unit(mid) + 0.5 * WHEELBASE_M * (unit(yaw_rad + dyaw_rad[..., None]) - unit(yaw_rad))
 
