@@ -23,6 +23,7 @@ from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import detection, report
 from e2e_percep_jax import evaluate as eval_lib
 from e2e_percep_jax import model as model_lib
+from e2e_percep_jax.api import PerceiverOutputs
 from e2e_percep_jax.sim import rollout, sensors, world
 from e2e_percep_jax.sim import town as town_lib
 
@@ -157,7 +158,7 @@ class RecordingPerceiver:
         b, r = camera.shape[0], self.cfg.data.image_size
         return (
             {"frame": state["frame"] + 1},
-            {"det_cls": jnp.zeros((b, r, r, 1)), "det_reg": jnp.zeros((b, r, r, 6)), "pose": jnp.zeros((b, 5))},
+            PerceiverOutputs(det_cls=jnp.zeros((b, r, r, 1)), det_reg=jnp.zeros((b, r, r, 6)), pose=jnp.zeros((b, 5))),
         )
 
 
@@ -195,7 +196,7 @@ def test_oracle_targets_through_the_decode_path_and_a_known_pose_offset(memory_r
     )
     params = model_lib.init_params(jax.random.PRNGKey(0), cfg)
 
-    def oracle(decoded, frame):
+    def oracle(outputs, frame):
         pose = frame["pose"]
         turn = 0.25
         c, s = pose[:, 2], pose[:, 3]
@@ -209,7 +210,7 @@ def test_oracle_targets_through_the_decode_path_and_a_known_pose_offset(memory_r
             ],
             -1,
         )
-        return dict(decoded, det_cls=frame["det_cls"], det_reg=frame["det_reg"], pose=moved)
+        return outputs.replace(det_cls=frame["det_cls"], det_reg=frame["det_reg"], pose=moved)
 
     m = eval_lib.evaluate(cfg, params, str(tmp_path), video_frames=0, heads=oracle, log=lambda _: None)
     det = m["detection"]
@@ -271,10 +272,11 @@ def test_memory_is_flat_in_the_number_of_steps(memory_run):
     # drive sit on one level and a few ~12 MB above it (a buffer alive or not), and a 200-frame drive need
     # not show the upper one: measured +12.7 MB. Keeping every chunk's outputs measured +40 MB.
     assert max(long) <= max(warm + short) + 25.0, (max(warm + short), max(long))
-    # A leak grows with every chunk, a few buffers' noise does not move a median: the drive's second half
-    # against its first (10 chunks apart). Measured: +0.2 MB; keeping 0.68 MB a chunk, +8.8 MB.
-    half = len(long) // 2
-    assert np.median(long[half:]) <= np.median(long[1:half]) + 3.0, long
+    # A leak raises the memory at every chunk; the noise is a step of a buffer's size (~12 MB) now and then,
+    # up or down, that may persist for the rest of the drive. The median change from one chunk to the next
+    # sees the first and not the second, wherever the steps fall. Measured: no leak 0.000 and 0.004 MB a
+    # chunk (the samples stepping 12.4 MB up and down five times in one run); keeping 0.68 MB a chunk 0.652.
+    assert np.median(np.diff(long[1:])) <= 0.25, long
 
 
 @pytest.mark.slow
