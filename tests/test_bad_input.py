@@ -2,17 +2,21 @@
 
 Every row fails in one line that names the flag or the file: a launcher exits with status 1 and writes
 exactly one line to stderr, ``error: ...``; the Python API raises a ValueError with a one-line message.
+A line about a run directory (rows with a ``damage``) is under ``LINE_LIMIT`` characters; a damaged
+checkpoint's also says what was done about it and what to do.
 Nothing is written to the run directory (every file and folder compared before and after), and nothing
 is compiled (launchers run under JAX_LOG_COMPILES=1, which logs each compilation to stderr; in-process
 rows under ``jax.log_compiles``). A few rows are inputs the API must accept.
 
 The damaged runs are copies of ONE tiny run trained here (2 steps, a checkpoint after each). Resuming
-training past a damaged latest checkpoint is not a failure: it sets that one aside as ``<step>.damaged``
-and goes on from the one before; :func:`test_a_resume_sets_a_damaged_latest_checkpoint_aside` checks it.
+training past damaged latest checkpoints is not a failure: it sets each aside as ``<step>.damaged`` (or
+``<step>.damaged.2``, ... when that name is taken) and goes on from the newest intact one; the tests at the
+end check it.
 """
 
 import concurrent.futures
 import contextlib
+import dataclasses
 import hashlib
 import logging
 import os
@@ -38,6 +42,7 @@ R, Z1, Z2 = TINY.data.image_size, TINY.model.z1_dim, TINY.model.z2_dim
 FOREIGN = config_lib.replace(CFG, model=dict(hidden_dim=TINY.model.hidden_dim // 2))  # another model width
 FOUR_DEVICES = {"XLA_FLAGS": "--xla_force_host_platform_device_count=4"}
 PARALLEL = 6  # launcher subprocesses at once: CPU-bound imports on 2 cores, so more buys nothing
+LINE_LIMIT = 200  # characters of the line about a damaged run
 
 
 class Case(NamedTuple):
@@ -57,17 +62,11 @@ class Case(NamedTuple):
 
 
 def _state(**parts):
-    """Perceiver.init(2) with some of its parts replaced (``pose_speed_mps=None`` drops that leaf)."""
+    """Perceiver.init(2) with some of its fields replaced (``pose_speed_mps=None`` drops that leaf)."""
     state = e2e.Perceiver(CFG).init(2)
-    for name, value in parts.items():
-        if name.startswith("pose_"):
-            if value is None:
-                state["pose"].pop(name[len("pose_") :])
-            else:
-                state["pose"][name[len("pose_") :]] = value
-        else:
-            state[name] = value
-    return state
+    pose = {name[len("pose_") :]: value for name, value in parts.items() if name.startswith("pose_")}
+    state = state.replace(pose=state.pose.replace(**pose))
+    return state.replace(**{name: value for name, value in parts.items() if not name.startswith("pose_")})
 
 
 _F32, _U8 = np.float32, np.uint8
@@ -154,7 +153,10 @@ CASES = {
         "train", [], "…/config.json: not a config", damage="config.json with an unknown field"
     ),
     "train resume, config.json of another model": Case(
-        "train", [], f"--model.z1_dim={Z1} differs", damage="config.json of another model"
+        "train",
+        [],
+        f"…; pass --model.z1_dim={Z1 + 1} to resume it, or use a new --workdir",
+        damage="config.json of another model",
     ),
     "train resume, no config.json": Case("train", [], "…: no config.json", damage="no config.json"),
     # ---------------------------------------------------------------- experiments/evaluate.py on the run
@@ -176,15 +178,20 @@ CASES = {
 }
 # Every damaged run through both readers, e2e.load and the evaluation launcher: each names the checkpoint or the
 # config.json it could not use (training's resume is in the "train resume" rows above and the tests at the end).
+_DAMAGED = "…/checkpoints/2: cannot be restored (damaged); stopped, nothing changed: use an older step (1)"
+_OTHER_CONFIG = (
+    "…/checkpoints/2: cannot be restored (holds another network); stopped, nothing changed: use its training config"
+)
 DAMAGES = {  # damage: what the message says (Case.expect)
-    "array files truncated": "…/checkpoints/2: cannot be restored",
-    "checkpoint overwritten with random bytes": "…/checkpoints/2: cannot be restored",
-    "empty step folder": "…/checkpoints/2: cannot be restored",
-    "checkpoint of another model width": "…/checkpoints/2: cannot be restored",
+    "array files truncated": _DAMAGED,
+    "array files truncated to zero bytes": _DAMAGED,
+    "checkpoint overwritten with random bytes": _DAMAGED,
+    "empty step folder": _DAMAGED,
+    "checkpoint of another model width": _OTHER_CONFIG,
     "config.json not JSON": "…/config.json: not a config (JSONDecodeError",
     "config.json with an unknown field": "…/config.json: not a config (ValueError: config.json: unknown fields "
     "['image_sise'] in [data])",
-    "config.json of another model": "…/checkpoints/2: cannot be restored for its config.json",
+    "config.json of another model": _OTHER_CONFIG,
     "no config.json": "…: no config.json",
     "no checkpoints": "no checkpoint in ",
 }
@@ -234,25 +241,37 @@ _STEP_CASES = {  # replaced inputs -> message
     ),
     "z1 width": (
         {"state": lambda: _state(z1=np.zeros((2, Z1 + 1), _F32))},
-        f"state['z1']: expected float32[2, {Z1}], got float32[2, {Z1 + 1}]",
+        f"state.z1: expected float32[2, {Z1}], got float32[2, {Z1 + 1}]",
     ),
     "z2 batch": (
         {"state": lambda: _state(z2=np.zeros((3, Z2), _F32))},
-        f"state['z2']: expected float32[2, {Z2}], got float32[3, {Z2}]",
+        f"state.z2: expected float32[2, {Z2}], got float32[3, {Z2}]",
     ),
     "z1 dtype": (
         {"state": lambda: _state(z1=np.zeros((2, Z1), np.float16))},
-        f"state['z1']: expected float32[2, {Z1}], got float16[2, {Z1}]",
+        f"state.z1: expected float32[2, {Z1}], got float16[2, {Z1}]",
     ),
     "first dtype": (
         {"state": lambda: _state(first=np.zeros(2, np.int32))},
-        "state['first']: expected bool[2], got int32[2]",
+        "state.first: expected bool[2], got int32[2]",
+    ),
+    "pose belief shape": (
+        {"state": lambda: _state(pose_belief=np.zeros((2, 1, 1, 1), _F32))},
+        "state.pose.belief: expected float32[2, ",
     ),
     "state missing a part": (
         {"state": lambda: _state(pose_speed_mps=None)},
-        "state: expected the dict of Perceiver.init (keys ['first', 'pose', 'z1', 'z2'])",
+        "state: expected the FilterState of Perceiver.init; missing ['state.pose.speed_mps'], unexpected []",
     ),
-    "state None": ({"state": lambda: None}, "state: expected the dict of Perceiver.init"),
+    "state without the pose belief": (
+        {"state": lambda: _state(pose=None)},
+        "state: expected the FilterState of Perceiver.init; missing ['state.pose.belief', ",
+    ),
+    "state as a dict of its fields": (
+        {"state": lambda: dataclasses.asdict(_state())},
+        "state: expected the FilterState of Perceiver.init, got dict",
+    ),
+    "state None": ({"state": lambda: None}, "state: expected the FilterState of Perceiver.init, got NoneType"),
 }
 for _name, (_args, _expect) in _STEP_CASES.items():
     CASES[f"step {_name}"] = Case("step", _args, _expect)
@@ -282,16 +301,17 @@ def _files(folder):
     return sorted(os.path.join(d, f) for d, _, names in os.walk(folder) for f in names)
 
 
-def damage(run, how, foreign):
-    """Damages the run copied to ``run`` (its latest checkpoint is step 2) as ``how`` says."""
-    step = os.path.join(run, "checkpoints", "2")
+def damage(run, how, foreign, step=2):
+    """Damages the run copied to ``run`` (its latest checkpoint is step 2) as ``how`` says; a damage to a
+    checkpoint, to checkpoint ``step``."""
+    step = os.path.join(run, "checkpoints", str(step))
     config_path = os.path.join(run, "config.json")
-    if how == "array files truncated":  # the OCDBT data files, where the arrays are
+    if how.startswith("array files truncated"):  # the OCDBT data files, where the arrays are
         arrays = [p for p in _files(step) if os.path.basename(os.path.dirname(p)) == "d"]
         assert arrays, _files(step)
         for path in arrays:
             with open(path, "r+b") as f:
-                f.truncate(os.path.getsize(path) // 2)
+                f.truncate(0 if how.endswith("to zero bytes") else os.path.getsize(path) // 2)
     elif how == "checkpoint overwritten with random bytes":
         rng = np.random.default_rng(0)
         for path in _files(step):
@@ -357,7 +377,7 @@ def _launcher_run(case, workdir):
         text=True,
         cwd=ROOT,
         timeout=600,
-        env=dict(os.environ, JAX_LOG_COMPILES="1", **(case.env or {})),
+        env={**os.environ, "JAX_LOG_COMPILES": "1", **(case.env or {})},
     )
     return proc.returncode, proc.stderr, snapshot(workdir)
 
@@ -450,6 +470,7 @@ def test_bad_input_fails_in_one_line_naming_it_and_writes_nothing(name, request,
             err,
         )
         assert not compiled, err
+        assert case.damage is None or len(said[0]) < LINE_LIMIT, said[0]
         assert after == before  # nothing written, deleted or changed; a fresh --workdir not even made
         return
     if case.target == "accepted":
@@ -494,18 +515,35 @@ def test_bad_input_fails_in_one_line_naming_it_and_writes_nothing(name, request,
     with guard, pytest.raises(ValueError) as error:
         call()
     message = str(error.value)
-    assert "\n" not in message and says(message, case.expect) and len(message) < 600, message
+    limit = 600 if case.damage is None else LINE_LIMIT
+    assert "\n" not in message and says(message, case.expect) and len(message) < limit, message
     if workdir is not None:
         assert snapshot(workdir) == before
 
 
 # ----------------------------------------------------------------------------- resuming a damaged run
 
+RESUME = ["--train.num_steps=2", "--train.checkpoint_every=1", "--train.log_every=1"]  # --config=tiny as CFG
+
+
+def _resumed(workdir, args=()):
+    """(exit status, stderr lines, snapshots before and after) of experiments/train.py resuming run ``workdir``
+    under CFG and ``args``; without compile logs, as a person runs it (the resume compiles the step)."""
+    before = snapshot(workdir)
+    status, err, after = _launcher_run(Case("train", [*RESUME, *args], env={"JAX_LOG_COMPILES": "0"}), workdir)
+    return status, err.splitlines(), before, after
+
+
+def _under(tree, folder):
+    """The part of snapshot ``tree`` under ``folder`` (relative to the run), named relative to it."""
+    return {name[len(folder) :]: digest for name, digest in tree.items() if name.startswith(folder + "/")}
+
 
 @pytest.mark.parametrize(
     "how",
     [
         "array files truncated",
+        "array files truncated to zero bytes",
         "checkpoint overwritten with random bytes",
         "empty step folder",
         "checkpoint of another model width",
@@ -524,9 +562,9 @@ def test_a_resume_sets_a_damaged_latest_checkpoint_aside(run, tmp_path, capfd, h
     state = train_lib.train(CFG, workdir, batches=synthetic_batches)
     out, err = capfd.readouterr()
     step2 = os.path.join(workdir, "checkpoints", "2")
-    ours = [ln for ln in err.splitlines() if ln.startswith("checkpoint ")]
-    assert len(ours) == 1 and f"checkpoint {step2}: cannot be restored" in ours[0], err
-    assert f"kept as {step2}.damaged" in ours[0], err
+    why = "holds another network" if how == "checkpoint of another model width" else "damaged"
+    line = f"checkpoint {step2}: cannot be restored ({why}); kept as 2.damaged, resumed from step 1"
+    assert [ln for ln in err.splitlines() if ln.startswith("checkpoint ")] == [line] and len(line) < LINE_LIMIT, err
     assert f"resumed from step 1 in {workdir}" in out
     after = snapshot(workdir)
     kept = {k: v for k, v in before.items() if k.startswith("checkpoints/2/")}
@@ -547,24 +585,84 @@ def test_a_resume_sets_a_damaged_latest_checkpoint_aside(run, tmp_path, capfd, h
 
 
 @pytest.mark.slow
+def test_a_resume_past_two_damaged_checkpoints_keeps_both(run, tmp_path):
+    """The two newest checkpoints damaged (a step 3 whose array files were cut to zero bytes, step 2 truncated):
+    the launcher resumes from step 1 with one line for each, kept file for file as 3.damaged and 2.damaged."""
+    workdir = str(tmp_path / "run")
+    shutil.copytree(run[0], workdir)
+    shutil.copytree(os.path.join(workdir, "checkpoints", "2"), os.path.join(workdir, "checkpoints", "3"))
+    damage(workdir, "array files truncated to zero bytes", run[1], step=3)
+    damage(workdir, "array files truncated", run[1])
+    status, lines, before, after = _resumed(workdir)
+    expected = [
+        f"checkpoint {workdir}/checkpoints/{step}: cannot be restored (damaged); kept as {step}.damaged, "
+        "resumed from step 1"
+        for step in (3, 2)
+    ]
+    assert status == 0 and lines == expected and max(map(len, expected)) < LINE_LIMIT, lines
+    for step in (3, 2):
+        assert _under(after, f"checkpoints/{step}.damaged") == _under(before, f"checkpoints/{step}"), step
+    kept = _under(before, "checkpoints/1")
+    assert len(kept) > 1 and _under(after, "checkpoints/1") == kept
+    assert after["config.json"] == before["config.json"] and checkpoint.saved_steps(workdir) == [1, 2]
+
+
+@pytest.mark.slow
+def test_a_resume_keeps_a_damaged_checkpoint_under_the_first_free_name(run, tmp_path):
+    """Step 2 damaged where an earlier resume already kept a step 2 as 2.damaged (a folder of files): the
+    launcher keeps the new one as 2.damaged.2 and resumes from step 1, in one line; the old one stays as it was."""
+    workdir = str(tmp_path / "run")
+    shutil.copytree(run[0], workdir)
+    shutil.copytree(os.path.join(run[1], "checkpoints", "2"), os.path.join(workdir, "checkpoints", "2.damaged"))
+    damage(workdir, "array files truncated to zero bytes", run[1])
+    status, lines, before, after = _resumed(workdir)
+    line = f"checkpoint {workdir}/checkpoints/2: cannot be restored (damaged); kept as 2.damaged.2, resumed from step 1"
+    assert status == 0 and lines == [line] and len(line) < LINE_LIMIT, lines
+    assert _under(after, "checkpoints/2.damaged.2") == _under(before, "checkpoints/2")
+    for kept in ("checkpoints/2.damaged", "checkpoints/1"):
+        assert len(_under(before, kept)) > 1 and _under(after, kept) == _under(before, kept), kept
+    assert after["config.json"] == before["config.json"] and checkpoint.saved_steps(workdir) == [1, 2]
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("trouble", ["every checkpoint damaged", "config.json of another model"])
 def test_a_resume_with_no_checkpoint_that_restores_stops_in_one_line_changing_nothing(run, tmp_path, trouble):
     """No checkpoint restores for config.json, whether they are damaged or config.json is the odd one out
-    (the checkpoints intact): the run stops with NoIntactCheckpointError (the launcher's one ``error:``
-    line) and leaves every file and folder as it was, so a repaired config.json resumes the run."""
+    (the checkpoints intact, the flags those of config.json): the launcher stops with one ``error:`` line that
+    says what to do, and leaves every file and folder as it was, so a repaired config.json resumes the run."""
     workdir = str(tmp_path / "run")
     shutil.copytree(run[0], workdir)
-    cfg = CFG
     if trouble == "every checkpoint damaged":
-        for step in ("1", "2"):
-            shutil.rmtree(os.path.join(workdir, "checkpoints", step))
-            os.mkdir(os.path.join(workdir, "checkpoints", step))
+        for step in (1, 2):
+            damage(workdir, "empty step folder", run[1], step=step)
+        args, why, todo = [], "damaged", "retrain in a new --workdir"
     else:
         cfg = config_lib.replace(CFG, model=dict(z1_dim=2 * CFG.model.z1_dim))
         with open(os.path.join(workdir, "config.json"), "w") as f:
             f.write(cfg.to_json())
-    before = snapshot(workdir)
-    with pytest.raises(checkpoint.NoIntactCheckpointError) as error:
-        train_lib.train(cfg, workdir, batches=synthetic_batches)
-    assert "\n" not in str(error.value) and f"no checkpoint in {workdir}/checkpoints restores" in str(error.value)
-    assert snapshot(workdir) == before
+        args = [f"--model.z1_dim={cfg.model.z1_dim}"]
+        why, todo = "holds another network", "use its training config"
+    status, lines, before, after = _resumed(workdir, args)
+    line = f"error: {workdir}/checkpoints: no step restores (newest, 2: {why}); stopped, all kept: {todo}"
+    assert status == 1 and lines == [line] and len(line) < LINE_LIMIT, lines
+    assert after == before
+
+
+def test_the_reports_of_reads_a_failed_restore_left_go_to_the_debug_log(run, tmp_path, caplog):
+    """A failed restore leaves orbax's reads in flight; asyncio reports each one whose failure nobody retrieved,
+    a page long, when it is collected (a moment after the one line). Those that name the checkpoint that failed
+    go to the debug log; any other asyncio report is left as it is."""
+    workdir = str(tmp_path / "run")
+    shutil.copytree(run[0], workdir)
+    damage(workdir, "array files truncated", run[1])
+    with pytest.raises(ValueError):
+        e2e.load(workdir)
+    report = "Future exception was never retrieved\nfuture: <Future finished exception=ValueError('{}/default/')>"
+    reports = [report.format(os.path.join(workdir, "checkpoints", step)) for step in ("2", "1")]
+    with caplog.at_level(logging.DEBUG):
+        for text in reports:
+            logging.getLogger("asyncio").error(text)
+    assert [(r.name, r.levelno, r.getMessage()) for r in caplog.records if "never retrieved" in r.getMessage()] == [
+        ("e2e_percep_jax.checkpoint", logging.DEBUG, reports[0]),
+        ("asyncio", logging.ERROR, reports[1]),
+    ]

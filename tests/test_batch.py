@@ -174,8 +174,17 @@ def test_carried_state_drives_continue_without_hand_over(town):
     per_drive, t1 = 2, CFG.data.seq_len + 1
     cfg = config.replace(CFG, data=dict(batches_per_drive=per_drive, carry_state=True))
     stream = [b for _, b in itertools.islice(batch.batch_stream(town, cfg, seed=2), per_drive**2)]
+    # The drive's frames by hand, without sensors (pose and action need none): frame t is state t's ego pose
+    # and the commands that take it to state t + 1.
     states = batch.start_drive(batch.batch_key(2, 0), town, cfg, 0)
-    _, whole = jax.vmap(lambda s: rollout.drive(s, town, per_drive * t1, CFG.data.image_size))(states)
+    step = jax.jit(jax.vmap(lambda s: world.step(s, town)))
+    poses, actions = [], []
+    for _ in range(per_drive * t1):
+        box, speed_mps = np.asarray(states.veh_box[:, world.EGO]), np.asarray(states.veh_speed_mps[:, world.EGO])
+        poses.append(np.stack([box[:, 0], box[:, 1], np.cos(box[:, 2]), np.sin(box[:, 2]), speed_mps], -1))
+        states = step(states)
+        actions.append(np.asarray(states.ego_action))
+    whole = {"pose": np.stack(poses, 1), "action": np.stack(actions, 1)}  # [B, K (T + 1), 5], [B, K (T + 1), 2]
     for segment in range(per_drive):
         step = segment * per_drive  # slot 0's drive
         for key in ("pose", "action"):  # another program than the stream's: equal up to rounding
