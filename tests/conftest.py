@@ -13,6 +13,15 @@ if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
     os.environ["JAX_COMPILATION_CACHE_DIR"] = tempfile.mkdtemp(prefix="e2e-percep-jax-cache-")
     atexit.register(shutil.rmtree, os.environ["JAX_COMPILATION_CACHE_DIR"], True)
 
+import helpers  # noqa: E402  (imports jax: after the cache is named; XLA reads its flags at the first computation)
+
+# The suite compiles hundreds of small programs that then run for moments, so XLA's LLVM optimisation of
+# them costs more than it saves: it is off for the suite and the launchers it starts (a third less CPU in
+# the fast tier). Rounding moves (no fused multiply-adds), so a test that compares with numbers recorded
+# at the default level computes them at that level, in a subprocess (`helpers.default_optimisation_env`).
+if helpers.OPTIMISATION_FLAG not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {helpers.OPTIMISATION_FLAG}=0".strip()
+
 import pytest  # noqa: E402
 
 from e2e_percep_jax import config, xla_cpu  # noqa: E402

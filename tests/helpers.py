@@ -24,6 +24,16 @@ TINY = config.get_config("tiny")
 EXACT_PLANT = {name: 0.0 for name in config.PLANT_FIELDS}  # the world's ego plant off: the exact-action world
 
 
+OPTIMISATION_FLAG = "--xla_backend_optimization_level"  # lowered for the suite by conftest.py
+
+
+def default_optimisation_env():
+    """This process's environment with XLA's backend optimisation at its default level, for a subprocess
+    whose numbers must equal ones recorded outside the suite."""
+    flags = [f for f in os.environ.get("XLA_FLAGS", "").split() if not f.startswith(OPTIMISATION_FLAG)]
+    return dict(os.environ, XLA_FLAGS=" ".join(flags))
+
+
 @functools.cache
 def load_experiment(name):
     """The script ``experiments/<name>.py`` as a module (experiments/ is not a package), loaded once: a
