@@ -1,8 +1,8 @@
 """The ego's motion as the estimators see it: the world's time step and wheelbase, the bicycle step
-(:func:`centre_move`) and the motion model that the pose filter and dead reckoning on the commands use, whose
-parameters are fitted on training drives (:mod:`e2e_percep_jax.calibration`), never taken from the world's
-plant (which a car does not know). Wheel odometry (:mod:`e2e_percep_jax.sim.odometry`) drives the same step
-with measured speeds and yaw rates.
+(:func:`centre_after`, which the world's plant drives too) and the motion model that the pose filter and
+dead reckoning on the commands use, whose parameters are fitted on training drives
+(:mod:`e2e_percep_jax.calibration`), never taken from the world's plant (which a car does not know).
+Wheel odometry (:mod:`e2e_percep_jax.sim.odometry`) drives the same step with measured speeds and yaw rates.
 
 The model, per step, from the logged commands (pedal, steering command):
 
@@ -84,15 +84,23 @@ def curvature(model: MotionModel, steer_rad, mid_speed_mps):
     return (model.steer_gain * tan + model.steer_bias + model.understeer_s2pm2 * tan * mid_speed_mps**2) / WHEELBASE_M
 
 
-def centre_move(ds_m, dyaw_rad, yaw_rad):
-    """Displacement [..., K, 2] of the car's centre for K headings ``yaw_rad`` [..., K], given the distance
-    ``ds_m`` [...] its rear axle drives and its yaw change ``dyaw_rad`` [...]: the rear axle moves along the
-    mid-step heading, the centre sits half a wheelbase ahead of it (the world's kinematic bicycle). NumPy
-    inputs give NumPy in their dtype (float64 stays float64), JAX inputs give JAX (``geometry.array_module``)."""
-    xp = array_module(ds_m, dyaw_rad, yaw_rad)
+def centre_after(xy_m, yaw_rad, ds_m, yaw_new_rad):
+    """The kinematic bicycle's step, written once (the world's plant, the pose filter and dead reckoning move
+    the ego through it): the car's centre [..., 2] after its rear axle, half a wheelbase behind the centre
+    ``xy_m`` [..., 2], drives ``ds_m`` [...] along the mid-step heading while the heading goes from
+    ``yaw_rad`` to ``yaw_new_rad`` [...]. NumPy inputs give NumPy in their dtype (float64 stays float64),
+    JAX inputs give JAX (``geometry.array_module``)."""
+    xp = array_module(xy_m, yaw_rad, ds_m, yaw_new_rad)
     unit = lambda a: xp.stack([xp.cos(a), xp.sin(a)], -1)
-    mid = yaw_rad + 0.5 * dyaw_rad[..., None]
-    return ds_m[..., None, None] * unit(mid) + 0.5 * WHEELBASE_M * (unit(yaw_rad + dyaw_rad[..., None]) - unit(yaw_rad))
+    rear_m = xy_m - 0.5 * WHEELBASE_M * unit(yaw_rad)
+    mid_rad = 0.5 * (yaw_rad + yaw_new_rad)
+    return rear_m + ds_m[..., None] * unit(mid_rad) + 0.5 * WHEELBASE_M * unit(yaw_new_rad)
+
+
+def centre_move(ds_m, dyaw_rad, yaw_rad):
+    """Displacement [..., K, 2] of the car's centre (:func:`centre_after`) for K headings ``yaw_rad``
+    [..., K], given the distance ``ds_m`` [...] its rear axle drives and its yaw change ``dyaw_rad`` [...]."""
+    return centre_after(0.0, yaw_rad, ds_m[..., None], yaw_rad + dyaw_rad[..., None])
 
 
 def step(model: MotionModel, actuator, command, speed_mps, yaw_rad):

@@ -39,7 +39,7 @@ import numpy as np
 from e2e_percep_jax.config import WorldConfig
 from e2e_percep_jax.sim import town as town_lib
 from e2e_percep_jax.sim.geometry import wrap_angle
-from e2e_percep_jax.sim.motion import DT_S, WHEELBASE_M
+from e2e_percep_jax.sim.motion import DT_S, WHEELBASE_M, centre_after
 
 EGO = 0  # index of the ego in every per-vehicle array
 
@@ -601,9 +601,7 @@ def _drive_ego(state, town, accel, noise_key):
         dyaw / (1.0 + plant.understeer_rad_s2pm * (0.5 * (v + v_new)) ** 2 / WHEELBASE_M),
     )
     yaw_new = box[2] + dyaw + noise[1] * ds
-    mid = 0.5 * (box[2] + yaw_new)
-    rear_new = rear_axle + ds * jnp.stack([jnp.cos(mid), jnp.sin(mid)])
-    xy_new = rear_new + 0.5 * WHEELBASE_M * jnp.stack([jnp.cos(yaw_new), jnp.sin(yaw_new)])
+    xy_new = centre_after(box[:2], box[2], ds, yaw_new)
     # Arc position: one Newton step of projecting the new centre onto the lane.
     guess_xy, guess_yaw, _ = lane_point(town, lane, s + ds)
     advance = ds + jnp.dot(xy_new - guess_xy, jnp.stack([jnp.cos(guess_yaw), jnp.sin(guess_yaw)]))
