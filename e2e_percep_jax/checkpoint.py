@@ -39,26 +39,6 @@ class UnreadableCheckpointError(ValueError):
         self.path, self.why = path, why
 
 
-class _AbandonedReads(logging.Filter):
-    """For asyncio's logger: drops its reports of the reads that a failed restore of a checkpoint in ``paths``
-    left in flight (futures whose failure nobody retrieved, a page each when collected, after the line that
-    names the checkpoint), logging them at DEBUG."""
-
-    def __init__(self):
-        super().__init__()
-        self.paths = set()
-
-    def filter(self, record: logging.LogRecord) -> bool:
-        text = record.getMessage()
-        if not any(path in text for path in self.paths):
-            return True
-        logger.debug("%s", text)
-        return False
-
-
-_abandoned_reads = _AbandonedReads()
-
-
 def manager(workdir: str, remove_temporary: bool = True) -> ocp.CheckpointManager:
     """The manager of run ``workdir``'s checkpoints (keeps the newest ``MAX_CHECKPOINTS_KEPT``).
 
@@ -136,8 +116,7 @@ def read_checkpoint(workdir: str, step: int, abstract):
             return checkpointer.restore(item, abstract)
     except Exception:  # orbax raises many types (decode, data loss, tree or shape mismatch), some pages long
         logger.debug("%s: orbax could not restore it", path, exc_info=True)
-        _abandoned_reads.paths.add(item + os.sep)
-        logging.getLogger("asyncio").addFilter(_abandoned_reads)  # (once: a logger holds a filter once)
+        config_lib.quieten_abandoned_reads(item + os.sep)
         why = _why_unreadable(item, abstract)
     raise UnreadableCheckpointError(path, why)
 

@@ -19,6 +19,7 @@ import math
 import os
 import sys
 import traceback
+import warnings
 from typing import Any
 
 VARIANTS = ("full", "no_input_recon", "no_roadmap_recon")
@@ -457,12 +458,35 @@ def _without_abandoned_read_reports(hook):
     return filtered
 
 
-class _WithoutAbandonedReadLogs(logging.Filter):
-    """asyncio's log of the tasks and futures of the reads orbax abandons."""
+class _AbandonedReads(logging.Filter):
+    """For asyncio's logger: drops its reports of the tasks and futures of the reads orbax abandons, logging
+    them at DEBUG. Those reports carry orbax's frames, or (tensorstore's futures, which carry none) name
+    the checkpoint whose restore failed: :func:`quieten_abandoned_reads` registers it."""
+
+    def __init__(self):
+        super().__init__()
+        self.paths = set()
 
     def filter(self, record: logging.LogRecord) -> bool:
+        text = record.getMessage()
         trace = logging.Formatter().formatException(record.exc_info) if record.exc_info else ""
-        return not _from_orbax(record.getMessage(), trace)
+        if not (_from_orbax(text, trace) or any(path in text for path in self.paths)):
+            return True
+        logging.getLogger(__name__).debug("%s", text)
+        return False
+
+
+_abandoned_reads = _AbandonedReads()
+
+
+def quieten_abandoned_reads(path: str | None = None) -> None:
+    """Drops asyncio's reports of the reads orbax abandons (the one filter; a logger holds a filter once),
+    and those that name ``path``, a checkpoint whose restore failed. After such a failure, the reads'
+    coroutines may also be collected unawaited, each with a warning at exit: those are dropped too."""
+    if path is not None:
+        _abandoned_reads.paths.add(path)
+        warnings.filterwarnings("ignore", r"coroutine '.*' was never awaited", RuntimeWarning)
+    logging.getLogger("asyncio").addFilter(_abandoned_reads)
 
 
 def check_launch(argv, required: tuple = ("workdir",)) -> None:
@@ -475,7 +499,7 @@ def check_launch(argv, required: tuple = ("workdir",)) -> None:
     if not flags.FLAGS["verbosity"].present:
         absl_logging.set_verbosity(absl_logging.WARNING)
     sys.unraisablehook = _without_abandoned_read_reports(sys.unraisablehook)
-    logging.getLogger("asyncio").addFilter(_WithoutAbandonedReadLogs())
+    quieten_abandoned_reads()
     if len(argv) > 1:
         raise ValueError(f"unexpected arguments {argv[1:]}; every setting is a --flag")
     for name in required:

@@ -25,6 +25,14 @@ EXACT_PLANT = {name: 0.0 for name in config.PLANT_FIELDS}  # the world's ego pla
 
 
 OPTIMISATION_FLAG = "--xla_backend_optimization_level"  # lowered for the suite by conftest.py
+# XLA's default optimisation (level 3) for one program, ``jax.jit(f, compiler_options=OPTIMISED)``: for the
+# few a test runs long (a filter over thousands of frames), which run 3-5 times slower unoptimised.
+OPTIMISED = {OPTIMISATION_FLAG.lstrip("-"): 3}
+
+
+def xla_flags(*extra):
+    """The suite's XLA_FLAGS (its optimisation level kept) and ``extra``, for a subprocess's environment."""
+    return " ".join([os.environ.get("XLA_FLAGS", ""), *extra]).strip()
 
 
 def default_optimisation_env():
@@ -45,6 +53,23 @@ def load_experiment(name):
 
 
 # ----------------------------------------------------------------------------- frames, loss and its terms
+
+
+def frame_contract(image_size, num_boxes):
+    """One observed frame's keys and their (dtype, shape): the frame contract, less the ``action`` that
+    ``rollout.drive`` adds (it needs the next state)."""
+    r, n = image_size, num_boxes
+    return {
+        "camera": (np.uint8, (r, r, 3)),
+        "lidar": (np.uint8, (r, r, 3)),
+        "roadmap": (np.uint8, (r, r, 3)),
+        "det_cls": (np.float32, (r, r, 1)),
+        "det_reg": (np.float32, (r, r, 6)),
+        "pose": (np.float32, (5,)),
+        "boxes": (np.float32, (n, 5)),
+        "boxes_valid": (np.bool_, (n,)),
+        "boxes_occluded": (np.bool_, (n,)),
+    }
 
 
 def synthetic_batch(seed, cfg, batch_size=None):

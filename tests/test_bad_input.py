@@ -30,7 +30,7 @@ import jax
 import numpy as np
 import orbax.checkpoint as ocp
 import pytest
-from helpers import ROOT, TINY, read_jsonl, synthetic_batch
+from helpers import ROOT, TINY, read_jsonl, synthetic_batch, xla_flags
 
 import e2e_percep_jax as e2e
 from e2e_percep_jax import checkpoint
@@ -41,7 +41,7 @@ from e2e_percep_jax.sim.motion import MotionModel
 CFG = config_lib.replace(TINY, train=dict(num_steps=2, checkpoint_every=1, log_every=1))  # the run's config
 R, Z1, Z2 = TINY.data.image_size, TINY.model.z1_dim, TINY.model.z2_dim
 FOREIGN = config_lib.replace(CFG, model=dict(hidden_dim=TINY.model.hidden_dim // 2))  # another model width
-FOUR_DEVICES = {"XLA_FLAGS": "--xla_force_host_platform_device_count=4"}
+FOUR_DEVICES = {"XLA_FLAGS": xla_flags("--xla_force_host_platform_device_count=4")}
 PARALLEL = 6  # launcher subprocesses at once: CPU-bound imports on 2 cores, so more buys nothing
 LINE_LIMIT = 200  # characters of the line about a damaged run, its paths counted by their last part
 

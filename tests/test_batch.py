@@ -6,6 +6,7 @@ import itertools
 import jax
 import numpy as np
 import pytest
+from helpers import frame_contract
 
 from e2e_percep_jax import config
 from e2e_percep_jax.sim import batch, rollout, sensors, world
@@ -20,19 +21,8 @@ def first_batch(town):
 
 @pytest.mark.slow
 def test_batch_follows_the_contract(first_batch):
-    b, t1, r, n = CFG.data.batch_size, CFG.data.seq_len + 1, CFG.data.image_size, CFG.world.num_vehicles
-    expected = {
-        "camera": (np.uint8, (r, r, 3)),
-        "lidar": (np.uint8, (r, r, 3)),
-        "roadmap": (np.uint8, (r, r, 3)),
-        "det_cls": (np.float32, (r, r, 1)),
-        "det_reg": (np.float32, (r, r, 6)),
-        "pose": (np.float32, (5,)),
-        "action": (np.float32, (2,)),
-        "boxes": (np.float32, (n, 5)),
-        "boxes_valid": (np.bool_, (n,)),
-        "boxes_occluded": (np.bool_, (n,)),
-    }
+    b, t1 = CFG.data.batch_size, CFG.data.seq_len + 1
+    expected = frame_contract(CFG.data.image_size, CFG.world.num_vehicles) | {"action": (np.float32, (2,))}
     assert set(first_batch) == set(expected)
     for key, (dtype, shape) in expected.items():
         assert first_batch[key].dtype == dtype and first_batch[key].shape == (b, t1) + shape, key
@@ -127,24 +117,25 @@ def test_batches_per_drive_interleave_drives_hand_over_the_ego_and_resume_mid_dr
     per_drive, b, n = 2, CFG.data.batch_size, CFG.world.num_vehicles
     cfg = config.replace(CFG, data=dict(batches_per_drive=per_drive))
     stream = [b for _, b in itertools.islice(batch.batch_stream(town, cfg, seed=2), per_drive**2 + 1)]
+    # compiled once for every segment
+    drawn = jax.jit(lambda key: jax.vmap(lambda k: jax.random.randint(k, (), 1, n + 1))(jax.random.split(key, b)))
+    hand_over = jax.jit(jax.vmap(lambda s, vehicle: world.hand_over_ego(s, vehicle, town)))
+    drive_on = jax.jit(jax.vmap(lambda s: rollout.drive(s, town, CFG.data.seq_len + 1, CFG.data.image_size)))
     for drive in range(per_drive):
         drive_key = batch.batch_key(2, drive)
         states = batch.start_drive(drive_key, town, cfg, 0)
         for segment in range(per_drive):
             step = segment * per_drive + drive
             assert batch.drive_slot(step, per_drive) == (drive, segment)
-            keys = jax.random.split(jax.random.fold_in(drive_key, segment), b)
-            vehicles = [int(jax.random.randint(k, (), 1, n + 1)) for k in keys]
+            vehicles = [int(v) for v in drawn(jax.random.fold_in(drive_key, segment))]
             place = lambda s, rows: np.asarray(s.veh_box)[np.arange(b)[:, None], rows, :2]
             before = states
-            states = jax.vmap(world.hand_over_ego, in_axes=(0, 0, None))(states, np.array(vehicles), town)
+            states = hand_over(states, np.array(vehicles))
             # the new ego stands where its NPC stood, the old ego's place is now that row's; bodies stay
             np.testing.assert_array_equal(place(states, [[world.EGO]] * b), place(before, np.array(vehicles)[:, None]))
             np.testing.assert_array_equal(place(states, np.array(vehicles)[:, None]), place(before, [[world.EGO]] * b))
             np.testing.assert_array_equal(np.asarray(states.veh_box)[..., 3:], np.asarray(before.veh_box)[..., 3:])
-            states, piece = jax.vmap(lambda s: rollout.drive(s, town, CFG.data.seq_len + 1, CFG.data.image_size))(
-                states
-            )
+            states, piece = drive_on(states)
             for key in ("pose", "boxes", "action"):  # another program than the stream's: equal up to rounding
                 np.testing.assert_allclose(stream[step][key], piece[key], atol=1e-3, err_msg=f"{step} {key}")
             assert np.mean(np.asarray(stream[step]["camera"]) == np.asarray(piece["camera"])) > 0.99, step

@@ -2,6 +2,8 @@
 (Bad values, each naming its flag, are rows of test_bad_input.py.)"""
 
 import dataclasses
+import subprocess
+import sys
 
 import pytest
 from absl import flags
@@ -47,3 +49,32 @@ def test_flags_override_only_the_named_fields():
 def test_config_json_round_trips(name):
     cfg = config_lib.get_config(name)
     assert config_lib.Config.from_json(cfg.to_json()) == cfg
+
+
+QUIET_PROGRAM = """
+import asyncio, logging, sys
+from e2e_percep_jax import config
+if sys.argv[1] == "quiet":
+    config.quieten_abandoned_reads("/run/checkpoints/2/default/")
+logging.basicConfig(format="%(message)s")
+logging.getLogger("asyncio").error("Future exception was never retrieved: reading /run/checkpoints/2/default/")
+logging.getLogger("asyncio").error("Task exception was never retrieved: something else")
+async def read():
+    pass
+class Holder:
+    pass
+h = Holder()
+h.coroutine, h.cycle = read(), h  # collected at exit, unawaited: it warns then
+del h
+"""
+
+
+@pytest.mark.parametrize("quiet", [False, True])
+def test_a_failed_restores_abandoned_reads_are_dropped_and_nothing_else(quiet):
+    """After a checkpoint's restore failed, asyncio's reports naming it and the warnings of coroutines
+    collected unawaited are dropped; another report stays. Without the call, all three print."""
+    argv = [sys.executable, "-c", QUIET_PROGRAM, "quiet" if quiet else "loud"]
+    err = subprocess.run(argv, capture_output=True, text=True, timeout=60).stderr
+    assert "something else" in err
+    assert ("reading /run/checkpoints/2/default/" in err) != quiet, err
+    assert ("was never awaited" in err) != quiet, err

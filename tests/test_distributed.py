@@ -18,7 +18,7 @@ import jax
 import numpy as np
 import orbax.checkpoint as ocp
 import pytest
-from helpers import LAUNCHER, TINY_FLAGS, checkpoint_steps, free_port, read_jsonl, tiny
+from helpers import LAUNCHER, TINY_FLAGS, checkpoint_steps, free_port, read_jsonl, tiny, xla_flags
 
 from e2e_percep_jax import train
 
@@ -55,7 +55,7 @@ finally:
 def launch_two_processes(workdir):
     """Processes 0 and 1 of one launcher run in ``workdir``; their Popen objects."""
     flags = FLAGS + [f"--workdir={workdir}", f"--coordinator_address=localhost:{free_port()}"]
-    env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS="--xla_force_host_platform_device_count=1")
+    env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS=xla_flags("--xla_force_host_platform_device_count=1"))
     return [
         subprocess.Popen(
             [sys.executable, "-c", WITH_PROCESS_COUNT] + LAUNCHER[1:] + flags + [f"--process_id={i}"],

@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import EXACT_PLANT
+from helpers import EXACT_PLANT, default_optimisation_env
 
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import detection, report
@@ -85,7 +85,7 @@ def memory_run(tmp_path_factory):
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
-        env=dict(os.environ, MALLOC_ARENA_MAX="2"),
+        env=dict(default_optimisation_env(), MALLOC_ARENA_MAX="2"),  # a long run: optimised
     )
     result = {}
 

@@ -8,13 +8,14 @@ e2e_percep_jax/sim/motion.py's docstring states them; pose_belief's and motion.p
 values under test."""
 
 import dataclasses
+import functools
 import math
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import EXACT_PLANT
+from helpers import EXACT_PLANT, OPTIMISED
 
 from e2e_percep_jax import calibration, config, pose_belief
 from e2e_percep_jax.sim import motion as motion_lib
@@ -490,7 +491,7 @@ def histogram_track(model, start, commands, grid):
     state = pose_belief.init_state(1, grid).replace(
         belief=belief, yaw_offset_rad=offset, speed_mps=jnp.asarray(start[None, 4], jnp.float32)
     )
-    predict = jax.jit(lambda b, m, o, d: pose_belief.predict(b, m, o, d, model, grid))
+    predict = jax.jit(lambda b, m, o, d: pose_belief.predict(b, m, o, d, model, grid), compiler_options=OPTIMISED)
     actuator = jnp.asarray(commands[:1], jnp.float32)
     poses = [pose_belief.mean_pose(state, grid)[0]]
     for command in commands:
@@ -543,7 +544,7 @@ def ego_drives(key, town, world_cfg, warmup_steps, num_worlds, frames):
     """Drives of the ego (world.step, no sensors): NumPy (poses [W, T, 5] (x, y, cos, sin, speed), the
     commands applied from frame t-1 to frame t [W, T, 2] (frame 0's: the warm-up's last))."""
 
-    @jax.jit
+    @functools.partial(jax.jit, compiler_options=OPTIMISED)
     def run(keys):
         def one(k):
             state = rollout.advance(world.reset(k, town, world_cfg), town, warmup_steps)
@@ -592,7 +593,7 @@ def coverage(model, pose, prev_action, grid):
     heading error by itself): ``in_region`` of the true pose, bool [T, W, 2] (place; heading and place)."""
     w, frames = pose.shape[:2]
 
-    @jax.jit
+    @functools.partial(jax.jit, compiler_options=OPTIMISED)
     def run(pose, prev_action):
         def body(state, xs):
             p, a, first = xs

@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import frame_contract
 
 from e2e_percep_jax.sim import geometry as geo
 from e2e_percep_jax.sim import sensors
@@ -357,17 +358,7 @@ def scene():
 def test_observe_follows_the_frame_contract(r):
     town, state = scene()
     frame = {k: np.asarray(v) for k, v in observe(state, town, r).items()}
-    expected = {
-        "camera": (np.uint8, (r, r, 3)),
-        "lidar": (np.uint8, (r, r, 3)),
-        "roadmap": (np.uint8, (r, r, 3)),
-        "det_cls": (np.float32, (r, r, 1)),
-        "det_reg": (np.float32, (r, r, 6)),
-        "pose": (np.float32, (5,)),
-        "boxes": (np.float32, (3, 5)),
-        "boxes_valid": (np.bool_, (3,)),
-        "boxes_occluded": (np.bool_, (3,)),
-    }
+    expected = frame_contract(r, 3)
     assert set(frame) == set(expected)  # "action" is added by rollout.drive (it needs the next state)
     for key, (dtype, shape) in expected.items():
         assert frame[key].dtype == dtype and frame[key].shape == shape, key

@@ -34,6 +34,7 @@ from helpers import (
     read_jsonl,
     synthetic_batch,
     tiny,
+    xla_flags,
 )
 
 from e2e_percep_jax import config, loss, model, train
@@ -94,7 +95,7 @@ def four_device_loss_and_grads(workdir):
         with open({str(path)!r}, "wb") as f:
             pickle.dump(jax.device_get((metrics, grads)), f)
         """,
-        XLA_FLAGS="--xla_force_host_platform_device_count=4",
+        XLA_FLAGS=xla_flags("--xla_force_host_platform_device_count=4"),
     )
     assert r.returncode == 0, r.stdout + r.stderr
     with open(path, "rb") as f:

@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import EXACT_PLANT
+from helpers import EXACT_PLANT, OPTIMISED
 
 from e2e_percep_jax.config import DEFAULT_TOWN_SEED, WorldConfig
 from e2e_percep_jax.sim import town as town_lib
@@ -28,7 +28,7 @@ DRIVABLE = [town_lib.SEM_ROAD, town_lib.SEM_LANE_WHITE, town_lib.SEM_CENTRE_YELL
 MAX_LIMIT_MPS = town_lib.ARTERIAL_SPEED_MPS
 
 
-@functools.partial(jax.jit, static_argnames="num_steps")
+@functools.partial(jax.jit, static_argnames="num_steps", compiler_options=OPTIMISED)
 def _drive(keys, town, num_steps):
     states = jax.vmap(lambda k: world.reset(k, town, CFG))(keys)
 
@@ -356,7 +356,7 @@ def test_no_gridlock_in_a_15000_step_drive(town0):
     """The fraction of vehicles that move at all in every 10 s window of a 25-minute drive stays high."""
     window, num_windows = 100, 150
 
-    @jax.jit
+    @functools.partial(jax.jit, compiler_options=OPTIMISED)
     def fractions(keys, town):  # the town as an argument, not a closed-over constant: faster to compile
         def one_window(states, _):
             def body(carry, _):
@@ -382,7 +382,8 @@ GRIDLOCK_STATE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "data"
 def _moving_and_boxes(state, town, num_steps):
     """(share of vehicles moving per 10 s window [num_steps / 100], boxes of every step [num_steps, N+1, 5])."""
 
-    @jax.jit  # traced afresh on every call: it reads world.REROUTE_AFTER_S as it is now
+    # traced afresh on every call: it reads world.REROUTE_AFTER_S as it is now
+    @functools.partial(jax.jit, compiler_options=OPTIMISED)
     def run(state, town):
         def body(state, _):
             state = world.step(state, town)
