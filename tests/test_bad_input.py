@@ -670,6 +670,6 @@ def test_the_reports_of_reads_a_failed_restore_left_go_to_the_debug_log(run, tmp
         for text in reports:
             logging.getLogger("asyncio").error(text)
     assert [(r.name, r.levelno, r.getMessage()) for r in caplog.records if "never retrieved" in r.getMessage()] == [
-        ("e2e_percep_jax.checkpoint", logging.DEBUG, reports[0]),
+        ("e2e_percep_jax.config", logging.DEBUG, reports[0]),
         ("asyncio", logging.ERROR, reports[1]),
     ]
