@@ -382,8 +382,7 @@ GRIDLOCK_STATE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "data"
 def _moving_and_boxes(state, town, num_steps):
     """(share of vehicles moving per 10 s window [num_steps / 100], boxes of every step [num_steps, N+1, 5])."""
 
-    # traced afresh on every call: it reads world.REROUTE_AFTER_S as it is now
-    @functools.partial(jax.jit, compiler_options=OPTIMISED)
+    @jax.jit  # traced afresh on every call: it reads world.REROUTE_AFTER_S as it is now
     def run(state, town):
         def body(state, _):
             state = world.step(state, town)
