@@ -591,19 +591,24 @@ def _conflicts(L):
     lo = np.array([p.min(0) for p in L.pts]) - CONFLICT_DIST_M
     hi = np.array([p.max(0) for p in L.pts]) + CONFLICT_DIST_M
     near = np.all((lo[:, None] <= hi[None]) & (lo[None] <= hi[:, None]), axis=-1)
+    length = [np.linalg.norm(np.diff(p, axis=0), axis=1).sum() for p in L.pts]
     table = [[] for _ in range(n)]
     for a, b in zip(*np.nonzero(np.triu(near, 1))):
         if b in succ2[a] or a in succ2[b]:  # following along one path is the car-following model's job
             continue
-        close = np.linalg.norm(L.pts[a][:, None] - L.pts[b][None], axis=-1) < CONFLICT_DIST_M
+        # Distances only between the points inside the other lane's box grown by CONFLICT_DIST_M: no point
+        # outside it is that close to the other lane.
+        ia = np.flatnonzero(np.all((L.pts[a] >= lo[b]) & (L.pts[a] <= hi[b]), axis=-1))
+        ib = np.flatnonzero(np.all((L.pts[b] >= lo[a]) & (L.pts[b] <= hi[a]), axis=-1))
+        close = np.zeros((len(L.pts[a]), len(L.pts[b])), bool)
+        close[np.ix_(ia, ib)] = np.linalg.norm(L.pts[a][ia, None] - L.pts[b][None, ib], axis=-1) < CONFLICT_DIST_M
         if not close.any():
             continue
         by_priority = not (pred[a] & pred[b])
         for x, y, rows in ((a, b, close.any(1)), (b, a, close.any(0))):
             idx = np.flatnonzero(rows)
-            length = np.linalg.norm(np.diff(L.pts[x], axis=0), axis=1).sum()
             s_in = max((idx[0] - 1) * _DENSE_DS_M, 0.0)
-            s_out = min((idx[-1] + 1) * _DENSE_DS_M, length)
+            s_out = min((idx[-1] + 1) * _DENSE_DS_M, length[x])
             table[x].append((y, s_in, s_out, by_priority))
     return table
 
