@@ -577,8 +577,9 @@ def _lights(rng, node_xy, node_kind, roads, lanes_per_dir, in_lanes, L):
     return lane_light, np.array(cycle), np.array(start), np.array(green), np.array(light_node), np.array(light_xy)
 
 
-def _conflicts(L):
-    """Pairwise conflict intervals of lanes whose centre lines pass within CONFLICT_DIST_M.
+def _conflicts(L, length):
+    """Pairwise conflict intervals of lanes whose centre lines pass within CONFLICT_DIST_M (``length``: each
+    lane's length m, :func:`_lane_lengths`).
 
     Returns a list per lane of (other lane, in_m, out_m, by_priority).
     """
@@ -591,7 +592,6 @@ def _conflicts(L):
     lo = np.array([p.min(0) for p in L.pts]) - CONFLICT_DIST_M
     hi = np.array([p.max(0) for p in L.pts]) + CONFLICT_DIST_M
     near = np.all((lo[:, None] <= hi[None]) & (lo[None] <= hi[:, None]), axis=-1)
-    length = [np.linalg.norm(np.diff(p, axis=0), axis=1).sum() for p in L.pts]
     table = [[] for _ in range(n)]
     for a, b in zip(*np.nonzero(np.triu(near, 1))):
         if b in succ2[a] or a in succ2[b]:  # following along one path is the car-following model's job
@@ -870,7 +870,7 @@ def _build_town_np(seed):
         raise RuntimeError(f"town {seed}: lane lengths {length.min():.2f}..{length.max():.2f} m out of range")
     num_samples = int(np.ceil(length.max() / LANE_DS_M)) + 2
     xy, yaw, curv = map(np.stack, zip(*(_sampled(p, num_samples) for p in L.pts)))
-    table = _conflicts(L)
+    table = _conflicts(L, length)
     width = max(len(row) for row in table)
     conf_lane = _pad([[c[0] for c in row] for row in table], width, np.int32(-1))
     mirror = [[[c[0] for c in table[b]].index(a) for b, *_ in row] for a, row in enumerate(table)]
