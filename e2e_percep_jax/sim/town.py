@@ -209,10 +209,12 @@ def build_town(seed: int) -> Town:
     return jax.tree.map(jnp.asarray, _build_town_np(seed))
 
 
+@functools.lru_cache(maxsize=8)
 def spawn_slots(seed: int) -> int:
     """How many vehicles the town of ``seed`` can place at a reset (NumPy only: nothing is compiled). From
-    the lane graph alone, a sixth of the time of building the whole town."""
-    *_, lanes, _, _ = _lane_graph(np.random.default_rng(seed))
+    the lane graph alone, a sixth of the time of building the whole town; once per seed (every launcher's
+    checks ask, several times)."""
+    *_, lanes, _, _ = _lane_graph(seed)[0]
     return len(_spawn_slots(lanes, _lane_lengths(lanes)))
 
 
@@ -834,12 +836,15 @@ def _sampled(pts, num_samples):
 
 
 @functools.lru_cache(maxsize=8)
-def _lane_graph(rng):
-    """The road network, its junctions and the lanes through them: the first draws from the town's ``rng``."""
+def _lane_graph(seed):
+    """The road network, its junctions and the lanes through them (the first draws from the town's
+    generator), and that generator's state after them, from which the build draws the rest. Once per seed:
+    a launcher's checks (:func:`spawn_slots`) and the build both read it, and neither changes it."""
+    rng = np.random.default_rng(seed)
     node_xy, roads, lanes_per_dir, ring_node, interior = _road_network(rng)
     node_kind, major_roads = _junction_kinds(rng, node_xy, roads, lanes_per_dir, ring_node, interior)
     L, in_lanes, mouth_m = _lanes_with_feasible_turns(node_xy, roads, lanes_per_dir, node_kind, major_roads)
-    return node_xy, roads, lanes_per_dir, ring_node, node_kind, L, in_lanes, mouth_m
+    return (node_xy, roads, lanes_per_dir, ring_node, node_kind, L, in_lanes, mouth_m), rng.bit_generator.state
 
 
 def _lane_lengths(L):
@@ -856,8 +861,10 @@ def _spawn_slots(L, length):
 
 
 def _build_town_np(seed):
+    graph, after_graph = _lane_graph(seed)
+    node_xy, roads, lanes_per_dir, ring_node, node_kind, L, in_lanes, mouth_m = graph
     rng = np.random.default_rng(seed)
-    node_xy, roads, lanes_per_dir, ring_node, node_kind, L, in_lanes, mouth_m = _lane_graph(rng)
+    rng.bit_generator.state = after_graph
     node_degree = np.bincount(roads.ravel(), minlength=len(node_xy))
     if not _strongly_connected(L.succ):
         raise RuntimeError(f"town {seed}: lane graph is not strongly connected")
