@@ -16,7 +16,9 @@ seed, so a stopped sweep has whole seeds done. It resumes: finished evaluations 
 trainings continue from their checkpoint. ``--parallel=N`` runs N processes at once (each sees all cores;
 on a 2-core machine 1 is fastest). Writes ``SWEEP_DIR/summary<protocol>.json`` and ``.md`` per protocol
 (``summary.md``: the training town; ``summary_town7_known_start.md``, ...): mean ± std over seeds of each
-metric per method. With a held-out ``--eval.town_seed`` instead, every run is evaluated there alone.
+metric per method. With a held-out ``--eval.town_seed`` instead, every run is evaluated there alone. The
+motion model is fitted once, into ``SWEEP_DIR/motion_model.json``, and copied into each run that would fit
+one (the belief's training runs, dead reckoning): they all drive the same world.
 The README's tables come from these runs through ``experiments/tables.py --collect``.
 """
 
@@ -31,6 +33,8 @@ from absl import app, flags
 from e2e_percep_jax import baselines as baselines_lib
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import report
+from e2e_percep_jax import train as train_lib
+from e2e_percep_jax.sim import motion as motion_lib
 from e2e_percep_jax.summary import mean_std, summary_metrics
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -119,6 +123,18 @@ def _protocol_flags(cfg: config_lib.Config, base: config_lib.Config) -> list[str
     return [f"--eval.town_seed={cfg.eval.town_seed}", f"--eval.known_start={cfg.eval.known_start}"]
 
 
+def _share_motion_model(base: config_lib.Config, run_dirs) -> None:
+    """Fits the motion model of the sweep's world once (``SWEEP_DIR/motion_model.json``) and gives each of
+    ``run_dirs`` that has none a copy. Every run and baseline drives the same world (only the seed and the
+    variant differ), so each would fit this same model itself, at a fit's cost each."""
+    missing = [d for d in run_dirs if not os.path.exists(os.path.join(d, motion_lib.FILE_NAME))]
+    if missing:
+        model = train_lib.ensure_motion_model(base, FLAGS.sweep_dir)
+        for d in missing:
+            os.makedirs(d, exist_ok=True)
+            model.save(d)
+
+
 def main(argv):
     try:
         config_lib.check_launch(argv, required=("sweep_dir",))
@@ -129,6 +145,13 @@ def main(argv):
 
     run_cfg = lambda v, s: config_lib.replace(base, train=dict(seed=s), model=dict(variant=v))
     workdir = lambda name: os.path.join(FLAGS.sweep_dir, name)
+
+    def fits_motion(name):
+        """The directories of run ``name`` that fit a motion model: a belief's training run, dead reckoning."""
+        if name.startswith("baselines-"):
+            return [os.path.join(workdir(name), "dead_reckoning")] if "dead_reckoning" in FLAGS.baselines else []
+        return [workdir(name)] if base.model.pose_head == "belief" else []
+
     # (method, evaluation directory) of everything the sweep evaluates
     evaluations = []
     jobs = []  # (run directory name, the commands still to run there, in order)
@@ -174,6 +197,7 @@ def main(argv):
     print(f"sweep: {len(model_runs)} runs, {sum(not t for t in model_runs)} already finished", flush=True)
     jobs = [(name, todo) for name, todo in jobs if todo]
     os.makedirs(FLAGS.sweep_dir, exist_ok=True)
+    _share_motion_model(base, [d for name, _ in jobs for d in fits_motion(name)])
 
     def start(name, todo):
         os.makedirs(workdir(name), exist_ok=True)

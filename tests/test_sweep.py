@@ -46,6 +46,18 @@ def test_same_seed_gives_identical_metrics(sweeps):
 
 
 @pytest.mark.slow
+def test_the_sweep_fits_the_motion_model_once_for_all_its_runs(sweeps):
+    a, _ = sweeps
+    with open(os.path.join(a, "motion_model.json")) as f:
+        fitted = f.read()
+    for name in ("full-seed0", "full-seed1"):
+        with open(os.path.join(a, name, "motion_model.json")) as f:
+            assert f.read() == fitted
+        with open(os.path.join(a, name, "main.log")) as f:
+            assert "fitting the motion model" not in f.read()  # the run found its copy
+
+
+@pytest.mark.slow
 def test_rerun_skips_finished_runs(sweeps):
     a, _ = sweeps
     before = os.path.getmtime(os.path.join(a, "full-seed0", "eval", "metrics.json"))
@@ -69,11 +81,13 @@ def test_summary_is_mean_and_std_of_the_runs(sweeps):
 def test_held_out_towns_and_baselines_join_a_finished_sweep_without_retraining(sweeps):
     """Grown by held-out towns and the modular baselines, a finished sweep trains nothing of its own again:
     each run is evaluated on the new town from the known start, the baselines train and evaluate beside
-    (the pose regressor on the training town only), and each protocol gets its table of its methods."""
+    (the pose regressor on the training town only; dead reckoning on the sweep's motion model), and each
+    protocol gets its table of its methods. (The detector and the tracker go the pose regressor's way
+    through the sweep; ``test_baselines`` trains and evaluates them from their launcher.)"""
     a, _ = sweeps
     run = os.path.join(a, "full-seed0")
     before = {p: os.path.getmtime(os.path.join(run, p)) for p in ("eval/metrics.json", "metrics.jsonl")}
-    grown = ("--seeds=0", "--variants=full", "--held_out_towns=3", "--baselines=detector,tracker,pose,dead_reckoning")
+    grown = ("--seeds=0", "--variants=full", "--held_out_towns=3", "--baselines=pose,dead_reckoning")
     result = _sweep(a, *grown)
     assert result.returncode == 0 and "1 runs, 0 already finished" in result.stdout, result.stdout + result.stderr
     assert {p: os.path.getmtime(os.path.join(run, p)) for p in before} == before  # no training, no overwrite
@@ -86,24 +100,21 @@ def test_held_out_towns_and_baselines_join_a_finished_sweep_without_retraining(s
         os.path.relpath(os.path.dirname(p), os.path.join(a, base))
         for p in glob.glob(os.path.join(a, base, "*", "eval*", "metrics.json"))
     }
-    assert evaluated == {
-        "detector/eval",
-        "tracker/eval",
-        "pose/eval",
-        "dead_reckoning/eval_known_start",
-        "detector/eval_town3_known_start",
-        "tracker/eval_town3_known_start",
-        "dead_reckoning/eval_town3_known_start",
-    }
-    assert _metrics(a, os.path.join(base, "detector"))["config"]["train"]["seed"] == 0
+    assert evaluated == {"pose/eval", "dead_reckoning/eval_known_start", "dead_reckoning/eval_town3_known_start"}
+    assert _metrics(a, os.path.join(base, "pose"))["config"]["train"]["seed"] == 0
+    with (
+        open(os.path.join(a, "motion_model.json")) as f,
+        open(os.path.join(a, base, "dead_reckoning", "motion_model.json")) as g,
+    ):
+        assert f.read() == g.read()
     with open(os.path.join(a, "summary_town3_known_start.json")) as f:
         summary = json.load(f)["summary"]
-    assert set(summary) == {"full", "detector", "tracker", "dead_reckoning"}
+    assert set(summary) == {"full", "dead_reckoning"}
     assert summary["full"]["location mean (m)"][0] == summary_metrics(held_out)["location mean (m)"]
     with open(os.path.join(a, "summary_known_start.json")) as f:
         assert set(json.load(f)["summary"]) == {"dead_reckoning"}
     with open(os.path.join(a, "summary.json")) as f:
-        assert set(json.load(f)["summary"]) == {"full", "detector", "tracker", "pose"}
+        assert set(json.load(f)["summary"]) == {"full", "pose"}
     again = _sweep(a, *grown)
     assert again.returncode == 0 and "1 runs, 1 already finished" in again.stdout
 
