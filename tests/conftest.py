@@ -18,7 +18,7 @@ import helpers  # noqa: E402  (imports jax: after the cache is named; XLA reads 
 # The suite compiles hundreds of small programs that then run for moments, so XLA's LLVM optimisation of
 # them costs more than it saves: it is off for the suite and the launchers it starts (a third less CPU in
 # the fast tier). Rounding moves (no fused multiply-adds), so a test that compares with numbers recorded
-# at the default level computes them at that level, in a subprocess (`helpers.default_optimisation_env`).
+# at the default level compiles that program at the default level (`helpers.OPTIMISED`).
 if helpers.OPTIMISATION_FLAG not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {helpers.OPTIMISATION_FLAG}=0".strip()
 

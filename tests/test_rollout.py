@@ -16,7 +16,7 @@ advance = jax.jit(rollout.advance, static_argnums=2)
 
 @pytest.fixture(scope="module")
 def start(town):
-    return world.reset(jax.random.PRNGKey(3), town, CFG.world)
+    return jax.jit(world.reset, static_argnums=2)(jax.random.PRNGKey(3), town, CFG.world)  # (one program, not op by op)
 
 
 @pytest.fixture(scope="module")
@@ -28,10 +28,13 @@ def drive(town):
 
 def test_advance_is_that_many_single_steps(town, start):
     stepped, step = start, jax.jit(world.step)
-    for _ in range(7):
+    for _ in range(NUM_FRAMES):
         stepped = step(stepped, town)
-    # The same operations, compiled as one loop or as seven calls: equal up to float32 rounding.
-    jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-4), advance(start, town, 7), stepped)
+    # The same operations, compiled as one loop or as single calls: equal up to float32 rounding. (As many
+    # steps as the drive below takes, whose end is compared with the same compiled loop.)
+    jax.tree.map(
+        lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-4), advance(start, town, NUM_FRAMES), stepped
+    )
 
 
 def test_drive_returns_the_next_frames_state_and_the_states_it_saw(town, start, drive):

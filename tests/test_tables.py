@@ -251,7 +251,7 @@ def test_readme_blocks_are_filled_and_checked(results, tmp_path):
     text = readme.read_text()
     assert "old" not in text and text.startswith("# x\n") and "\ntext\n" in text
     assert tables.render(str(results))["detection"] in text
-    assert subprocess.run(cmd + ["--check"], capture_output=True, timeout=120).returncode == 0
+    assert tables.fill(text, tables.render(str(results))) == text  # what --check compares: now up to date
     with pytest.raises(ValueError, match="table:localisation"):
         tables.fill("no markers", tables.render(str(results)))
 

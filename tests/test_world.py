@@ -6,10 +6,7 @@ semantic raster; red-light crossings are found from box geometry, the stop lines
 
 import functools
 import os
-import subprocess
-import sys
 
-import helpers
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -216,45 +213,24 @@ def test_ego_commands_are_within_limits_and_the_plant_is_what_moved_the_ego(reco
     assert abs(curvature_residual.std() / CFG.ego_curvature_noise_1pm - 1) < 0.1
 
 
-# The drive again, in a subprocess at XLA's default optimisation (the suite lowers it, which moves rounding).
-_EXACT_DRIVE_SCRIPT = """
-import sys
-import jax
-import numpy as np
-from e2e_percep_jax import config
-from e2e_percep_jax.sim import town as town_lib, world
-cfg = config.WorldConfig(num_vehicles=20, **{name: 0.0 for name in config.PLANT_FIELDS})
-town = town_lib.build_town(config.DEFAULT_TOWN_SEED)
-
-@jax.jit
-def run(keys):
-    def body(states, _):
-        states = jax.vmap(lambda s: world.step(s, town))(states)
-        return states, (states.veh_box, states.veh_speed_mps[:, world.EGO], states.ego_action)
-
-    return jax.lax.scan(body, jax.vmap(lambda k: world.reset(k, town, cfg))(keys), None, length=400)[1]
-
-boxes, ego_speed, command = jax.tree.map(np.asarray, run(jax.random.split(jax.random.PRNGKey(7), 2)))
-np.savez(sys.argv[1], boxes=boxes, ego_speed=ego_speed, command=command)
-"""
-
-
-def test_an_exact_plant_reproduces_the_recorded_drive_of_the_exact_action_world(tmp_path):
+def test_an_exact_plant_reproduces_the_recorded_drive_of_the_exact_action_world():
     """tests/data/exact_world_drive.npz: two worlds of town 0 with 20 NPCs, reset from PRNGKey(7) and driven
     400 steps by the world before it had a plant (its actions then were acceleration m/s^2 and steering rad).
-    All of the plant's fields at zero drive them again bit for bit."""
+    All of the plant's fields at zero drive them again bit for bit. (Compiled at XLA's default optimisation,
+    as the recording was: the suite's lower level moves rounding.)"""
     recorded = np.load(os.path.join(os.path.dirname(__file__), "data", "exact_world_drive.npz"))
-    out = tmp_path / "drive.npz"
-    done = subprocess.run(
-        [sys.executable, "-c", _EXACT_DRIVE_SCRIPT, str(out)],
-        env=helpers.default_optimisation_env(),
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert done.returncode == 0, done.stderr[-3000:]
-    drive = np.load(out)
-    boxes, ego_speed, command = drive["boxes"], drive["ego_speed"], drive["command"]
+    cfg = WorldConfig(num_vehicles=20, **EXACT_PLANT)
+    town = town_lib.build_town(DEFAULT_TOWN_SEED)
+
+    @functools.partial(jax.jit, compiler_options=OPTIMISED)
+    def run(keys):
+        def body(states, _):
+            states = jax.vmap(lambda s: world.step(s, town))(states)
+            return states, (states.veh_box, states.veh_speed_mps[:, world.EGO], states.ego_action)
+
+        return jax.lax.scan(body, jax.vmap(lambda k: world.reset(k, town, cfg))(keys), None, length=400)[1]
+
+    boxes, ego_speed, command = jax.tree.map(np.asarray, run(jax.random.split(jax.random.PRNGKey(7), 2)))
     np.testing.assert_array_equal(boxes[:, :, world.EGO], recorded["ego_box"])
     np.testing.assert_array_equal(boxes[-1], recorded["final_boxes"])
     np.testing.assert_array_equal(ego_speed, recorded["ego_speed_mps"])
@@ -394,6 +370,7 @@ def _moving_and_boxes(state, town, num_steps):
     return moving.reshape(-1, 100, moving.shape[-1]).any(1).mean(-1), boxes
 
 
+@pytest.mark.slow
 def test_a_ring_of_full_roads_clears_when_vehicles_take_other_exits(town0, monkeypatch):
     """A gridlock of town 0 (``PRNGKey(7)``, 100 vehicles, 930,000 steps into the drive, recorded before
     re-routing existed): 27 vehicles wait at junction mouths whose exits are queued and every other one
