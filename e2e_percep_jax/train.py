@@ -298,19 +298,17 @@ def train(cfg: Config, workdir: str, batches: Batches | None = None, objective: 
     main_process = jax.process_index() == 0
     config_path, metrics_path = os.path.join(workdir, "config.json"), os.path.join(workdir, "metrics.jsonl")
     manager = checkpoint.manager(workdir)
-    if main_process:
-        with open(config_path, "w") as f:
-            f.write(cfg.to_json())
-        if batches is None and objective is PERCEPTION and cfg.model.pose_head == "belief":
-            ensure_motion_model(cfg, workdir)
-
     mesh = make_mesh()
     state = jax.device_put(init_state(cfg, objective), NamedSharding(mesh, PartitionSpec()))
     if start is not None:
         state, start = checkpoint.restore_newest_intact(manager, state, workdir)
         print(f"resumed from step {start} in {workdir}", flush=True)
     start = start or 0
-    if main_process:
+    if main_process:  # (once the run is known to go on: a resume that stops has changed nothing)
+        with open(config_path, "w") as f:
+            f.write(cfg.to_json())
+        if batches is None and objective is PERCEPTION and cfg.model.pose_head == "belief":
+            ensure_motion_model(cfg, workdir)
         _truncate_metrics(metrics_path, start)
     step_fn = make_train_step(cfg, mesh, objective)
     board = board_lib.Board(workdir if main_process else None, start)

@@ -636,13 +636,14 @@ def test_a_resume_keeps_a_damaged_checkpoint_under_the_first_free_name(run, tmp_
 def test_a_resume_with_no_checkpoint_that_restores_stops_in_one_line_changing_nothing(run, tmp_path, trouble):
     """No checkpoint restores for config.json, whether they are damaged or config.json is the odd one out
     (the checkpoints intact, the flags those of config.json): the launcher stops with one ``error:`` line that
-    says what to do, and leaves every file and folder as it was, so a repaired config.json resumes the run."""
+    says what to do, and leaves every file and folder as it was, so a repaired config.json resumes the run.
+    (The damaged run is resumed to more steps, a change a resume may make: config.json keeps the old count.)"""
     workdir = str(tmp_path / "run")
     shutil.copytree(run[0], workdir)
     if trouble == "every checkpoint damaged":
         for step in (1, 2):
             damage(workdir, "empty step folder", run[1], step=step)
-        args, why, todo = [], "damaged", "retrain in a new --workdir"
+        args, why, todo = [f"--train.num_steps={2 * CFG.train.num_steps}"], "damaged", "retrain in a new --workdir"
     else:
         cfg = config_lib.replace(CFG, model=dict(z1_dim=2 * CFG.model.z1_dim))
         with open(os.path.join(workdir, "config.json"), "w") as f:
