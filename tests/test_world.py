@@ -25,9 +25,9 @@ DRIVABLE = [town_lib.SEM_ROAD, town_lib.SEM_LANE_WHITE, town_lib.SEM_CENTRE_YELL
 MAX_LIMIT_MPS = town_lib.ARTERIAL_SPEED_MPS
 
 
-@functools.partial(jax.jit, static_argnames="num_steps", compiler_options=OPTIMISED)
-def _drive(keys, town, num_steps):
-    states = jax.vmap(lambda k: world.reset(k, town, CFG))(keys)
+@functools.partial(jax.jit, static_argnames=("num_steps", "cfg"), compiler_options=OPTIMISED)
+def _drive(keys, town, num_steps, cfg=CFG):
+    states = jax.vmap(lambda k: world.reset(k, town, cfg))(keys)
 
     def body(states, _):
         states = jax.vmap(lambda s: world.step(s, town))(states)
@@ -37,12 +37,12 @@ def _drive(keys, town, num_steps):
     return jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), states, later)
 
 
-def drive(town, keys, num_steps=NUM_STEPS):
+def drive(town, keys, num_steps=NUM_STEPS, cfg=CFG):
     """States of len(keys) worlds from reset through ``num_steps`` steps: a WorldState of [T+1, W, ...].
 
     Tests share (W, num_steps) where they can: each new shape is one more compile of the whole world.
     """
-    return jax.tree.map(np.asarray, _drive(keys, town, num_steps))
+    return jax.tree.map(np.asarray, _drive(keys, town, num_steps, cfg))
 
 
 @pytest.fixture(scope="module", params=[DEFAULT_TOWN_SEED, HELD_OUT_SEED], ids=["default", "held_out"])
@@ -220,17 +220,8 @@ def test_an_exact_plant_reproduces_the_recorded_drive_of_the_exact_action_world(
     as the recording was: the suite's lower level moves rounding.)"""
     recorded = np.load(os.path.join(os.path.dirname(__file__), "data", "exact_world_drive.npz"))
     cfg = WorldConfig(num_vehicles=20, **EXACT_PLANT)
-    town = town_lib.build_town(DEFAULT_TOWN_SEED)
-
-    @functools.partial(jax.jit, compiler_options=OPTIMISED)
-    def run(keys):
-        def body(states, _):
-            states = jax.vmap(lambda s: world.step(s, town))(states)
-            return states, (states.veh_box, states.veh_speed_mps[:, world.EGO], states.ego_action)
-
-        return jax.lax.scan(body, jax.vmap(lambda k: world.reset(k, town, cfg))(keys), None, length=400)[1]
-
-    boxes, ego_speed, command = jax.tree.map(np.asarray, run(jax.random.split(jax.random.PRNGKey(7), 2)))
+    states = drive(town_lib.build_town(DEFAULT_TOWN_SEED), jax.random.split(jax.random.PRNGKey(7), 2), 400, cfg)
+    boxes, ego_speed, command = states.veh_box[1:], states.veh_speed_mps[1:, :, world.EGO], states.ego_action[1:]
     np.testing.assert_array_equal(boxes[:, :, world.EGO], recorded["ego_box"])
     np.testing.assert_array_equal(boxes[-1], recorded["final_boxes"])
     np.testing.assert_array_equal(ego_speed, recorded["ego_speed_mps"])
