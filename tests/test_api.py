@@ -263,9 +263,10 @@ def test_load_imports_no_evaluation_world_or_cv2():
 
 @pytest.mark.slow
 def test_filter_sweep_reports_the_regions_coverage_under_each_heading_noise(trained_run):
-    """The filter sweep replays the run's heads through each setting and reports how often the truth lies
-    in the belief's 95 % regions, as percentages; a heading noise scaled 10,000-fold changes the joint
-    (heading, place) region's share, so the scale reaches the filter."""
+    """The filter sweep replays the run's heads through each setting (every combination of the listed
+    values, at the one position asked for) and reports how often the truth lies in the belief's 95 %
+    regions, as percentages; a heading noise scaled 10,000-fold changes the joint (heading, place) region's
+    share, so the scale reaches the filter."""
     workdir, _, _ = trained_run
     sweep = os.path.join(
         os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "experiments", "pose_filter_sweep.py"
@@ -280,13 +281,16 @@ def test_filter_sweep_reports_the_regions_coverage_under_each_heading_noise(trai
             "--floors=0.05",
             "--powers=0.25",
             "--heading_noise_scales=1,10000",
+            "--reversals=0,0.5",
+            "--positions=local_mean",
         ],
         capture_output=True,
         text=True,
         timeout=600,
     )
     assert result.returncode == 0, result.stderr[-2000:]
-    rows = [line for line in result.stdout.splitlines() if "heading noise x" in line and "local_mean" in line]
+    rows = [line for line in result.stdout.splitlines() if "heading noise x" in line]
+    assert len(rows) == 4 and all("reversal 0" in row and "local_mean" in row for row in rows), result.stdout
     coverage = [tuple(map(float, row.split("|")[-2].strip(" %").split(" / "))) for row in rows]  # the last column
-    assert len(coverage) == 2 and all(0.0 <= c <= 100.0 for pair in coverage for c in pair), result.stdout
-    assert coverage[0][1] != coverage[1][1], coverage
+    assert all(0.0 <= c <= 100.0 for pair in coverage for c in pair), result.stdout
+    assert coverage[0][1] != coverage[1][1], coverage  # reversal 0: heading noise x1 against x10,000
