@@ -64,10 +64,6 @@ MEASUREMENT_POWER = 0.125
 HEADING_NOISE_SCALE = 8.0
 SPEED_GAIN = 0.2
 RELOCATION_SHARE = 1e-3
-# The heading head's typical confident error is the reverse of the truth (a road looks much alike both ways
-# along it), so its heading probabilities are mixed with this share of themselves turned half a turn: a frame
-# that names the reversed heading then cannot outvote the right one by more than (1 - share) / share.
-REVERSAL_SHARE = 0.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -281,20 +277,11 @@ def predict(
     return jnp.roll(belief, whole.astype(jnp.int32), 0), yaw_offset_rad - whole * grid.bin_rad
 
 
-def likelihood(
-    head: dict,
-    grid: Grid,
-    floor: float = MEASUREMENT_FLOOR,
-    power: float = MEASUREMENT_POWER,
-    reversal: float = REVERSAL_SHARE,
-):
+def likelihood(head: dict, grid: Grid, floor: float = MEASUREMENT_FLOOR, power: float = MEASUREMENT_POWER):
     """The measurement of one frame, [..., H, n, n]: the head's place and heading probabilities, each mixed
-    with ``floor`` of uniform mass and raised to ``power``; the heading's first mixed with ``reversal`` of
-    itself half a turn round (H / 2 bins)."""
+    with ``floor`` of uniform mass and raised to ``power``."""
     place = (1 - floor) * jax.nn.softmax(head["place_logit"], -1) + floor / grid.num_cells
-    heading = jax.nn.softmax(head["heading_logit"], -1)
-    heading = (1 - reversal) * heading + reversal * jnp.roll(heading, grid.heading_bins // 2, -1)
-    heading = (1 - floor) * heading + floor / grid.heading_bins
+    heading = (1 - floor) * jax.nn.softmax(head["heading_logit"], -1) + floor / grid.heading_bins
     place = place.reshape(place.shape[:-1] + (grid.n, grid.n))
     return (heading[..., :, None, None] * place[..., None, :, :]) ** power
 
@@ -317,16 +304,15 @@ def filter_step(
     power: float = MEASUREMENT_POWER,
     speed_gain: float = SPEED_GAIN,
     relocation: float = RELOCATION_SHARE,
-    reversal: float = REVERSAL_SHARE,
     heading_noise_scale: float = HEADING_NOISE_SCALE,
     position: str = "local_mean",
 ):
     """One frame for B streams: motion through ``model`` by ``prev_action`` [B, 2] (the commands from the
     last frame to this one) with its process noise (:func:`predict`), then ``relocation`` of each cell's
-    mass spread over all headings, then Bayes' rule with this frame's ``head`` outputs (:func:`likelihood`,
-    with ``floor``, ``power`` and ``reversal``). Rows with ``first`` [B] set start a drive: from a uniform
-    prior and the head's speed, or, given ``start_pose`` [B, 5] (the known-start protocol), from that pose
-    and speed. Returns (state, pose [B, 5] at the belief's mode, :func:`estimate`).
+    mass spread over all headings, then Bayes' rule with this frame's ``head`` outputs. Rows with ``first``
+    [B] set start a drive: from a uniform prior and the head's speed, or, given ``start_pose`` [B, 5] (the
+    known-start protocol), from that pose and speed. Returns (state, pose [B, 5] at the belief's mode,
+    :func:`estimate`).
 
     ``measure=False`` (known start only: an odometry for a town the head does not know) takes no
     measurement; the belief is then kept a point (:func:`start_at`) that the motion model moves, and the
@@ -358,7 +344,7 @@ def filter_step(
     else:
         first_belief, first_offset = start_at(start_pose, grid)
         first_speed = start_pose[:, 4]
-    measured = likelihood(head, grid, floor, power, reversal) if measure else 1.0
+    measured = likelihood(head, grid, floor, power) if measure else 1.0
     new = PoseBeliefState(
         belief=_normalised(jnp.where(rows(moved), first_belief, prior) * measured),
         speed_mps=jnp.where(first, first_speed, v_new + speed_gain * (head_speed - v_new)),
@@ -372,7 +358,7 @@ def head_state(head: dict, grid: Grid) -> PoseBeliefState:
     """The filter state of B streams that is the head's own distribution (place x heading, no filtering),
     its speed, no heading offset and no actuators: the belief of ``--model.pose_filter=none``."""
     return PoseBeliefState(
-        belief=_normalised(likelihood(head, grid, floor=0.0, power=1.0, reversal=0.0)),
+        belief=_normalised(likelihood(head, grid, floor=0.0, power=1.0)),
         speed_mps=head["speed"] * SPEED_SCALE_MPS,
         yaw_offset_rad=jnp.zeros_like(head["speed"]),
         actuator=jnp.zeros(head["speed"].shape + (2,)),

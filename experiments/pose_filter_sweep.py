@@ -6,11 +6,11 @@
 E = ``--worlds`` drives of the run's town start from ``PRNGKey(--eval_seed)`` (the evaluation's own seed,
 1000, is held out from this choice), warm their traffic up and drive ``--frames`` frames each. The model
 filters its latent along each drive once; then the histogram filter (``pose_belief.filter_step``) runs over
-the same head outputs for every combination of measurement floor, measurement power, speed gain and
-relocation share, share of the heading measurement turned round, and factor on the motion model's heading
-process noise, each with the ``--positions`` ways of reading a position off the belief (default: both of
-``pose_belief.POSITIONS``), and the location / heading errors (mean, median, over every frame,
-and over frames 100 on) and how often the truth lies in the belief's 95 % region are printed as a table.
+the same head outputs for every combination of measurement floor, measurement power, speed gain,
+relocation share and factor on the motion model's heading process noise, each with the ``--positions``
+ways of reading a position off the belief (default: all of ``pose_belief.POSITIONS``), and the location /
+heading errors (mean, median, over every frame, and over frames 100 on) and how often the truth lies in the
+belief's 95 % region are printed as a table.
 """
 
 import functools
@@ -42,9 +42,6 @@ flags.DEFINE_list(
     "relocations", ["0.001"], "shares of each cell's mass spread over all headings after each motion step, to try"
 )
 flags.DEFINE_list(
-    "reversals", [f"{pose_belief.REVERSAL_SHARE:g}"], "shares of the heading measurement turned half a turn, to try"
-)
-flags.DEFINE_list(
     "heading_noise_scales",
     [f"{pose_belief.HEADING_NOISE_SCALE:g}"],
     "factors on the calibrated motion model's heading process noise, to try",
@@ -61,16 +58,9 @@ def main(argv):
         settings = [
             tuple(map(float, s))
             for s in itertools.product(
-                FLAGS.floors,
-                FLAGS.powers,
-                FLAGS.speed_gains,
-                FLAGS.relocations,
-                FLAGS.reversals,
-                FLAGS.heading_noise_scales,
+                FLAGS.floors, FLAGS.powers, FLAGS.speed_gains, FLAGS.relocations, FLAGS.heading_noise_scales
             )
         ]
-        if not all(0.0 <= float(q) <= 0.5 for q in FLAGS.reversals):
-            raise ValueError(f"--reversals={','.join(FLAGS.reversals)}: each must lie in [0, 0.5]")
         for position in FLAGS.positions:
             if position not in pose_belief.POSITIONS:
                 raise ValueError(f"--positions: {position!r} is not one of {pose_belief.POSITIONS}")
@@ -105,7 +95,7 @@ def main(argv):
     first = jnp.arange(FLAGS.frames) == 0
 
     @functools.partial(jax.jit, static_argnames="position")
-    def track(floor, power, gain, relocation, reversal, heading_noise_scale, position):
+    def track(floor, power, gain, relocation, heading_noise_scale, position):
         def body(state, xs):
             h, action, is_first, pose = xs
             state, estimate = pose_belief.filter_step(
@@ -119,7 +109,6 @@ def main(argv):
                 power=power,
                 speed_gain=gain,
                 relocation=relocation,
-                reversal=reversal,
                 heading_noise_scale=heading_noise_scale,
                 position=position,
             )
@@ -133,11 +122,10 @@ def main(argv):
     rows = [("head alone (no filter)", (np.asarray(pose_belief.decode(head, grid)), no_region))]
     rows += [
         (
-            f"floor {f:g}, power {p:g}, speed gain {g:g}, relocation {r:g}, reversal {q:g}, heading noise x{k:g}, "
-            f"{position}",
-            jax.tree.map(np.asarray, track(f, p, g, r, q, k, position=position)),
+            f"floor {f:g}, power {p:g}, speed gain {g:g}, relocation {r:g}, heading noise x{k:g}, {position}",
+            jax.tree.map(np.asarray, track(f, p, g, r, k, position=position)),
         )
-        for f, p, g, r, q, k, position in settings
+        for f, p, g, r, k, position in settings
     ]
     print(f"{FLAGS.workdir} step {step}: {FLAGS.worlds} drives x {FLAGS.frames} frames from PRNGKey({FLAGS.eval_seed})")
     print(

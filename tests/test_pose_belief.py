@@ -273,8 +273,8 @@ def test_filter_step_is_brute_force_bayes_through_the_motion_model(name, monkeyp
     """10 frames of 2 streams on a 6 x 6 grid of 2 m cells with 8 headings, driven at 8-12 m/s with
     steering left (row 0) and right (row 1), random head outputs every frame, row 1 restarting at frame 3.
     Every frame, the filter's belief, speed track, heading offset and actuators equal a float64 brute force:
-    the NumPy motion model, the dense transition matrix of :func:`np_transition`, the likelihood (the
-    heading's mixed with its reverse, both floored, tempered), normalised; a restarting row starts from the uniform prior and the head's speed, its
+    the NumPy motion model, the dense transition matrix of :func:`np_transition`, the floored and tempered
+    likelihood, normalised; a restarting row starts from the uniform prior and the head's speed, its
     actuators then taking the next frame's commands as their steady state."""
     monkeypatch.setattr(pose_belief, "AREA_ORIGIN_M", 0.0)
     monkeypatch.setattr(pose_belief, "AREA_SIZE_M", 12.0)
@@ -282,7 +282,7 @@ def test_filter_step_is_brute_force_bayes_through_the_motion_model(name, monkeyp
     n, h, b, frames = grid.n, grid.heading_bins, 2, 10
     assert n == 6
     model = MotionModel(**MOVING_MODELS[name])
-    floor, power, gain, relocation, reversal, heading_scale = 0.08, 0.6, 0.3, 0.02, 0.15, 2.5
+    floor, power, gain, relocation, heading_scale = 0.08, 0.6, 0.3, 0.02, 2.5
     rng = np.random.default_rng(11)
     first = np.zeros((frames, b), bool)
     first[0] = True
@@ -314,7 +314,6 @@ def test_filter_step_is_brute_force_bayes_through_the_motion_model(name, monkeyp
             power=power,
             speed_gain=gain,
             relocation=relocation,
-            reversal=reversal,
             heading_noise_scale=heading_scale,
         )
     )
@@ -355,9 +354,7 @@ def test_filter_step_is_brute_force_bayes_through_the_motion_model(name, monkeyp
                     actuator_set=True,
                 )
             place = (1 - floor) * softmax(head["place_logit"]) + floor / (n * n)
-            heading = softmax(head["heading_logit"])
-            reversed_heading = heading[(np.arange(h) + h // 2) % h]  # bin k holds the head's k + 180 degrees
-            heading = (1 - floor) * ((1 - reversal) * heading + reversal * reversed_heading) + floor / h
+            heading = (1 - floor) * softmax(head["heading_logit"]) + floor / h
             posterior = w["belief"] * (heading[:, None, None] * place.reshape(n, n)[None]) ** power
             w["belief"] = posterior / posterior.sum()
             where = f"frame {t} row {row}"
