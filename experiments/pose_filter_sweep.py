@@ -7,7 +7,8 @@ E = ``--worlds`` drives of the run's town start from ``PRNGKey(--eval_seed)`` (t
 1000, is held out from this choice), warm their traffic up and drive ``--frames`` frames each. The model
 filters its latent along each drive once; then the histogram filter (``pose_belief.filter_step``) runs over
 the same head outputs for every combination of measurement floor, measurement power, speed gain,
-relocation share and factor on the motion model's heading process noise, each with the ``--positions``
+relocation share, factor on the motion model's heading process noise, distance of a frame's full
+measurement and standing car's share of it, each with the ``--positions``
 ways of reading a position off the belief (default: all of ``pose_belief.POSITIONS``), and the location /
 heading errors (mean, median, over every frame, and over frames 100 on) and how often the truth lies in the
 belief's 95 % region are printed as a table.
@@ -47,9 +48,20 @@ flags.DEFINE_list(
     "factors on the calibrated motion model's heading process noise, to try",
 )
 flags.DEFINE_list(
+    "full_measure_distances",
+    [f"{pose_belief.FULL_MEASURE_M:g}"],
+    "distances (m) driven in a frame from which its measurement counts in full (0: always in full), to try",
+)
+flags.DEFINE_list(
+    "stopped_shares",
+    [f"{pose_belief.STOPPED_SHARE:g}"],
+    "shares of a full measurement that a standing car's frame counts, to try",
+)
+flags.DEFINE_list(
     "positions", list(pose_belief.POSITIONS), f"ways of reading the position, any of {pose_belief.POSITIONS}"
 )
 FLAGS = flags.FLAGS
+STANDING_MPS = 0.5  # a frame whose true speed is under this counts as the car standing
 
 
 def main(argv):
@@ -58,13 +70,23 @@ def main(argv):
         settings = [
             tuple(map(float, s))
             for s in itertools.product(
-                FLAGS.floors, FLAGS.powers, FLAGS.speed_gains, FLAGS.relocations, FLAGS.heading_noise_scales
+                FLAGS.floors,
+                FLAGS.powers,
+                FLAGS.speed_gains,
+                FLAGS.relocations,
+                FLAGS.heading_noise_scales,
+                FLAGS.full_measure_distances,
+                FLAGS.stopped_shares,
             )
         ]
         for position in FLAGS.positions:
             if position not in pose_belief.POSITIONS:
                 raise ValueError(f"--positions: {position!r} is not one of {pose_belief.POSITIONS}")
         settings = [s + (position,) for s in settings for position in FLAGS.positions]
+        if any(float(d) < 0 for d in FLAGS.full_measure_distances):
+            raise ValueError(f"--full_measure_distances={','.join(FLAGS.full_measure_distances)}: must be >= 0")
+        if any(not 0 <= float(s) <= 1 for s in FLAGS.stopped_shares):
+            raise ValueError(f"--stopped_shares={','.join(FLAGS.stopped_shares)}: each must lie in [0, 1]")
         if FLAGS.worlds < 1 or FLAGS.frames < 1:
             raise ValueError("--worlds and --frames must be positive")
         cfg, params, step = checkpoint.restore_params(FLAGS.workdir, step=FLAGS.step)
@@ -95,7 +117,7 @@ def main(argv):
     first = jnp.arange(FLAGS.frames) == 0
 
     @functools.partial(jax.jit, static_argnames="position")
-    def track(floor, power, gain, relocation, heading_noise_scale, position):
+    def track(floor, power, gain, relocation, heading_noise_scale, full_measure_m, stopped_share, position):
         def body(state, xs):
             h, action, is_first, pose = xs
             state, estimate = pose_belief.filter_step(
@@ -110,6 +132,8 @@ def main(argv):
                 speed_gain=gain,
                 relocation=relocation,
                 heading_noise_scale=heading_noise_scale,
+                full_measure_m=full_measure_m,
+                stopped_share=stopped_share,
                 position=position,
             )
             return state, (estimate, pose_belief.in_region(state, pose, grid))
@@ -118,30 +142,34 @@ def main(argv):
         return jax.lax.scan(body, pose_belief.init_state(FLAGS.worlds, grid), xs)[1]
 
     truth = np.asarray(time_major(frames["pose"]))
+    standing = truth[..., 4] < STANDING_MPS
     no_region = np.full(truth.shape[:2] + (2,), np.nan)
     rows = [("head alone (no filter)", (np.asarray(pose_belief.decode(head, grid)), no_region))]
     rows += [
         (
-            f"floor {f:g}, power {p:g}, speed gain {g:g}, relocation {r:g}, heading noise x{k:g}, {position}",
-            jax.tree.map(np.asarray, track(f, p, g, r, k, position=position)),
+            f"floor {f:g}, power {p:g}, speed gain {g:g}, relocation {r:g}, heading noise x{k:g}, "
+            f"full measure {d:g} m, standing {s:g}, {position}",
+            jax.tree.map(np.asarray, track(f, p, g, r, k, d, s, position=position)),
         )
-        for f, p, g, r, k, position in settings
+        for f, p, g, r, k, d, s, position in settings
     ]
     print(f"{FLAGS.workdir} step {step}: {FLAGS.worlds} drives x {FLAGS.frames} frames from PRNGKey({FLAGS.eval_seed})")
     print(
         "| filter | location mean / median (m) | from frame 100: mean / median (m) | heading mean (rad) | "
-        "within 10 m | drives ending within 10 m | truth in 95 % region: place / + heading |"
+        "within 10 m | drives ending within 10 m | truth in 95 % region: place / + heading | "
+        f"+ heading in standing / moving frames ({100 * standing.mean():.0f} % stand) |"
     )
-    print("|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|")
     for name, (pred, inside) in rows:
         err = metrics.pose_errors(pred, truth)
         late = err.location_m[100:]
         place, joint = 100 * inside.reshape(-1, 2).mean(0)
+        joint_standing, joint_moving = (100 * inside[..., 1][m].mean() for m in (standing, ~standing))
         print(
             f"| {name} | {err.location_m.mean():.1f} / {np.median(err.location_m):.1f} | "
             f"{late.mean():.1f} / {np.median(late):.1f} | {err.heading_rad.mean():.3f} | "
             f"{100 * np.mean(err.location_m <= 10):.1f} % | {np.sum(err.location_m[-1] <= 10)} / {FLAGS.worlds} | "
-            f"{place:.1f} / {joint:.1f} % |",
+            f"{place:.1f} / {joint:.1f} % | {joint_standing:.1f} / {joint_moving:.1f} % |",
             flush=True,
         )
 

@@ -281,6 +281,8 @@ def test_filter_sweep_reports_the_regions_coverage_under_each_heading_noise(trai
             "--floors=0.05",
             "--powers=0.25",
             "--heading_noise_scales=1,10000",
+            "--full_measure_distances=0,0.5",
+            "--stopped_shares=0.1",
             "--positions=local_mean",
         ],
         capture_output=True,
@@ -288,8 +290,11 @@ def test_filter_sweep_reports_the_regions_coverage_under_each_heading_noise(trai
         timeout=600,
     )
     assert result.returncode == 0, result.stderr[-2000:]
-    rows = [line for line in result.stdout.splitlines() if "heading noise x" in line]
-    assert len(rows) == 2 and all("local_mean" in row for row in rows), result.stdout
-    coverage = [tuple(map(float, row.split("|")[-2].strip(" %").split(" / "))) for row in rows]  # the last column
+    lines = result.stdout.splitlines()
+    rows = [line for line in lines if "heading noise x" in line]
+    assert len(rows) == 4 and all("local_mean" in row for row in rows), result.stdout
+    header = [c.strip() for c in next(line for line in lines if line.startswith("| filter")).split("|")]
+    column = header.index("truth in 95 % region: place / + heading")
+    coverage = [tuple(map(float, row.split("|")[column].strip(" %").split(" / "))) for row in rows]
     assert all(0.0 <= c <= 100.0 for pair in coverage for c in pair), result.stdout
-    assert coverage[0][1] != coverage[1][1], coverage
+    assert coverage[0][1] != coverage[2][1], coverage  # heading noise x1 against x10000, measurements in full

@@ -147,7 +147,8 @@ def test_mode_and_offset_decoding_round_trips_a_pose():
 def test_measurement_update_is_bayes_rule_against_brute_force():
     """A tiny grid (40 m cells: 12 x 12, 4 headings), a random prior and random head outputs, no motion
     (standing, zero commands): the filter's posterior equals (prior with the relocation share of each cell
-    spread over its headings) x floored, tempered likelihood, normalised, cell by cell."""
+    spread over its headings) x floored likelihood tempered by the power times the standing share,
+    normalised, cell by cell."""
     grid = pose_belief.Grid(cell_m=40.0, heading_bins=4)
     rng = np.random.default_rng(2)
     b, h, n = 2, grid.heading_bins, grid.n
@@ -162,7 +163,7 @@ def test_measurement_update_is_bayes_rule_against_brute_force():
     }
     state = pose_belief.init_state(b, grid).replace(belief=jnp.asarray(prior, jnp.float32))
     f32 = {k: jnp.asarray(v, jnp.float32) for k, v in head.items()}
-    floor, power, relocation = 0.1, 0.7, 0.01
+    floor, power, relocation, standing = 0.1, 0.7, 0.01, 0.3
     new, _ = pose_belief.filter_step(
         state,
         f32,
@@ -173,6 +174,8 @@ def test_measurement_update_is_bayes_rule_against_brute_force():
         floor=floor,
         power=power,
         relocation=relocation,
+        full_measure_m=2.0,
+        stopped_share=standing,
     )
     for row in range(b):
         place = (1 - floor) * softmax(head["place_logit"][row]) + floor / (n * n)
@@ -182,7 +185,7 @@ def test_measurement_update_is_bayes_rule_against_brute_force():
             for i in range(n):
                 for j in range(n):
                     mixed = (1 - relocation) * prior[row, k, i, j] + relocation * prior[row, :, i, j].mean()
-                    want[k, i, j] = mixed * (place[i * n + j] * heading[k]) ** power
+                    want[k, i, j] = mixed * (place[i * n + j] * heading[k]) ** (power * standing)
         np.testing.assert_allclose(new.belief[row], want / want.sum(), rtol=1e-4, atol=1e-9)
 
 
@@ -273,8 +276,9 @@ def test_filter_step_is_brute_force_bayes_through_the_motion_model(name, monkeyp
     """10 frames of 2 streams on a 6 x 6 grid of 2 m cells with 8 headings, driven at 8-12 m/s with
     steering left (row 0) and right (row 1), random head outputs every frame, row 1 restarting at frame 3.
     Every frame, the filter's belief, speed track, heading offset and actuators equal a float64 brute force:
-    the NumPy motion model, the dense transition matrix of :func:`np_transition`, the floored and tempered
-    likelihood, normalised; a restarting row starts from the uniform prior and the head's speed, its
+    the NumPy motion model, the dense transition matrix of :func:`np_transition`, the floored likelihood
+    tempered by the power times the frame's share (the distance driven over ``full_measure_m``, at most 1, 1 on
+    a drive's first frame), normalised; a restarting row starts from the uniform prior and the head's speed, its
     actuators then taking the next frame's commands as their steady state."""
     monkeypatch.setattr(pose_belief, "AREA_ORIGIN_M", 0.0)
     monkeypatch.setattr(pose_belief, "AREA_SIZE_M", 12.0)
@@ -283,6 +287,7 @@ def test_filter_step_is_brute_force_bayes_through_the_motion_model(name, monkeyp
     assert n == 6
     model = MotionModel(**MOVING_MODELS[name])
     floor, power, gain, relocation, heading_scale = 0.08, 0.6, 0.3, 0.02, 2.5
+    full_measure_m, standing = 1.0, 0.5  # frames drive 0.8-1.2 m: some count in full, some in part
     rng = np.random.default_rng(11)
     first = np.zeros((frames, b), bool)
     first[0] = True
@@ -315,6 +320,8 @@ def test_filter_step_is_brute_force_bayes_through_the_motion_model(name, monkeyp
             speed_gain=gain,
             relocation=relocation,
             heading_noise_scale=heading_scale,
+            full_measure_m=full_measure_m,
+            stopped_share=standing,
         )
     )
     state = pose_belief.init_state(b, grid)
@@ -329,7 +336,7 @@ def test_filter_step_is_brute_force_bayes_through_the_motion_model(name, monkeyp
         )
         for _ in range(b)
     ]
-    stats = {"rolls": set(), "position_diffused": False, "split_covers": False, "capped": False}
+    stats = {"rolls": set(), "position_diffused": False, "split_covers": False, "capped": False, "shares": set()}
     for t in range(frames):
         state, pose = step(state, heads[t], jnp.asarray(commands[t]), jnp.asarray(first[t]))
         for row in range(b):
@@ -339,6 +346,7 @@ def test_filter_step_is_brute_force_bayes_through_the_motion_model(name, monkeyp
                 w.update(
                     belief=np.ones((h, n, n)), speed=head_speed, offset=0.0, actuator=np.zeros(2), actuator_set=False
                 )
+                share = 1.0
             else:
                 actuator = w["actuator"] if w["actuator_set"] else command.astype(np.float64)
                 actuator, v_new, ds, dyaw = np_model_step(model, actuator, command, w["speed"])
@@ -346,6 +354,7 @@ def test_filter_step_is_brute_force_bayes_through_the_motion_model(name, monkeyp
                 yaw_after = w["offset"] + dyaw
                 matrix = np_transition(move, ds, yaw_after, model, n, grid.cell_m, h, relocation, heading_scale, stats)
                 whole = np.round(yaw_after / grid.bin_rad)
+                share = max(min(ds / full_measure_m, 1.0), standing)
                 w.update(
                     belief=(matrix @ w["belief"].ravel()).reshape(h, n, n),
                     speed=v_new + gain * (head_speed - v_new),
@@ -355,8 +364,9 @@ def test_filter_step_is_brute_force_bayes_through_the_motion_model(name, monkeyp
                 )
             place = (1 - floor) * softmax(head["place_logit"]) + floor / (n * n)
             heading = (1 - floor) * softmax(head["heading_logit"]) + floor / h
-            posterior = w["belief"] * (heading[:, None, None] * place.reshape(n, n)[None]) ** power
+            posterior = w["belief"] * (heading[:, None, None] * place.reshape(n, n)[None]) ** (power * share)
             w["belief"] = posterior / posterior.sum()
+            stats["shares"].add("full" if share == 1.0 else "part")
             where = f"frame {t} row {row}"
             np.testing.assert_allclose(state.belief[row], w["belief"], rtol=2e-4, atol=1e-8, err_msg=where)
             np.testing.assert_allclose(state.speed_mps[row], w["speed"], rtol=1e-5, err_msg=where)
@@ -367,6 +377,7 @@ def test_filter_step_is_brute_force_bayes_through_the_motion_model(name, monkeyp
     # the test exercised what it claims: rolls both ways, the split's spread both short of and above the noise
     assert {-1, 1} <= stats["rolls"], stats
     assert stats["position_diffused"]
+    assert stats["shares"] == {"full", "part"}, stats
     assert stats["capped"] == (name == "saturated_noise")
     if name == "lagged_with_noise":
         assert stats["split_covers"]
