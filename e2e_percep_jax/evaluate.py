@@ -45,7 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from e2e_percep_jax import config as config_lib
-from e2e_percep_jax import detection, report, summary
+from e2e_percep_jax import detection, pose_belief, report, summary
 from e2e_percep_jax import metrics as metrics_lib
 from e2e_percep_jax.api import Perceiver, run_perceiver
 from e2e_percep_jax.config import Config, WorldConfig
@@ -206,6 +206,10 @@ def evaluate(
     wstate = start_worlds(start_keys(cfg), town, cfg.world)
     # The default perceiver is keyed by its motion model: it depends on that, cfg.model and the image size
     # alone, which the key holds, so evaluations that differ only in frames, seeds or thresholds share one program.
+    # the pose figures come from the belief's histogram filter at its defaults: the default perceiver's,
+    # its pose replaced neither by ``heads`` nor by ``host_fn``
+    filtered = perceiver is None and heads is None and host_fn is None
+    filtered = filtered and cfg.model.pose_head == "belief" and cfg.model.pose_filter == "histogram"
     if perceiver is None:
         perceiver = run_perceiver(cfg, workdir) if workdir else Perceiver(cfg)
         key_perceiver = perceiver.motion_model
@@ -360,6 +364,7 @@ def evaluate(
             else None,
             known_start=ev.known_start,
             pose_filter=cfg.model.pose_filter,
+            filter_settings=pose_belief.default_settings() if filtered else None,
         ),
         "examples": examples,
         "baseline": {

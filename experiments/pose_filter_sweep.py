@@ -67,22 +67,21 @@ STANDING_MPS = 0.5  # a frame whose true speed is under this counts as the car s
 def main(argv):
     try:
         launch.prepare(argv)
-        settings = [
-            tuple(map(float, s))
-            for s in itertools.product(
-                FLAGS.floors,
-                FLAGS.powers,
-                FLAGS.speed_gains,
-                FLAGS.relocations,
-                FLAGS.heading_noise_scales,
-                FLAGS.full_measure_distances,
-                FLAGS.stopped_shares,
-            )
-        ]
+        names = tuple(pose_belief.default_settings())  # filter_step's keywords, in the order of the flags below
+        values = itertools.product(
+            FLAGS.floors,
+            FLAGS.powers,
+            FLAGS.speed_gains,
+            FLAGS.relocations,
+            FLAGS.heading_noise_scales,
+            FLAGS.full_measure_distances,
+            FLAGS.stopped_shares,
+        )
+        settings = [dict(zip(names, map(float, v), strict=True)) for v in values]
         for position in FLAGS.positions:
             if position not in pose_belief.POSITIONS:
                 raise ValueError(f"--positions: {position!r} is not one of {pose_belief.POSITIONS}")
-        settings = [s + (position,) for s in settings for position in FLAGS.positions]
+        settings = [(setting, position) for setting in settings for position in FLAGS.positions]
         if any(float(d) < 0 for d in FLAGS.full_measure_distances):
             raise ValueError(f"--full_measure_distances={','.join(FLAGS.full_measure_distances)}: must be >= 0")
         if any(not 0 <= float(s) <= 1 for s in FLAGS.stopped_shares):
@@ -117,24 +116,11 @@ def main(argv):
     first = jnp.arange(FLAGS.frames) == 0
 
     @functools.partial(jax.jit, static_argnames="position")
-    def track(floor, power, gain, relocation, heading_noise_scale, full_measure_m, stopped_share, position):
+    def track(setting, position):
         def body(state, xs):
             h, action, is_first, pose = xs
             state, estimate = pose_belief.filter_step(
-                state,
-                h,
-                action,
-                jnp.full(FLAGS.worlds, is_first),
-                grid,
-                motion_model,
-                floor=floor,
-                power=power,
-                speed_gain=gain,
-                relocation=relocation,
-                heading_noise_scale=heading_noise_scale,
-                full_measure_m=full_measure_m,
-                stopped_share=stopped_share,
-                position=position,
+                state, h, action, jnp.full(FLAGS.worlds, is_first), grid, motion_model, position=position, **setting
             )
             return state, (estimate, pose_belief.in_region(state, pose, grid))
 
@@ -147,11 +133,10 @@ def main(argv):
     rows = [("head alone (no filter)", (np.asarray(pose_belief.decode(head, grid)), no_region))]
     rows += [
         (
-            f"floor {f:g}, power {p:g}, speed gain {g:g}, relocation {r:g}, heading noise x{k:g}, "
-            f"full measure {d:g} m, standing {s:g}, {position}",
-            jax.tree.map(np.asarray, track(f, p, g, r, k, d, s, position=position)),
+            ", ".join(f"{name} {value:g}" for name, value in setting.items()) + f", {position}",
+            jax.tree.map(np.asarray, track(setting, position=position)),
         )
-        for f, p, g, r, k, d, s, position in settings
+        for setting, position in settings
     ]
     print(f"{FLAGS.workdir} step {step}: {FLAGS.worlds} drives x {FLAGS.frames} frames from PRNGKey({FLAGS.eval_seed})")
     print(

@@ -27,13 +27,18 @@ import cv2
 import numpy as np
 from absl import app, flags
 
-from e2e_percep_jax import baselines, checkpoint, pictures
+from e2e_percep_jax import baselines, checkpoint, pictures, pose_belief
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax.summary import mean_std, summary_metrics
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 DROPPED = {"detection": ("pr_curves", "at_threshold"), "": ("examples", "sample")}  # large, no table reads them
 HELD_OUT_TOWNS = (7, 8)
+EARLIER_FILTER = " †"  # after a method whose pose figures another filter made (_earlier_filter)
+EARLIER_FILTER_NOTE = (
+    "- † Pose figures from the filter's settings before 2026-11-27 (every frame measured in full, the car "
+    "standing or not): [BUILD_NOTES](BUILD_NOTES.md#measurements-while-the-car-stands)."
+)
 TRAINING_EVERY = 100  # steps between the kept training records (a 9,000-step run: 90 lines)
 # BGR, one per method in the learning curves' figure
 COLOURS = (
@@ -257,6 +262,19 @@ def _runs_note(found: dict, methods: list[str]) -> str:
 # ----------------------------------------------------------------------------- the tables
 
 
+def _earlier_filter(evaluations: list[dict] | None) -> bool:
+    """Whether an end-to-end model's belief among these evaluations took its pose figures from other filter
+    settings than today's defaults, or from before evaluations recorded them (the modular baselines have no
+    filter)."""
+    return any(
+        m["label"] in config_lib.VARIANTS
+        and m["config"]["model"]["pose_head"] == "belief"
+        and m["pose"].get("pose_filter") == "histogram"
+        and m["pose"].get("filter_settings") != pose_belief.default_settings()
+        for m in evaluations or []
+    )
+
+
 def localisation(found: dict) -> str:
     """The paper's Table II: town 0 under the global protocol, each variant beside the paper's row, then the
     modular pipeline; with what the paper lacks: the frames within 5 and 10 m, the belief's coverage, and
@@ -271,7 +289,7 @@ def localisation(found: dict) -> str:
         "known-start drift per 100 m: town 0 / " + " / ".join(map(str, HELD_OUT_TOWNS)) + " (m)",
         "against the paper's row: location / heading",
     ]
-    rows, shown, constant, paper = [], [], None, _paper_figures(found, "pose")
+    rows, shown, constant, paper, marked = [], [], None, _paper_figures(found, "pose"), False
     for method, variant in _paper_rows(found):
         if method is None:
             if variant in paper:
@@ -291,8 +309,9 @@ def localisation(found: dict) -> str:
             p = paper[variant][1]
             pairs = (("location mean (m)", "location_m"), ("heading mean (rad)", "heading_rad"))
             against = " / ".join("better" if mean[k][0] <= p[f] else "worse" for k, f in pairs)
+        earlier = _earlier_filter(glob_) or _earlier_filter(known)
         row = [
-            f"`{method}`",
+            f"`{method}`{EARLIER_FILTER if earlier else ''}",
             " / ".join(filter(None, [_cell(glob_, "location mean (m)"), _cell(glob_, "location p90 (m)")])),
             _cell(glob_, "heading mean (rad)", digits=3),
             " / ".join(filter(None, [_cell(glob_, f"location within {m} m (%)") for m in (5, 10)])),
@@ -313,6 +332,7 @@ def localisation(found: dict) -> str:
             continue  # a method without a pose (a detector, a tracker)
         shown.append(method)
         rows.append(row)
+        marked = marked or earlier
         if glob_ and constant is None:
             constant = glob_[0]["baseline"]["pose"]
     if constant is not None:
@@ -324,7 +344,8 @@ def localisation(found: dict) -> str:
                 *[""] * 5,
             ]
         )
-    return _markdown(header, rows) + "\n\n" + _runs_note(found, shown) + "\n"
+    note = f"\n{EARLIER_FILTER_NOTE}" if marked else ""
+    return _markdown(header, rows) + "\n\n" + _runs_note(found, shown) + note + "\n"
 
 
 def detection(found: dict) -> str:

@@ -291,7 +291,7 @@ def test_filter_sweep_reports_the_regions_coverage_under_each_heading_noise(trai
     )
     assert result.returncode == 0, result.stderr[-2000:]
     lines = result.stdout.splitlines()
-    rows = [line for line in lines if "heading noise x" in line]
+    rows = [line for line in lines if "heading_noise_scale" in line]
     assert len(rows) == 4 and all("local_mean" in row for row in rows), result.stdout
     header = [c.strip() for c in next(line for line in lines if line.startswith("| filter")).split("|")]
     column = header.index("truth in 95 % region: place / + heading")

@@ -20,7 +20,7 @@ import pytest
 from helpers import EXACT_PLANT, default_optimisation_env
 
 from e2e_percep_jax import config as config_lib
-from e2e_percep_jax import detection, report
+from e2e_percep_jax import detection, pose_belief, report
 from e2e_percep_jax import evaluate as eval_lib
 from e2e_percep_jax import model as model_lib
 from e2e_percep_jax.api import PerceiverOutputs
@@ -304,6 +304,7 @@ def test_end_to_end_report_files(memory_run):
         assert np.isfinite(m["baseline"]["pose"][name]["mean"])
     assert m["pose"]["heading_rad"]["mean"] <= np.pi
     assert sum(m["pose"]["location_m_by_step"]["count"]) == 2000
+    assert m["pose"]["filter_settings"] == pose_belief.default_settings()  # which filter made the figures
 
     report = open(os.path.join(out, "report.md")).read()
     for needle in (

@@ -10,7 +10,7 @@ import sys
 import pytest
 from helpers import load_experiment
 
-from e2e_percep_jax import config
+from e2e_percep_jax import config, pose_belief
 
 tables = load_experiment("tables")
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -32,10 +32,12 @@ def _metrics(
     by_step=(3.0, 3.0),
     step=None,
     place_frames=None,
+    earlier_filter=False,
 ):
     """A metrics.json with what the tables read, every AP ``ap`` and the location mean ``location``
     (of checkpoint ``step``, or of the trained run where None), of the `cpu` preset (with ``place_frames``
-    where given: another recipe)."""
+    where given: another recipe), its belief filtered at today's defaults (``earlier_filter``: from before
+    evaluations recorded the filter's settings)."""
     cfg = config.replace(
         config.get_config("cpu"), train=dict(seed=seed), eval=dict(town_seed=town, known_start=known_start)
     )
@@ -52,7 +54,10 @@ def _metrics(
         },
         "drift_per_100m": drift,
         "coverage95": {"place": 0.95, "place_heading": 0.9},
+        "pose_filter": "histogram",
     }
+    if not earlier_filter:
+        pose["filter_settings"] = pose_belief.default_settings()
     return {
         "label": label,
         "config": json.loads(cfg.to_json()),
@@ -181,6 +186,20 @@ def test_the_papers_tables_set_each_variant_beside_the_papers_row(results):
         assert methods[:3] == ["`cpu`", "paper: Inputs and roadmap (full)", first_baseline], methods
         assert "place64" not in rendered[name]
     assert "`place64`" in rendered["learning_curve"]
+
+
+def test_a_variant_filtered_at_earlier_settings_is_marked(results, tmp_path):
+    """A variant whose town-0 known-start evaluation (one seed of two) did not record today's filter
+    settings gets the mark and the note in the localisation table; with every evaluation at today's
+    settings, and for a baseline (dead reckoning has no filter, and records none), neither appears."""
+    localisation = tables.render(str(results))["localisation"]
+    assert tables.EARLIER_FILTER not in localisation and tables.EARLIER_FILTER_NOTE not in localisation
+    _write_run(tmp_path / "runs" / "place_s1", {"eval_known_start": _metrics(1, known_start=True, earlier_filter=True)})
+    tables.collect("cpu", [str(tmp_path / "runs" / name) for name in ("place_s0", "place_s1")], str(results))
+    localisation = tables.render(str(results))["localisation"]
+    assert localisation.count(tables.EARLIER_FILTER) == 1 + tables.EARLIER_FILTER_NOTE.count(tables.EARLIER_FILTER)
+    assert _row(localisation, f"`cpu`{tables.EARLIER_FILTER}")[1] == "5.0 ± 1.0 / 10.0 ± 2.0"
+    assert tables.EARLIER_FILTER_NOTE in localisation
 
 
 def test_learning_curve_reads_each_checkpoints_evaluations(results):
