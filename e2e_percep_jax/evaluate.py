@@ -204,12 +204,12 @@ def evaluate(
     params = jax.device_put(params)
     t0 = time.perf_counter()
     wstate = start_worlds(start_keys(cfg), town, cfg.world)
-    # The default perceiver is keyed by its motion model: it depends on that, cfg.model and the image size
-    # alone, which the key holds, so evaluations that differ only in frames, seeds or thresholds share one program.
-    # the pose figures come from the belief's histogram filter at its defaults: the default perceiver's,
-    # its pose replaced neither by ``heads`` nor by ``host_fn``
+    # The pose figures come from the belief's histogram filter at its defaults (recorded with them) only for
+    # the default perceiver whose pose neither ``heads`` nor ``host_fn`` replaces.
     filtered = perceiver is None and heads is None and host_fn is None
     filtered = filtered and cfg.model.pose_head == "belief" and cfg.model.pose_filter == "histogram"
+    # The default perceiver is keyed by its motion model: it depends on that, cfg.model and the image size
+    # alone, which the key holds, so evaluations that differ only in frames, seeds or thresholds share one program.
     if perceiver is None:
         perceiver = run_perceiver(cfg, workdir) if workdir else Perceiver(cfg)
         key_perceiver = perceiver.motion_model
