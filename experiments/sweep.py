@@ -3,13 +3,15 @@ baselines and held-out towns beside them; then one table per evaluation protocol
 
     python experiments/sweep.py --config=cpu --sweep_dir=runs/sweep --seeds=0,1 \
         --variants=full,no_input_recon,no_roadmap_recon [--baselines=detector,tracker,pose,dead_reckoning] \
-        [--held_out_towns=7,8] [--parallel=2]
+        [--held_out_towns=7,8] [--training_town_known_start] [--parallel=2]
 
 Each run is ``experiments/main.py`` in its own process and directory ``SWEEP_DIR/<variant>-seed<seed>``
 (with ``--train.seed`` and ``--model.variant`` set, and every other config flag given here passed on),
 evaluated on the training town (``eval/``) and then on each ``--held_out_towns`` town under the
 known-start protocol (``eval_town<seed>_known_start/``: an unseen town has no places to recognise, so
-the belief starts at the true pose and shows its odometry; detection is measured there as well). The
+the belief starts at the true pose and shows its odometry; detection is measured there as well).
+``--training_town_known_start`` adds the training town from the known start (``eval_known_start/``: the
+belief's odometry with its measurements, beside dead reckoning's evaluation of the same name). The
 ``--baselines`` of each seed are ``experiments/baselines.py`` in ``SWEEP_DIR/baselines-seed<seed>/``, on
 the same towns and protocols (the pose regressor only on the training town, whose places it learned). Runs go seed by
 seed, so a stopped sweep has whole seeds done. It resumes: finished evaluations are skipped, interrupted
@@ -46,6 +48,9 @@ flags.DEFINE_list("seeds", ["0", "1"], "training seeds (--train.seed of each run
 flags.DEFINE_list("variants", list(config_lib.VARIANTS), f"model variants, any of {config_lib.VARIANTS}")
 flags.DEFINE_list("baselines", [], f"modular baselines per seed, any of {baselines_lib.BASELINES} (default: none)")
 flags.DEFINE_list("held_out_towns", [], "town seeds each run is also evaluated on, from the known start")
+flags.DEFINE_bool(
+    "training_town_known_start", False, "also evaluate each run on its training town from the known start"
+)
 flags.DEFINE_integer("parallel", 1, "runs at once, as separate processes")
 flags.DEFINE_integer("video_frames", 0, "frames of drive.mp4 per run (0: none)")
 FLAGS = flags.FLAGS
@@ -107,14 +112,21 @@ def _check(base: config_lib.Config) -> tuple[list[int], list[int]]:
         )
     if towns and base.eval.town_seed != base.world.town_seed:
         raise ValueError("--held_out_towns: give held-out towns here or in --eval.town_seed, not both")
+    if FLAGS.training_town_known_start and (base.eval.known_start or base.eval.town_seed != base.world.town_seed):
+        raise ValueError(
+            "--training_town_known_start: the runs' own evaluation is already another protocol "
+            "(--eval.known_start or a held-out --eval.town_seed)"
+        )
     if FLAGS.parallel < 1:
         raise ValueError(f"--parallel={FLAGS.parallel}: must be >= 1")
     return seeds, towns
 
 
-def _protocols(cfg: config_lib.Config, towns: list[int]) -> list[config_lib.Config]:
-    """A run's evaluations: ``cfg``'s own, then each held-out town under the known-start protocol."""
-    return [cfg] + [config_lib.replace(cfg, eval=dict(town_seed=t, known_start=True)) for t in towns]
+def _protocols(cfg: config_lib.Config, towns: list[int], training_town: bool = False) -> list[config_lib.Config]:
+    """A run's evaluations: ``cfg``'s own, with ``training_town`` its town from the known start, then each
+    held-out town from the known start."""
+    known_start = lambda t: config_lib.replace(cfg, eval=dict(town_seed=t, known_start=True))
+    return [cfg] + [known_start(cfg.eval.town_seed)] * training_town + [known_start(t) for t in towns]
 
 
 def _protocol_flags(cfg: config_lib.Config, base: config_lib.Config) -> list[str]:
@@ -158,7 +170,7 @@ def main(argv):
     for s in seeds:
         for v in FLAGS.variants:
             todo = []
-            for cfg in _protocols(run_cfg(v, s), towns):
+            for cfg in _protocols(run_cfg(v, s), towns, FLAGS.training_town_known_start):
                 out_dir = report.eval_dir(workdir(run_name(v, s)), cfg)
                 evaluations.append((v, out_dir))
                 if report.finished_evaluation(out_dir, v, base.train.num_steps, cfg) is None:
@@ -175,7 +187,7 @@ def main(argv):
         if FLAGS.baselines:
             name = run_name("baselines", s)
             todo = []
-            for cfg in _protocols(base, towns):
+            for cfg in _protocols(base, towns):  # dead reckoning's own protocol is the known start already
                 chosen = [b for b in FLAGS.baselines if cfg.eval == base.eval or b != "pose"]
                 for b in chosen:
                     evaluations.append(

@@ -80,14 +80,20 @@ def test_summary_is_mean_and_std_of_the_runs(sweeps):
 @pytest.mark.slow
 def test_held_out_towns_and_baselines_join_a_finished_sweep_without_retraining(sweeps):
     """Grown by held-out towns and the modular baselines, a finished sweep trains nothing of its own again:
-    each run is evaluated on the new town from the known start, the baselines train and evaluate beside
+    each run is evaluated on the new town and on its own from the known start, the baselines train and evaluate beside
     (the pose regressor on the training town only; dead reckoning on the sweep's motion model), and each
     protocol gets its table of its methods. (The detector and the tracker go the pose regressor's way
     through the sweep; ``test_baselines`` trains and evaluates them from their launcher.)"""
     a, _ = sweeps
     run = os.path.join(a, "full-seed0")
     before = {p: os.path.getmtime(os.path.join(run, p)) for p in ("eval/metrics.json", "metrics.jsonl")}
-    grown = ("--seeds=0", "--variants=full", "--held_out_towns=3", "--baselines=pose,dead_reckoning")
+    grown = (
+        "--seeds=0",
+        "--variants=full",
+        "--held_out_towns=3",
+        "--training_town_known_start",
+        "--baselines=pose,dead_reckoning",
+    )
     result = _sweep(a, *grown)
     assert result.returncode == 0 and "1 runs, 0 already finished" in result.stdout, result.stdout + result.stderr
     assert {p: os.path.getmtime(os.path.join(run, p)) for p in before} == before  # no training, no overwrite
@@ -95,6 +101,8 @@ def test_held_out_towns_and_baselines_join_a_finished_sweep_without_retraining(s
     assert held_out["config"]["eval"]["town_seed"] == 3 and held_out["config"]["eval"]["known_start"]
     assert held_out["checkpoint_step"] == 4
     assert held_out["detection"]["num_gt"] != _metrics(a, "full-seed0")["detection"]["num_gt"]  # another town
+    own_town = _metrics(a, "full-seed0", "eval_known_start")
+    assert own_town["config"]["eval"]["town_seed"] == 0 and own_town["config"]["eval"]["known_start"]
     base = "baselines-seed0"
     evaluated = {
         os.path.relpath(os.path.dirname(p), os.path.join(a, base))
@@ -112,7 +120,7 @@ def test_held_out_towns_and_baselines_join_a_finished_sweep_without_retraining(s
     assert set(summary) == {"full", "dead_reckoning"}
     assert summary["full"]["location mean (m)"][0] == summary_metrics(held_out)["location mean (m)"]
     with open(os.path.join(a, "summary_known_start.json")) as f:
-        assert set(json.load(f)["summary"]) == {"dead_reckoning"}
+        assert set(json.load(f)["summary"]) == {"full", "dead_reckoning"}
     with open(os.path.join(a, "summary.json")) as f:
         assert set(json.load(f)["summary"]) == {"full", "pose"}
     again = _sweep(a, *grown)
@@ -127,6 +135,7 @@ def test_bad_sweep_flags_are_named(tmp_path):
         (["--parallel=0"], "--parallel"),
         (["--baselines=detector,bogus"], "--baselines"),
         (["--held_out_towns=0"], "--held_out_towns"),
+        (["--training_town_known_start", "--eval.known_start"], "--training_town_known_start"),
         (["--data.image_size=48"], "--data.image_size"),
     ):
         result = _sweep(tmp_path, *argv)
