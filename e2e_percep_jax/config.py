@@ -104,6 +104,9 @@ class TrainConfig:
     seed: int = 0
     num_steps: int = 2000
     learning_rate: float = 1e-4
+    # The share of num_steps at the end over which the learning rate falls to zero along a cosine; 0 = a
+    # constant rate (the reference). A fixed budget's last steps then settle instead of wandering.
+    lr_decay_share: float = 0.0
     # Global gradient-norm clip before Adam; 0 = none (the reference). One step whose KL spikes (a prior
     # scale at its 1e-5 floor) otherwise fills Adam's second moment for thousands of steps.
     max_grad_norm: float = 0.0
@@ -327,6 +330,8 @@ def validate(cfg: Config) -> Config:
         raise ValueError(f"--data.warmup_steps={cfg.data.warmup_steps}: must be >= 0")
     if not cfg.train.pose_weight >= 0:
         raise ValueError(f"--train.pose_weight={cfg.train.pose_weight}: must be >= 0 (0: no pose loss)")
+    if not 0.0 <= cfg.train.lr_decay_share < 1.0:
+        raise ValueError(f"--train.lr_decay_share={cfg.train.lr_decay_share}: must lie in [0, 1) (0: constant)")
     if not cfg.train.max_grad_norm >= 0:
         raise ValueError(f"--train.max_grad_norm={cfg.train.max_grad_norm}: must be >= 0 (0: no clipping)")
     if cfg.model.pose_filter not in POSE_FILTERS:

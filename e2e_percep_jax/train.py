@@ -62,6 +62,7 @@ from e2e_percep_jax.train_state import (
     Objective,
     TrainState,
     init_state,
+    learning_rate_at,
     model_keys,
     optimizer,
 )
@@ -355,7 +356,7 @@ def train(cfg: Config, workdir: str, batches: Batches | None = None, objective: 
                     "nonfinite_total": int(records[-1]["nonfinite_total"]),
                     "steps_per_s": steps_per_s,
                 }
-                board.scalars(record, t.learning_rate)
+                board.scalars(record, learning_rate_at(cfg, done))
                 if main_process:
                     with open(metrics_path, "a") as f:
                         f.write(json.dumps(record) + "\n")

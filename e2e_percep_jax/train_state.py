@@ -60,10 +60,29 @@ def _empty_carry(cfg: Config) -> dict:
     return {"z1": jnp.zeros((k, b, m.z1_dim)), "z2": jnp.zeros((k, b, m.z2_dim)), "action": jnp.zeros((k, b, 2))}
 
 
+def learning_rate(cfg: Config) -> optax.ScalarOrSchedule:
+    """``--train.learning_rate``, constant; with ``--train.lr_decay_share`` > 0 a schedule of the update's
+    count: constant until that share of ``--train.num_steps`` is left, then a cosine down to zero."""
+    lr, share = cfg.train.learning_rate, cfg.train.lr_decay_share
+    if not share:
+        return lr  # a constant keeps the optimizer state of runs trained before the schedule existed
+    decay_steps = max(1, round(share * cfg.train.num_steps))
+    return optax.join_schedules(
+        [optax.constant_schedule(lr), optax.cosine_decay_schedule(lr, decay_steps)],
+        [cfg.train.num_steps - decay_steps],
+    )
+
+
+def learning_rate_at(cfg: Config, step: int) -> float:
+    """The learning rate at update ``step`` (from 0; skipped non-finite updates do not count), for the logs."""
+    lr = learning_rate(cfg)
+    return float(lr(step)) if callable(lr) else lr
+
+
 def optimizer(cfg: Config) -> optax.GradientTransformation:
-    """Adam, after a global-norm clip if ``--train.max_grad_norm`` > 0 (plain Adam otherwise, so a run
-    trained without clipping keeps its optimizer state's structure)."""
-    adam = optax.adam(cfg.train.learning_rate)
+    """Adam at :func:`learning_rate`, after a global-norm clip if ``--train.max_grad_norm`` > 0 (plain Adam
+    otherwise, so a run trained without clipping keeps its optimizer state's structure)."""
+    adam = optax.adam(learning_rate(cfg))
     clip = cfg.train.max_grad_norm
     return optax.chain(optax.clip_by_global_norm(clip), adam) if clip else adam
 

@@ -121,6 +121,9 @@ CASES = {
     "train carry_state with one batch per drive": Case(
         "train", ["--data.carry_state"], "--data.carry_state: needs segments to carry across"
     ),
+    "train lr_decay_share of 1": Case(
+        "train", ["--train.lr_decay_share=1"], "--train.lr_decay_share=1.0: must lie in [0, 1)"
+    ),
     "train negative max_grad_norm": Case(
         "train", ["--train.max_grad_norm=-1"], "--train.max_grad_norm=-1.0: must be >= 0"
     ),

@@ -188,6 +188,27 @@ def test_gradient_clip_is_adam_on_the_rescaled_gradient():
     np.testing.assert_allclose(nu, 0.001 * (np.array([3.0, 0.0, -4.0]) * clip / 5.0) ** 2, rtol=1e-6)
 
 
+def test_learning_rate_decay_is_a_cosine_over_the_last_share_of_the_steps():
+    """--train.lr_decay_share=s: the rate is constant for the first (1 - s) x num_steps updates, then
+    lr * (1 + cos(pi * k / D)) / 2 over the last D = s x num_steps (k updates into them), zero at the end;
+    Adam's updates scale with it (a first update is lr times the gradient's sign)."""
+    lr, steps, share = 1e-3, 100, 0.4
+    cfg = config.replace(CFG, train=dict(learning_rate=lr, num_steps=steps, lr_decay_share=share, max_grad_norm=0.0))
+    decay = round(share * steps)
+    for step in (0, 59, 60, 70, 80, 99, 100):
+        k = max(0, step - (steps - decay))
+        want = lr * 0.5 * (1.0 + np.cos(np.pi * min(k, decay) / decay))
+        assert train.learning_rate_at(cfg, step) == pytest.approx(want, abs=1e-9), step  # float32: 1e-6 of lr
+    assert train.learning_rate_at(config.replace(cfg, train=dict(lr_decay_share=0.0)), 99) == lr
+    params = {"a": np.ones(3, np.float32)}
+    grads = {"a": np.array([2.0, -3.0, 0.5], np.float32)}
+    opt = train.optimizer(cfg)
+    adam_state, schedule_state = opt.init(params)
+    half_way = schedule_state._replace(count=np.int32(80))  # update 80, half-way down the cosine: lr / 2
+    updates, _ = opt.update(grads, (adam_state, half_way), params)
+    np.testing.assert_allclose(updates["a"], -0.5 * lr * np.sign(grads["a"]), rtol=1e-4)
+
+
 @pytest.mark.slow
 def test_stops_after_max_nonfinite_in_a_row_keeping_the_last_good_checkpoint(tmp_path):
     # Steps 0, 1 update; 2, 3, 4 are non-finite (the 3rd in a row halts updates), found at the log of step 6.
