@@ -171,8 +171,11 @@ _NOT_READ_BY_STEP = ("seed", "num_steps", "checkpoint_every", "log_every")
 
 def step_config(cfg: Config) -> Config:
     """``cfg`` with every field :func:`train_step` does not read set to its default (the batch's
-    shapes come from the batch), so runs that differ only in those share one compilation."""
+    shapes come from the batch), so runs that differ only in those share one compilation. A decaying
+    learning rate reads ``num_steps`` (where its decay starts)."""
     unread = {name: getattr(TrainConfig(), name) for name in _NOT_READ_BY_STEP}
+    if cfg.train.lr_decay_share:
+        del unread["num_steps"]
     data = {"image_size": cfg.data.image_size}
     if cfg.data.carry_state:  # the step picks the batch's drive slot and segment
         data.update(carry_state=True, batches_per_drive=cfg.data.batches_per_drive)

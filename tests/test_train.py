@@ -200,6 +200,10 @@ def test_learning_rate_decay_is_a_cosine_over_the_last_share_of_the_steps():
         want = lr * 0.5 * (1.0 + np.cos(np.pi * min(k, decay) / decay))
         assert train.learning_rate_at(cfg, step) == pytest.approx(want, abs=1e-9), step  # float32: 1e-6 of lr
     assert train.learning_rate_at(config.replace(cfg, train=dict(lr_decay_share=0.0)), 99) == lr
+    # the compiled step's config keeps the schedule (it reads num_steps once the rate decays)
+    assert [train.learning_rate_at(train.step_config(cfg), k) for k in range(steps)] == [
+        train.learning_rate_at(cfg, k) for k in range(steps)
+    ]
     params = {"a": np.ones(3, np.float32)}
     grads = {"a": np.array([2.0, -3.0, 0.5], np.float32)}
     opt = train.optimizer(cfg)
