@@ -246,8 +246,17 @@ PRESETS = {
         model=dict(
             conv_channels=(16, 32, 64, 128), feature_dim=128, hidden_dim=128, pose_hidden_dim=512, pose_head="belief"
         ),
-        # 1,200 steps: with the clip the network detects from ~800, and boxes fit tightly from ~1,200
-        train=dict(num_steps=1200, checkpoint_every=200, learning_rate=1e-3, max_grad_norm=1e6, pose_weight=16.0),
+        # 1,200 steps: with the clip the network detects from ~800, and boxes fit tightly from ~1,200; the
+        # rate decays over the last 360 (both seeds then inside the paper's 7.1 m; BUILD_NOTES, "A learning
+        # rate that decays at the end of the budget")
+        train=dict(
+            num_steps=1200,
+            checkpoint_every=200,
+            learning_rate=1e-3,
+            lr_decay_share=0.3,
+            max_grad_norm=1e6,
+            pose_weight=16.0,
+        ),
         # drives of 750 frames: a drive finds its place within its first few hundred frames
         eval=dict(num_frames=3000, num_worlds=4),
     ),
