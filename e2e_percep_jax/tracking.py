@@ -221,14 +221,14 @@ def kf_update(mean, cov, boxes, r):
     """Kalman update of tracks ``mean [T, 7], cov [T, 7, 7]`` with matched boxes ``[T, 5]`` (same frame; yaws
     already folded, see :func:`fold_heading`), noise ``r [5, 5]``. The yaw innovation is wrapped; the
     covariance uses the Joseph form (stays symmetric positive definite). Returns the new mean, cov."""
-    innovation = boxes - mean[:, :5]
+    innovation = boxes - mean[:, :MEAS_DIM]
     innovation[:, 2] = geo.wrap_angle(innovation[:, 2])
-    s = cov[:, :5, :5] + r  # H P H^T + R with H = [I_5 | 0]
-    gain = np.linalg.solve(s, cov[:, :5, :]).transpose(0, 2, 1)  # P H^T S^-1  [T, 7, 5]  (S, P symmetric)
+    s = cov[:, :MEAS_DIM, :MEAS_DIM] + r  # H P H^T + R with H = [I | 0]: a box is the state's head
+    gain = np.linalg.solve(s, cov[:, :MEAS_DIM, :]).transpose(0, 2, 1)  # P H^T S^-1  [T, 7, 5]  (S, P symmetric)
     mean = mean + np.einsum("tij,tj->ti", gain, innovation)
     mean[:, 2] = geo.wrap_angle(mean[:, 2])
     i_kh = np.broadcast_to(np.eye(STATE_DIM), cov.shape).copy()
-    i_kh[:, :, :5] -= gain
+    i_kh[:, :, :MEAS_DIM] -= gain
     cov = i_kh @ cov @ i_kh.transpose(0, 2, 1) + gain @ r @ gain.transpose(0, 2, 1)
     return mean, 0.5 * (cov + cov.transpose(0, 2, 1))
 
