@@ -372,19 +372,18 @@ def detection(found: dict) -> str:
         if town0 is None or not mean_std([summary_metrics(m) for m in town0])["AP@0.5 all (%)"][0]:
             continue  # a method without boxes (an odometry, the pose regressor)
         # detection is the same under either protocol: a run's held-out town counts under whichever it has
-        held_out_runs = {
-            t: ev.get(f"eval_town{t}", []) + ev.get(f"eval_town{t}_known_start", []) for t in HELD_OUT_TOWNS
-        }
-        held_out = [_cell(runs, "AP@0.5 all (%)") for runs in held_out_runs.values()]
+        held_out_ap = {}  # {town: (mean, std, runs)} of AP@0.5, for the towns the method was evaluated on
+        for t in HELD_OUT_TOWNS:
+            if runs := ev.get(f"eval_town{t}", []) + ev.get(f"eval_town{t}_known_start", []):
+                held_out_ap[t] = mean_std([summary_metrics(m) for m in runs]).get("AP@0.5 all (%)", (None, None, 0))
+        held_out = [_format(*held_out_ap.get(t, (None, None, 0))) for t in HELD_OUT_TOWNS]
         against = ""
         if variant in paper:
             mean = mean_std([summary_metrics(m) for m in town0])
             below = [iou for iou in ious if mean[f"AP@{iou} all (%)"][0] < paper[variant][1][iou]]
             # the held-out towns have AP@0.5 only, against the paper's one figure (its towns are not ours)
             towns_below = [
-                str(t)
-                for t, runs in held_out_runs.items()
-                if runs and mean_std([summary_metrics(m) for m in runs])["AP@0.5 all (%)"][0] < paper[variant][1]["0.5"]
+                str(t) for t, (ap, _, _) in held_out_ap.items() if ap is not None and ap < paper[variant][1]["0.5"]
             ]
             parts = ([f"below at IoU {', '.join(below)}"] if below else []) + (
                 [f"town {' and '.join(towns_below)} below at IoU 0.5"] if towns_below else []
