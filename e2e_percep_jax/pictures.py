@@ -62,20 +62,24 @@ class TopDown:
             for xy, length in zip(np.asarray(town.lane_xy_m), np.asarray(town.lane_length_m)):
                 n = int(np.ceil(length / town_lib.LANE_DS_M)) + 1
                 cv2.polylines(self.background, [self._px(xy[:n])], False, (90, 120, 160), 1, cv2.LINE_AA, _SHIFT)
-        boxes = np.asarray(town.building_box)
+        corners = self._corners_px(town.building_box)
         order = np.argsort(np.asarray(town.building_height_m))  # tall ones on top
         for i in order:
             color = tuple(int(c) for c in np.asarray(town.building_color)[i])
-            self._box(self.background, boxes[i], color, outline=tuple(int(c * 0.55) for c in color))
+            self._box(self.background, corners[i], color, outline=tuple(int(c * 0.55) for c in color))
 
     def _px(self, xy):
         xy = np.asarray(xy, np.float64)
         px = np.stack([(xy[..., 0] - self.x0) * self.ppm, (self.y1 - xy[..., 1]) * self.ppm], -1)
         return np.round(px * (1 << _SHIFT)).astype(np.int32)
 
-    def _box(self, img, box, color, outline, thickness=1):
-        # float32 on XLA: NumPy's float32 cos / sin round differently, and the pictures are pinned to these
-        corners = self._px(np.asarray(geo.box_corners(jnp.asarray(box, jnp.float32))))
+    def _corners_px(self, boxes):
+        """Pixel corners [M, 4, 2] of town boxes [M, 5], all in one call: float32 on XLA (NumPy's float32 cos
+        / sin round differently, and the pictures are pinned to these)."""
+        return self._px(np.asarray(geo.box_corners(jnp.asarray(boxes, jnp.float32))))
+
+    @staticmethod
+    def _box(img, corners, color, outline, thickness=1):
         cv2.fillPoly(img, [corners], color, cv2.LINE_AA, _SHIFT)
         cv2.polylines(img, [corners], True, outline, thickness, cv2.LINE_AA, _SHIFT)
 
@@ -91,11 +95,11 @@ class TopDown:
         for xy, light in zip(self._px(np.asarray(self.town.light_xy_m)), lights):
             cv2.circle(img, tuple(xy), radius, _LIGHT_RGB[int(light)], -1, cv2.LINE_AA, _SHIFT)
         boxes, colors = np.asarray(state.veh_box), np.asarray(state.veh_color)
-        for i, (box, color) in enumerate(zip(boxes, colors)):
+        for i, (box, corners, color) in enumerate(zip(boxes, self._corners_px(boxes), colors)):
             ego = i == 0
             self._box(
                 img,
-                box,
+                corners,
                 tuple(int(c) for c in color),
                 outline=_EGO_RGB if ego else (0, 0, 0),
                 thickness=2 if ego else 1,

@@ -9,9 +9,14 @@ import tempfile
 # the environment): most launcher tests compile the same `tiny` programs (the calibration's drive, the train
 # step, the evaluation), and a cache hit loads them instead of compiling again. Set before jax is imported,
 # which reads it then; a cache the caller names is kept.
-if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
-    os.environ["JAX_COMPILATION_CACHE_DIR"] = tempfile.mkdtemp(prefix="e2e-percep-jax-cache-")
-    atexit.register(shutil.rmtree, os.environ["JAX_COMPILATION_CACHE_DIR"], True)
+# The same for the towns that every launcher process would otherwise build again with NumPy (seconds each).
+for variable, prefix in (
+    ("JAX_COMPILATION_CACHE_DIR", "e2e-percep-jax-cache-"),
+    ("E2E_PERCEP_JAX_TOWN_CACHE", "e2e-percep-jax-towns-"),
+):
+    if variable not in os.environ:
+        os.environ[variable] = tempfile.mkdtemp(prefix=prefix)
+        atexit.register(shutil.rmtree, os.environ[variable], True)
 
 import helpers  # noqa: E402  (imports jax: after the cache is named; XLA reads its flags at the first computation)
 
@@ -42,6 +47,13 @@ def start_first(request):
     for name in getattr(request.module, "START_FIRST", ()):
         if any(name in item.fixturenames for item in selected):
             request.getfixturevalue(name)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def warm_town_cache():
+    """The ``tiny`` config's town built before a worker's first test, so that the launchers that tests
+    start (a module's fixtures start some at once) find it in the suite's town cache."""
+    town_lib.build_town(config.get_config("tiny").world.town_seed)
 
 
 @pytest.fixture(scope="session")

@@ -12,6 +12,7 @@ import itertools
 import json
 import os
 import pickle
+import shutil
 import signal
 import subprocess
 import sys
@@ -388,11 +389,15 @@ def wait_for_checkpoint(proc, workdir, after):
     raise TimeoutError
 
 
-def stop_and_resume(tmp_path, signum):
+def stop_and_resume(tmp_path, signum, motion_model_from=None):
     """The launcher to KILL_STEPS in a run of its own, sent ``signum`` after its first checkpoint, then
     resumed to the end. Returns (its exit status, its last checkpoint, its stderr, the resumed run's
-    stdout, the parameters saved at KILL_STEPS)."""
+    stdout, the parameters saved at KILL_STEPS). ``motion_model_from``: a run whose fitted motion model
+    this one starts with (the fit is the same; the launcher then skips it)."""
     workdir, cache = str(tmp_path / signal.Signals(signum).name), tmp_path / "cache"
+    if motion_model_from is not None:
+        os.makedirs(workdir)
+        shutil.copy(os.path.join(motion_model_from, "motion_model.json"), workdir)
     proc = launch(workdir, cache)
     wait_for_checkpoint(proc, workdir, after=0)
     proc.send_signal(signum)
@@ -406,8 +411,10 @@ def stop_and_resume(tmp_path, signum):
 
 def stops_and_resumes(tmp_path):
     """SIGKILL (nothing saved at the kill), then SIGTERM (the launcher saves the step it was on), one after
-    the other so the second reuses the first's compilation cache."""
-    return {sig: stop_and_resume(tmp_path, sig) for sig in (signal.SIGKILL, signal.SIGTERM)}
+    the other so the second reuses the first's compilation cache and motion model."""
+    killed = stop_and_resume(tmp_path, signal.SIGKILL)
+    stopped = stop_and_resume(tmp_path, signal.SIGTERM, motion_model_from=tmp_path / signal.SIGKILL.name)
+    return {signal.SIGKILL: killed, signal.SIGTERM: stopped}
 
 
 @pytest.mark.slow

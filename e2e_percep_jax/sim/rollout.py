@@ -101,6 +101,9 @@ def drive_perceiving(world_state, perceiver_state, town, image_size: int, keys, 
     observe = jax.vmap(lambda s: sensors.observe(s, town, image_size))
     step = jax.vmap(lambda s: world.step(s, town))
 
+    # (jitted so that the shape query below and the scan's branch share one trace: the sensors and the
+    # perceiver are traced once, not twice)
+    @jax.jit
     def seen(wstate, pstate, key):
         # state t's ego_action is the action applied from t-1 to t
         return perceive(pstate, observe(wstate), wstate.ego_action, key)

@@ -1,7 +1,8 @@
 """The static town: roads, lanes, junctions, lights, sidewalks, buildings and its semantic raster.
 
 Built once per seed with NumPy (:func:`build_town`, cached), then held as a pytree of arrays (:class:`Town`)
-that every pure-JAX world and sensor function takes as a constant argument.
+that every pure-JAX world and sensor function takes as a constant argument. A directory named by the
+environment variable ``E2E_PERCEP_JAX_TOWN_CACHE`` keeps built towns for other processes (:data:`CACHE_ENV`).
 
 What a town is (all procedural from the seed; right-hand traffic):
 
@@ -24,6 +25,9 @@ What a town is (all procedural from the seed; right-hand traffic):
 """
 
 import functools
+import hashlib
+import os
+import zipfile
 from typing import NamedTuple
 
 import cv2
@@ -203,19 +207,71 @@ def light_states(town: Town, time_s):
     ).astype(jnp.int32)
 
 
+# A directory for built towns, one ``.npz`` per seed and version of the code that builds them: a process
+# that finds its town there loads it (milliseconds) instead of building it (seconds). Off unless set; the
+# test suite sets it, and a sweep's runs or a cluster's processes may share one.
+CACHE_ENV = "E2E_PERCEP_JAX_TOWN_CACHE"
+
+
 @functools.lru_cache(maxsize=8)
 def build_town(seed: int) -> Town:
     """Builds (once per seed, then cached) the town of ``seed``: a Town of jax arrays."""
-    return jax.tree.map(jnp.asarray, _build_town_np(seed))
+    return jax.device_put(_town_np(seed))
 
 
 @functools.lru_cache(maxsize=8)
 def spawn_slots(seed: int) -> int:
     """How many vehicles the town of ``seed`` can place at a reset (NumPy only: nothing is compiled). From
-    the lane graph alone, a sixth of the time of building the whole town; once per seed (every launcher's
-    checks ask, several times)."""
+    a cached town, or else the lane graph alone, a sixth of the time of building the whole town; once per
+    seed (every launcher's checks ask, several times)."""
+    cached = _read_cached(seed, fields=("spawn_lane",))
+    if cached is not None:
+        return len(cached["spawn_lane"])
     *_, lanes, _, _ = _lane_graph(seed)[0]
     return len(_spawn_slots(lanes, _lane_lengths(lanes)))
+
+
+@functools.lru_cache(maxsize=1)
+def _code_digest() -> str:
+    """What a cached town depends on besides its seed: this module, the geometry it imports, NumPy's and
+    OpenCV's versions (a change to any builds the town anew, under another name)."""
+    digest = hashlib.sha256(f"{np.__version__} {cv2.__version__}".encode())
+    for module in (__file__, os.path.join(os.path.dirname(__file__), "geometry.py")):
+        with open(module, "rb") as f:
+            digest.update(f.read())
+    return digest.hexdigest()[:16]
+
+
+def _cache_path(seed: int) -> str | None:
+    directory = os.environ.get(CACHE_ENV)
+    return os.path.join(directory, f"town-{seed}-{_code_digest()}.npz") if directory else None
+
+
+def _read_cached(seed: int, fields=Town._fields) -> dict | None:
+    """``fields`` of the cached town of ``seed`` as NumPy arrays, or None (no cache, or an unreadable file)."""
+    path = _cache_path(seed)
+    if path is None or not os.path.exists(path):
+        return None
+    try:
+        with np.load(path) as f:
+            return {k: f[k] for k in fields}
+    except (OSError, KeyError, ValueError, zipfile.BadZipFile):  # damaged: built again and replaced
+        return None
+
+
+def _town_np(seed: int) -> Town:
+    """The town of ``seed`` in NumPy arrays: from the cache if it holds it, else built (and cached if named)."""
+    cached = _read_cached(seed)
+    if cached is not None:
+        return Town(**cached)
+    town, path = _build_town_np(seed), _cache_path(seed)
+    if path:
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        partial = f"{path}.{os.getpid()}.partial"  # renamed when complete: a reader never sees half a file
+        with open(partial, "wb") as f:
+            np.savez(f, **town._asdict())
+        os.replace(partial, path)
+    return town
 
 
 # ----------------------------------------------------------------------------- geometry helpers
