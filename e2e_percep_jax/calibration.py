@@ -20,7 +20,7 @@ import functools
 import jax
 import numpy as np
 
-from e2e_percep_jax.config import Config
+from e2e_percep_jax.config import Config, WorldConfig
 from e2e_percep_jax.sim import motion, world
 from e2e_percep_jax.sim import town as town_lib
 from e2e_percep_jax.sim.geometry import wrap_angle
@@ -32,16 +32,16 @@ HORIZONS = (10, 30, 100, 300)  # steps
 MIN_SPEED_MPS = 1.0  # slower steps are left out of the fits (curvature is ill-defined when standing)
 
 
-@functools.partial(jax.jit, static_argnames=("cfg", "num_worlds", "num_steps"))
-def _drive(key, town, cfg: Config, num_worlds: int, num_steps: int):
+@functools.partial(jax.jit, static_argnames=("world_cfg", "warmup_steps", "num_worlds", "num_steps"))
+def _drive(key, town, world_cfg: WorldConfig, warmup_steps: int, num_worlds: int, num_steps: int):
     def one(k):
         def body(s, _):
             after = world.step(s, town)
             return after, (s.veh_box[world.EGO, :3], s.veh_speed_mps[world.EGO], after.ego_action)
 
         # (one loop through the warm-up and the drive: the world's step is compiled once, not twice)
-        drive = jax.lax.scan(body, world.reset(k, town, cfg.world), None, length=cfg.data.warmup_steps + num_steps)[1]
-        return jax.tree.map(lambda x: x[cfg.data.warmup_steps :], drive)
+        drive = jax.lax.scan(body, world.reset(k, town, world_cfg), None, length=warmup_steps + num_steps)[1]
+        return jax.tree.map(lambda x: x[warmup_steps:], drive)
 
     return jax.vmap(one)(jax.random.split(key, num_worlds))
 
@@ -54,8 +54,8 @@ def training_drives(cfg: Config, num_worlds: int = 8, num_steps: int = 1500) -> 
     with jax.default_device(jax.local_devices()[0]):
         key = jax.random.PRNGKey(CALIBRATION_SEED)
         town = town_lib.build_town(cfg.world.town_seed)
-        # (the world and data sections alone: runs that differ in anything else share one compilation)
-        drives = _drive(key, town, Config(world=cfg.world, data=cfg.data), num_worlds, num_steps)
+        # (the world and the warm-up alone are static: runs that differ in anything else share one compilation)
+        drives = _drive(key, town, cfg.world, cfg.data.warmup_steps, num_worlds, num_steps)
         pose, speed, command = jax.tree.map(np.asarray, drives)
     return {
         "pose": pose.astype(np.float64),
