@@ -41,12 +41,11 @@ from e2e_percep_jax import loss as loss_lib
 from e2e_percep_jax import model as model_lib
 from e2e_percep_jax import train as train_lib
 from e2e_percep_jax.api import PerceiverOutputs
-from e2e_percep_jax.config import Config, ModelConfig
+from e2e_percep_jax.config import BASELINES, Config, ModelConfig
 from e2e_percep_jax.sim import motion as motion_lib
 from e2e_percep_jax.sim import odometry
 
 HEADS = ("detection", "pose")
-BASELINES = ("detector", "tracker", "pose", "dead_reckoning", "wheel_odometry")
 ODOMETRY = ("dead_reckoning", "wheel_odometry")  # no network; evaluated from the true start
 # Wheel odometry's sensors: a wheel radius off by 2 % (std over drives: wear and pressure, as the world's
 # distance scale), a yaw-rate gyro biased by 0.1 deg/s (std over drives; an automotive MEMS gyro's

@@ -19,7 +19,7 @@ import sys
 from absl import app, flags
 
 from e2e_percep_jax import config as config_lib
-from e2e_percep_jax.baselines import BASELINES
+from e2e_percep_jax.config import BASELINES
 from e2e_percep_jax.summary import mean_std, summary_metrics
 
 CONSTANT = "constant pose"

@@ -16,10 +16,8 @@ import sys
 
 from absl import app, flags
 
-from e2e_percep_jax import checkpoint, detection, launch, report
 from e2e_percep_jax import config as config_lib
-from e2e_percep_jax import evaluate as eval_lib
-from e2e_percep_jax.sim import world
+from e2e_percep_jax import launch
 
 config_lib.define_flags()
 flags.DEFINE_string("workdir", None, "run directory holding config.json and checkpoints/")
@@ -68,6 +66,12 @@ def main(argv):
         ):
             if FLAGS[name].value is not None and not ok(FLAGS[name].value):
                 raise ValueError(f"--{name}={FLAGS[name].value}: {bounds}")
+        # Imported once the flags are valid: a bad flag exits in a fraction of a second, not after ~3 s of
+        # imports (orbax, flax, distrax, OpenCV).
+        from e2e_percep_jax import checkpoint, detection, report
+        from e2e_percep_jax import evaluate as eval_lib
+        from e2e_percep_jax.sim import world
+
         world.check_vehicle_count(cfg.world, cfg.eval.town_seed)
         cfg, params, step = checkpoint.restore_params(FLAGS.workdir, cfg, FLAGS.step)
     except (ValueError, FileNotFoundError) as e:

@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 from absl import app, flags
 
-from e2e_percep_jax import baselines, checkpoint, pictures, pose_belief
+from e2e_percep_jax import checkpoint, pictures, pose_belief
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax.summary import mean_std, summary_metrics
 
@@ -181,7 +181,7 @@ def command(evaluations: dict) -> str:
     if runs[0]["label"] in config_lib.VARIANTS:
         return f"python experiments/main.py {lines.pop()}"
     # a baseline's run is named after it ("detector", or "baselines-seed0-detector" collected from a sweep)
-    name = next(b for b in baselines.BASELINES if re.fullmatch(rf"(.*-)?{b}", runs[0]["run"]))
+    name = next(b for b in config_lib.BASELINES if re.fullmatch(rf"(.*-)?{b}", runs[0]["run"]))
     return f"python experiments/baselines.py --baseline={name} {lines.pop()}"
 
 
