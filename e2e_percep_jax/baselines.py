@@ -297,6 +297,12 @@ def odometry_model(cfg: Config, workdir: str) -> motion_lib.MotionModel:
     return train_lib.ensure_motion_model(cfg, path)
 
 
+def evaluated_under(baselines, cfg: Config, own: Config) -> list:
+    """Those of ``baselines`` that a sweep evaluates under protocol ``cfg``, its runs' own protocol being
+    ``own``'s: the pose regressor learned the training town's places, so it is evaluated there alone."""
+    return [b for b in baselines if cfg.eval == own.eval or b != "pose"]
+
+
 def eval_config(baseline: str, cfg: Config) -> Config:
     """The config ``baseline`` is evaluated under: the odometry baselines' under the known-start protocol."""
     return config_lib.replace(cfg, eval=dict(known_start=True)) if baseline in ODOMETRY else cfg

@@ -190,7 +190,7 @@ def main(argv):
             name = run_name("baselines", s)
             todo = []
             for cfg in _protocols(base, towns):  # dead reckoning's own protocol is the known start already
-                chosen = [b for b in FLAGS.baselines if cfg.eval == base.eval or b != "pose"]
+                chosen = baselines_lib.evaluated_under(FLAGS.baselines, cfg, base)
                 for b in chosen:
                     evaluations.append(
                         (b, report.eval_dir(os.path.join(workdir(name), b), baselines_lib.eval_config(b, cfg)))

@@ -253,3 +253,16 @@ def test_bad_flags_fail_in_one_line_before_any_compile(tmp_path):
             flags,
             out + err,
         )
+
+
+def test_a_sweep_evaluates_the_pose_regressor_on_its_training_town_alone():
+    """Under a held-out town or the known start the pose regressor (which learned the training town's
+    places) is left out; the others are kept, in order."""
+    own = config.get_config("tiny")
+    everything = ["detector", "pose", "dead_reckoning"]
+    assert baselines.evaluated_under(everything, own, own) == everything
+    for changed in (dict(town_seed=3, known_start=True), dict(known_start=True)):
+        assert baselines.evaluated_under(everything, config.replace(own, eval=changed), own) == [
+            "detector",
+            "dead_reckoning",
+        ]
