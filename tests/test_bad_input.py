@@ -375,7 +375,7 @@ def run(tmp_path_factory):
     return path, foreign
 
 
-def _launcher_run(case, workdir):
+def _launcher_run(case, workdir, env):
     cmd = [sys.executable, os.path.join(ROOT, "experiments", f"{case.target}.py"), *case.args]
     if not any(a.startswith("--workdir") for a in case.args):
         cmd.append(f"--workdir={workdir}")
@@ -387,7 +387,7 @@ def _launcher_run(case, workdir):
         text=True,
         cwd=ROOT,
         timeout=600,
-        env={**os.environ, "JAX_LOG_COMPILES": "1", **(case.env or {})},
+        env={**env, "JAX_LOG_COMPILES": "1", **(case.env or {})},
     )
     return proc.returncode, proc.stderr, snapshot(workdir)
 
@@ -395,8 +395,10 @@ def _launcher_run(case, workdir):
 @pytest.fixture(scope="module")
 def launched(run, tmp_path_factory):
     """Every launcher row started at once (PARALLEL at a time) on its own workdir; name -> a future of
-    (exit status, stderr, the workdir's snapshot after) and the snapshot before."""
-    root = tmp_path_factory.mktemp("launched")
+    (exit status, stderr, the workdir's snapshot after) and the snapshot before. The environment is copied
+    here, in the main thread: pytest sets and removes PYTEST_CURRENT_TEST there as tests run, so a copy
+    taken key by key in a worker thread can meet a key that has just gone (a KeyError)."""
+    root, env = tmp_path_factory.mktemp("launched"), dict(os.environ)
     pool = concurrent.futures.ThreadPoolExecutor(PARALLEL)
     started = {}
     for i, (name, case) in enumerate(CASES.items()):
@@ -406,7 +408,7 @@ def launched(run, tmp_path_factory):
         if case.damage is not None or case.target == "evaluate":
             shutil.copytree(run[0], workdir)
             damage(workdir, case.damage or "none", run[1])
-        started[name] = (pool.submit(_launcher_run, case, workdir), snapshot(workdir))
+        started[name] = (pool.submit(_launcher_run, case, workdir, env), snapshot(workdir))
     yield started
     pool.shutdown(cancel_futures=True)
 
@@ -540,7 +542,9 @@ def _resumed(workdir, args=()):
     """(exit status, stderr lines, snapshots before and after) of experiments/train.py resuming run ``workdir``
     under CFG and ``args``; without compile logs, as a person runs it (the resume compiles the step)."""
     before = snapshot(workdir)
-    status, err, after = _launcher_run(Case("train", [*RESUME, *args], env={"JAX_LOG_COMPILES": "0"}), workdir)
+    status, err, after = _launcher_run(
+        Case("train", [*RESUME, *args], env={"JAX_LOG_COMPILES": "0"}), workdir, os.environ
+    )
     return status, err.splitlines(), before, after
 
 

@@ -68,18 +68,19 @@ def assert_trees_equal(a, b):
     jax.tree.map(np.testing.assert_array_equal, a, b)
 
 
-def run_python(code, **env):
+def run_python(code, env):
     return subprocess.run(
         [sys.executable, "-c", textwrap.dedent(code)],
         capture_output=True,
         text=True,
-        env=dict(os.environ, PYTHONPATH=os.path.join(ROOT, "tests"), **env),
+        env=dict(env, PYTHONPATH=os.path.join(ROOT, "tests")),
         timeout=600,
     )
 
 
-def four_device_loss_and_grads(workdir):
-    """(metrics, gradients) of the B = 4 synthetic batch sharded over 4 simulated CPU devices."""
+def four_device_loss_and_grads(workdir, env):
+    """(metrics, gradients) of the B = 4 synthetic batch sharded over 4 simulated CPU devices. ``env``: this
+    process's environment, copied in the main thread (see ``subprocess_runs``)."""
     path = workdir / "four.pkl"
     r = run_python(
         f"""
@@ -96,7 +97,7 @@ def four_device_loss_and_grads(workdir):
         with open({str(path)!r}, "wb") as f:
             pickle.dump(jax.device_get((metrics, grads)), f)
         """,
-        XLA_FLAGS=xla_flags("--xla_force_host_platform_device_count=4"),
+        dict(env, XLA_FLAGS=xla_flags("--xla_force_host_platform_device_count=4")),
     )
     assert r.returncode == 0, r.stdout + r.stderr
     with open(path, "rb") as f:
@@ -106,11 +107,14 @@ def four_device_loss_and_grads(workdir):
 @pytest.fixture(scope="module")
 def subprocess_runs(tmp_path_factory):
     """The subprocess runs, started before the first test of this file (``START_FIRST``): XLA compiles on one
-    core, so on this 2-core machine they overlap with the in-process tests. Futures of their results."""
+    core, so on this 2-core machine they overlap with the in-process tests. Futures of their results. The
+    environment is copied here: pytest sets and removes PYTEST_CURRENT_TEST in the main thread as tests run,
+    so a copy taken key by key in a worker thread can meet a key that has just gone (a KeyError)."""
+    env = dict(os.environ)
     with concurrent.futures.ThreadPoolExecutor(2) as pool:
         yield {
-            "four_devices": pool.submit(four_device_loss_and_grads, tmp_path_factory.mktemp("four")),
-            "stops": pool.submit(stops_and_resumes, tmp_path_factory.mktemp("stops")),
+            "four_devices": pool.submit(four_device_loss_and_grads, tmp_path_factory.mktemp("four"), env),
+            "stops": pool.submit(stops_and_resumes, tmp_path_factory.mktemp("stops"), env),
         }
 
 
@@ -360,8 +364,9 @@ def test_tiny_run_on_world_batches_lowers_every_loss_term(world_run):
     assert np.isfinite(end["pose_offset"])
 
 
-def launch(workdir, cache):
-    """The launcher on the world run's config; compilations are shared through a persistent cache."""
+def launch(workdir, cache, env):
+    """The launcher on the world run's config, in environment ``env``; compilations are shared through a
+    persistent cache."""
     return subprocess.Popen(
         LAUNCHER
         + TINY_FLAGS
@@ -374,7 +379,7 @@ def launch(workdir, cache):
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
-        env=dict(os.environ, JAX_COMPILATION_CACHE_DIR=str(cache)),
+        env=dict(env, JAX_COMPILATION_CACHE_DIR=str(cache)),
     )
 
 
@@ -389,7 +394,7 @@ def wait_for_checkpoint(proc, workdir, after):
     raise TimeoutError
 
 
-def stop_and_resume(tmp_path, signum, motion_model_from=None):
+def stop_and_resume(tmp_path, signum, env, motion_model_from=None):
     """The launcher to KILL_STEPS in a run of its own, sent ``signum`` after its first checkpoint, then
     resumed to the end. Returns (its exit status, its last checkpoint, its stderr, the resumed run's
     stdout, the parameters saved at KILL_STEPS). ``motion_model_from``: a run whose fitted motion model
@@ -398,22 +403,22 @@ def stop_and_resume(tmp_path, signum, motion_model_from=None):
     if motion_model_from is not None:
         os.makedirs(workdir)
         shutil.copy(os.path.join(motion_model_from, "motion_model.json"), workdir)
-    proc = launch(workdir, cache)
+    proc = launch(workdir, cache, env)
     wait_for_checkpoint(proc, workdir, after=0)
     proc.send_signal(signum)
     _, err = proc.communicate(timeout=300)
     status, stopped_at = proc.returncode, checkpoint_steps(workdir)[-1]
-    proc = launch(workdir, cache)
+    proc = launch(workdir, cache, env)
     out, resumed_err = proc.communicate(timeout=600)
     assert proc.returncode == 0, out + resumed_err
     return status, stopped_at, err, out, saved_params(workdir, KILL_STEPS)
 
 
-def stops_and_resumes(tmp_path):
+def stops_and_resumes(tmp_path, env):
     """SIGKILL (nothing saved at the kill), then SIGTERM (the launcher saves the step it was on), one after
     the other so the second reuses the first's compilation cache and motion model."""
-    killed = stop_and_resume(tmp_path, signal.SIGKILL)
-    stopped = stop_and_resume(tmp_path, signal.SIGTERM, motion_model_from=tmp_path / signal.SIGKILL.name)
+    killed = stop_and_resume(tmp_path, signal.SIGKILL, env)
+    stopped = stop_and_resume(tmp_path, signal.SIGTERM, env, motion_model_from=tmp_path / signal.SIGKILL.name)
     return {signal.SIGKILL: killed, signal.SIGTERM: stopped}
 
 
