@@ -30,9 +30,17 @@ OPTIMISATION_FLAG = "--xla_backend_optimization_level"  # lowered for the suite 
 OPTIMISED = {OPTIMISATION_FLAG.lstrip("-"): 3}
 
 
-def xla_flags(*extra):
-    """The suite's XLA_FLAGS (its optimisation level kept) and ``extra``, for a subprocess's environment."""
-    return " ".join([os.environ.get("XLA_FLAGS", ""), *extra]).strip()
+def environment():
+    """A copy of this process's environment for the subprocesses that worker threads start. Take it in the
+    main thread and hand it to them: pytest sets and removes PYTEST_CURRENT_TEST there as tests run, so a
+    copy taken key by key in another thread can meet a key that has just gone (a KeyError)."""
+    return dict(os.environ)
+
+
+def xla_flags(*extra, env=os.environ):
+    """The suite's XLA_FLAGS (its optimisation level kept) as ``env`` has them, and ``extra``, for a
+    subprocess's environment."""
+    return " ".join([env.get("XLA_FLAGS", ""), *extra]).strip()
 
 
 def default_optimisation_env():

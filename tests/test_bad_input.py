@@ -30,7 +30,7 @@ import jax
 import numpy as np
 import orbax.checkpoint as ocp
 import pytest
-from helpers import ROOT, TINY, read_jsonl, synthetic_batch, xla_flags
+from helpers import ROOT, TINY, environment, read_jsonl, synthetic_batch, xla_flags
 
 import e2e_percep_jax as e2e
 from e2e_percep_jax import checkpoint
@@ -395,10 +395,9 @@ def _launcher_run(case, workdir, env):
 @pytest.fixture(scope="module")
 def launched(run, tmp_path_factory):
     """Every launcher row started at once (PARALLEL at a time) on its own workdir; name -> a future of
-    (exit status, stderr, the workdir's snapshot after) and the snapshot before. The environment is copied
-    here, in the main thread: pytest sets and removes PYTEST_CURRENT_TEST there as tests run, so a copy
-    taken key by key in a worker thread can meet a key that has just gone (a KeyError)."""
-    root, env = tmp_path_factory.mktemp("launched"), dict(os.environ)
+    (exit status, stderr, the workdir's snapshot after) and the snapshot before; the threads get the
+    environment as ``helpers.environment`` copies it here, in the main thread."""
+    root, env = tmp_path_factory.mktemp("launched"), environment()
     pool = concurrent.futures.ThreadPoolExecutor(PARALLEL)
     started = {}
     for i, (name, case) in enumerate(CASES.items()):

@@ -30,6 +30,7 @@ from helpers import (
     TINY,
     TINY_FLAGS,
     checkpoint_steps,
+    environment,
     free_port,
     loss_and_grads,
     read_jsonl,
@@ -80,7 +81,7 @@ def run_python(code, env):
 
 def four_device_loss_and_grads(workdir, env):
     """(metrics, gradients) of the B = 4 synthetic batch sharded over 4 simulated CPU devices. ``env``: this
-    process's environment, copied in the main thread (see ``subprocess_runs``)."""
+    process's environment, as ``helpers.environment`` copies it in the main thread."""
     path = workdir / "four.pkl"
     r = run_python(
         f"""
@@ -97,7 +98,7 @@ def four_device_loss_and_grads(workdir, env):
         with open({str(path)!r}, "wb") as f:
             pickle.dump(jax.device_get((metrics, grads)), f)
         """,
-        dict(env, XLA_FLAGS=xla_flags("--xla_force_host_platform_device_count=4")),
+        dict(env, XLA_FLAGS=xla_flags("--xla_force_host_platform_device_count=4", env=env)),
     )
     assert r.returncode == 0, r.stdout + r.stderr
     with open(path, "rb") as f:
@@ -107,10 +108,9 @@ def four_device_loss_and_grads(workdir, env):
 @pytest.fixture(scope="module")
 def subprocess_runs(tmp_path_factory):
     """The subprocess runs, started before the first test of this file (``START_FIRST``): XLA compiles on one
-    core, so on this 2-core machine they overlap with the in-process tests. Futures of their results. The
-    environment is copied here: pytest sets and removes PYTEST_CURRENT_TEST in the main thread as tests run,
-    so a copy taken key by key in a worker thread can meet a key that has just gone (a KeyError)."""
-    env = dict(os.environ)
+    core, so on this 2-core machine they overlap with the in-process tests. Futures of their results; the
+    threads get the environment as ``helpers.environment`` copies it here, in the main thread."""
+    env = environment()
     with concurrent.futures.ThreadPoolExecutor(2) as pool:
         yield {
             "four_devices": pool.submit(four_device_loss_and_grads, tmp_path_factory.mktemp("four"), env),
