@@ -98,6 +98,8 @@ class ModelConfig:
     pose_head: str = "regression"  # one of POSE_HEADS; the presets use "belief"
     pose_cell_m: float = 10.0  # the belief's cell size (metres)
     pose_heading_bins: int = 36  # the belief's heading bins
+    # Std of the belief head's Gaussian soft targets, in cells (place) and bins (heading): label smoothing
+    pose_target_std_cells: float = 0.5
     pose_filter: str = "histogram"  # one of POSE_FILTERS; inference only, so evaluation may change it
 
 
@@ -297,6 +299,9 @@ def validate(cfg: Config) -> Config:
     # the world's fastest step (12 m/s x 0.1 s); above 40 m a cell is as large as a block.
     if not 2.0 <= cfg.model.pose_cell_m <= 40.0:
         raise ValueError(f"--model.pose_cell_m={cfg.model.pose_cell_m}: must lie in [2, 40] metres")
+    # above 5 cells a target spreads over a block or more: the head would learn no place
+    if not 0 < cfg.model.pose_target_std_cells <= 5.0:
+        raise ValueError(f"--model.pose_target_std_cells={cfg.model.pose_target_std_cells}: must lie in (0, 5] cells")
     if not 4 <= cfg.model.pose_heading_bins <= 360:
         raise ValueError(f"--model.pose_heading_bins={cfg.model.pose_heading_bins}: must lie in [4, 360]")
     positive = {

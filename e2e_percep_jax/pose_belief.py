@@ -38,6 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from e2e_percep_jax.config import ModelConfig
 from e2e_percep_jax.sim import motion as motion_lib
 from e2e_percep_jax.sim.geometry import pose_yaw, wrap_angle
 from e2e_percep_jax.sim.motion import MotionModel
@@ -47,7 +48,6 @@ from e2e_percep_jax.sim.motion import MotionModel
 AREA_ORIGIN_M = -30.0
 AREA_SIZE_M = 480.0
 SPEED_SCALE_MPS = 10.0
-TARGET_STD_CELLS = 0.5  # std of the Gaussian soft targets, in cells (place) and bins (heading)
 # Filter defaults: the head's probabilities are mixed with this share of uniform mass (a frame that names
 # the wrong place cannot erase the right one), raised to MEASUREMENT_POWER (< 1: consecutive frames'
 # measurements are not independent), and the speed track moves this share toward the head's speed a frame.
@@ -90,10 +90,12 @@ def default_settings() -> dict:
 
 @dataclasses.dataclass(frozen=True)
 class Grid:
-    """The belief's cells: ``cell_m`` metres square over the area, ``heading_bins`` headings."""
+    """The belief's cells: ``cell_m`` metres square over the area, ``heading_bins`` headings; the head's soft
+    targets are Gaussians of ``target_std_cells`` cells and bins."""
 
     cell_m: float
     heading_bins: int
+    target_std_cells: float = ModelConfig.pose_target_std_cells
 
     @property
     def n(self) -> int:
@@ -124,7 +126,7 @@ class Grid:
 
 
 def grid_of(model_cfg) -> Grid:
-    return Grid(model_cfg.pose_cell_m, model_cfg.pose_heading_bins)
+    return Grid(model_cfg.pose_cell_m, model_cfg.pose_heading_bins, model_cfg.pose_target_std_cells)
 
 
 def split_head(raw, grid: Grid) -> dict:
@@ -155,15 +157,16 @@ def true_bin(yaw_rad, grid: Grid):
 
 
 def place_target(xy, grid: Grid):
-    """Soft place target [..., G]: a Gaussian of TARGET_STD_CELLS cells around xy [..., 2], normalised."""
+    """Soft place target [..., G]: a Gaussian of ``grid.target_std_cells`` cells around xy [..., 2], normalised."""
     d2 = jnp.sum((xy[..., None, :] - jnp.asarray(grid.cell_centres())) ** 2, -1)
-    return jax.nn.softmax(-d2 / (2 * (TARGET_STD_CELLS * grid.cell_m) ** 2), -1)
+    return jax.nn.softmax(-d2 / (2 * (grid.target_std_cells * grid.cell_m) ** 2), -1)
 
 
 def heading_target(yaw_rad, grid: Grid):
-    """Soft heading target [..., H]: a wrapped Gaussian of TARGET_STD_CELLS bins around ``yaw_rad``, normalised."""
+    """Soft heading target [..., H]: a wrapped Gaussian of ``grid.target_std_cells`` bins around ``yaw_rad``,
+    normalised."""
     d = wrap_angle(yaw_rad[..., None] - jnp.asarray(grid.bin_centres()))
-    return jax.nn.softmax(-(d**2) / (2 * (TARGET_STD_CELLS * grid.bin_rad) ** 2), -1)
+    return jax.nn.softmax(-(d**2) / (2 * (grid.target_std_cells * grid.bin_rad) ** 2), -1)
 
 
 def _at(values, index):

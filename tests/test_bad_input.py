@@ -124,6 +124,9 @@ CASES = {
     "train lr_decay_share of 1": Case(
         "train", ["--train.lr_decay_share=1"], "--train.lr_decay_share=1.0: must lie in [0, 1)"
     ),
+    "train soft targets of zero width": Case(
+        "train", ["--model.pose_target_std_cells=0"], "--model.pose_target_std_cells=0.0: must lie in (0, 5] cells"
+    ),
     "train negative max_grad_norm": Case(
         "train", ["--train.max_grad_norm=-1"], "--train.max_grad_norm=-1.0: must be >= 0"
     ),

@@ -134,6 +134,26 @@ def test_soft_targets_sum_to_one_and_peak_at_the_true_cell_and_bin():
     np.testing.assert_array_equal(heading.argmax(-1), np.floor((yaw + np.pi) / (np.pi / 18)) % 36)
 
 
+@pytest.mark.parametrize("std_cells", [1.0, 1.5])
+def test_soft_targets_have_the_configured_width(std_cells):
+    """Label smoothing (``--model.pose_target_std_cells``): a Gaussian sampled at unit spacing has the
+    continuous one's mean and variance up to exp(-2 pi^2 std^2) (Poisson summation), so for poses away from
+    the grid's edge the place target's mean is the true point and its variance (std x cell)^2 per axis, and
+    the heading target's mean offset is zero and its variance (std x bin)^2."""
+    grid = dataclasses.replace(GRID, target_std_cells=std_cells)
+    rng = np.random.default_rng(4)
+    xy = rng.uniform(100.0, 300.0, (50, 2))
+    yaw = rng.uniform(-np.pi, np.pi, 50)
+    place = np.asarray(pose_belief.place_target(jnp.asarray(xy), grid), np.float64)
+    d = np.asarray(grid.cell_centres())[None] - xy[:, None]  # [50, G, 2] cell centre minus the point
+    np.testing.assert_allclose(np.einsum("pg,pgk->pk", place, d), 0.0, atol=1e-3 * grid.cell_m)
+    np.testing.assert_allclose(np.einsum("pg,pgk->pk", place, d**2), (std_cells * grid.cell_m) ** 2, rtol=1e-3)
+    heading = np.asarray(pose_belief.heading_target(jnp.asarray(yaw), grid), np.float64)
+    a = (np.asarray(grid.bin_centres())[None] - yaw[:, None] + np.pi) % (2 * np.pi) - np.pi
+    np.testing.assert_allclose(np.sum(heading * a, -1), 0.0, atol=1e-3 * grid.bin_rad)
+    np.testing.assert_allclose(np.sum(heading * a**2, -1), (std_cells * grid.bin_rad) ** 2, rtol=1e-3)
+
+
 def test_mode_and_offset_decoding_round_trips_a_pose():
     pose = random_poses(200, seed=1)
     got = np.asarray(pose_belief.decode(head_naming(jnp.asarray(pose), GRID), GRID))
