@@ -37,31 +37,6 @@ from e2e_percep_jax.sim import town as town_lib  # noqa: E402
 xla_cpu.prefer_eigen_convolutions()
 
 
-# The test files that take longest, slowest first (each over a minute of CPU in the clean-clone runs'
-# `--durations` lists; BUILD_NOTES "CI and the test suite"). xdist hands whole files to its workers in
-# collection order (`--no-loadscope-reorder`), so these start first and the short files fill in at the end:
-# the workers finish together. Its default order, by number of tests, started the sweep's few long tests
-# and the single two-process test last. A file missing here only runs later; nothing else depends on it.
-SLOWEST_FILES = (
-    "test_sweep.py",
-    "test_train.py",
-    "test_bad_input.py",
-    "test_evaluate.py",
-    "test_pose_belief.py",
-    "test_world.py",
-    "test_batch.py",
-    "test_distributed.py",
-    "test_baselines.py",
-    "test_api.py",
-    "test_place_stream.py",
-)
-
-
-def pytest_collection_modifyitems(items):
-    rank = {name: i for i, name in enumerate(SLOWEST_FILES)}
-    items.sort(key=lambda item: rank.get(item.path.name, len(SLOWEST_FILES)))  # stable: a file's own order kept
-
-
 @pytest.fixture(scope="module", autouse=True)
 def start_first(request):
     """Sets up, before the first test of a module, the module-scoped fixtures that the module names in
