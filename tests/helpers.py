@@ -153,6 +153,15 @@ TINY_FLAGS = [
 ]
 
 
+def readme_section(heading):
+    """The README's ``## heading`` section, up to the next ``## `` heading."""
+    with open(os.path.join(ROOT, "README.md"), encoding="utf-8") as f:
+        text = f.read()
+    start = text.index(f"\n## {heading}\n")
+    end = text.find("\n## ", start + 1)
+    return text[start : end if end > 0 else len(text)]
+
+
 def read_jsonl(path):
     with open(path) as f:
         return [json.loads(line) for line in f]

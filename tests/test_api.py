@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import readme_section
 
 import e2e_percep_jax as e2e
 from e2e_percep_jax import config as config_lib
@@ -225,10 +226,8 @@ def test_load_returns_the_trained_params_and_boxes_decode(trained_run):
 
 def _readme_example():
     """The Python block of the README's "Inference API" section."""
-    with open(os.path.join(ROOT, "README.md"), encoding="utf-8") as f:
-        readme = f.read()
-    section = readme[readme.index("\n## Inference API\n") :]
-    return section[section.index("```python\n") + len("```python\n") : section.index("```\n", 10)]
+    block = readme_section("Inference API").split("```python\n", 1)[1]
+    return block[: block.index("```\n")]
 
 
 @pytest.mark.slow

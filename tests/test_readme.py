@@ -5,30 +5,24 @@ import glob
 import os
 import re
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+from helpers import ROOT, readme_section
 
 
 def _read(name):
-    with open(os.path.join(REPO, name), encoding="utf-8") as f:
+    with open(os.path.join(ROOT, name), encoding="utf-8") as f:
         return f.read()
 
 
-def _section(text, heading):
-    start = text.index(f"\n## {heading}\n")
-    end = text.find("\n## ", start + 1)
-    return text[start : end if end > 0 else len(text)]
-
-
 def test_what_is_where_lists_every_module_and_launcher_and_nothing_else():
-    where = _section(_read("README.md"), "What is where")
+    where = readme_section("What is where")
     named = set(re.findall(r"`([\w/]+\.py)`", where))
-    package = os.path.join(REPO, "e2e_percep_jax")
+    package = os.path.join(ROOT, "e2e_percep_jax")
     modules = {
         os.path.relpath(p, package)
         for p in glob.glob(os.path.join(package, "**", "*.py"), recursive=True)
         if os.path.basename(p) != "__init__.py"
     }
-    launchers = {os.path.basename(p) for p in glob.glob(os.path.join(REPO, "experiments", "*.py"))}
+    launchers = {os.path.basename(p) for p in glob.glob(os.path.join(ROOT, "experiments", "*.py"))}
     experiments_row = next(line for line in where.splitlines() if line.startswith("| `experiments/`"))
     assert modules - named == set(), "modules missing from the README's What is where"
     assert {n for n in launchers if f"`{n}`" not in experiments_row} == set(), "launchers missing there"
