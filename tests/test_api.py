@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import readme_section
+from helpers import ROOT, readme_section
 
 import e2e_percep_jax as e2e
 from e2e_percep_jax import config as config_lib
@@ -21,7 +21,6 @@ from e2e_percep_jax.sim.motion import MotionModel
 
 CFG = config_lib.get_config("tiny")
 R = CFG.data.image_size
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 @pytest.fixture(scope="module")
@@ -300,9 +299,7 @@ def test_filter_sweep_reports_the_regions_coverage_under_each_heading_noise(trai
     regions, as percentages; a heading noise scaled 10,000-fold changes the joint (heading, place) region's
     share, so the scale reaches the filter."""
     workdir, _, _ = trained_run
-    sweep = os.path.join(
-        os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "experiments", "pose_filter_sweep.py"
-    )
+    sweep = os.path.join(ROOT, "experiments", "pose_filter_sweep.py")
     result = subprocess.run(
         [
             sys.executable,
