@@ -165,8 +165,16 @@ def command(evaluations: dict) -> str:
     flags left out)."""
     runs = _main_runs(evaluations)
 
-    def trained(m):  # the learning rate is constant, so a run's checkpoint is a run of that many steps
-        return config_lib.replace(config_lib.Config.from_dict(m["config"]), train=dict(num_steps=_trained_steps(m)))
+    def trained(m):
+        """At a constant learning rate a run's checkpoint is a run of that many steps; under a decaying one
+        only its last checkpoint is (the decay starts from the end of ``num_steps``)."""
+        cfg, steps = config_lib.Config.from_dict(m["config"]), _trained_steps(m)
+        if cfg.train.lr_decay_share and steps != cfg.train.num_steps:
+            raise ValueError(
+                f"checkpoint {steps} of a run whose rate decays to step {cfg.train.num_steps}: "
+                "not the run its command would train"
+            )
+        return config_lib.replace(cfg, train=dict(num_steps=steps))
 
     # left out: the evaluation's flags, and those a run may change on resuming (they leave its weights as they are)
     unsaid = ("--eval.", *(f"--{name}=" for name in checkpoint.RESUMABLE_CHANGES if name != "train.num_steps"))

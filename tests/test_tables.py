@@ -214,6 +214,22 @@ def test_learning_curve_reads_each_checkpoints_evaluations(results):
     )
 
 
+def test_a_decaying_rate_is_in_the_command_and_only_its_last_checkpoint_is_a_run():
+    """Under ``--train.lr_decay_share`` a checkpoint before ``num_steps`` saw a rate no run of that many steps
+    sees, so no command trains it; the last one is the run its command trains."""
+
+    def decayed(seed, step):
+        m = dict(_metrics(seed, step=step), run=f"decay_s{seed}")
+        m["config"]["train"].update(num_steps=9000, lr_decay_share=0.3)
+        return m
+
+    assert tables.command({"eval": [decayed(0, 9000), decayed(1, 9000)]}) == (
+        "python experiments/main.py --config=cpu --train.num_steps=9000 --train.lr_decay_share=0.3 --train.seed={0,1}"
+    )
+    with pytest.raises(ValueError, match="checkpoint 6000 of a run whose rate decays to step 9000"):
+        tables.command({"eval_step6000": [decayed(0, 6000)]})
+
+
 def test_collected_runs_are_named_by_their_path_below_the_common_folder(tmp_path):
     """A sweep keeps each seed's baselines in ``baselines-seed<s>/<baseline>``: same folder names, two runs."""
     for seed in (0, 1):
