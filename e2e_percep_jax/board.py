@@ -46,7 +46,10 @@ class Board:
             log("tensorboardX is not installed: no TensorBoard events (pip install -e '.[tensorboard]')")
             return
         self.summary = Summary
-        self.writer = FileWriter(workdir, flush_secs=30)
+        # An event file is named by the second it opened in (and the host), and opening truncates: a resume
+        # within the same second as the run before it would erase that run's events, so the name also
+        # carries the step it starts from.
+        self.writer = FileWriter(workdir, flush_secs=30, filename_suffix=f".from_step{start_step}")
         if start_step:  # TensorBoard drops the events at or past a START's step: those written after the checkpoint
             self.writer.add_event(Event(step=start_step, session_log=SessionLog(status=SessionLog.START)))
 

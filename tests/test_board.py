@@ -5,6 +5,7 @@ the pose belief; without tensorboardX the run trains as before."""
 import glob
 import struct
 import sys
+import time
 
 import cv2
 import numpy as np
@@ -52,6 +53,18 @@ def board_contents(workdir):
             else:
                 scalars.setdefault(value.tag, {})[event.step] = value.simple_value
     return scalars, images, starts
+
+
+def test_a_resume_in_the_same_second_keeps_the_events_before_it(tmp_path, monkeypatch):
+    """Event files are named by the second they open in; a run resumed within that second (a fast machine, a
+    crash and restart) still keeps the first run's events."""
+    monkeypatch.setattr(time, "time", lambda: 1_800_000_000.0)
+    for start, step in ((0, 1), (1, 2)):
+        board = board_lib.Board(str(tmp_path), start_step=start, log=pytest.fail)
+        board.scalars({"step": step, "kl": float(step)}, learning_rate=1e-3)
+        board.close()
+    scalars, _, starts = board_contents(tmp_path)
+    assert scalars["loss/kl"] == {1: 1.0, 2: 2.0} and starts == [1]
 
 
 def test_the_board_files_scalars_and_images_after_a_resume_marker_and_without_its_writer_nothing(tmp_path, monkeypatch):
