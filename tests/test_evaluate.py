@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import EXACT_PLANT, default_optimisation_env
+from helpers import EXACT_PLANT, ROOT, default_optimisation_env
 
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import detection, pose_belief, report
@@ -27,7 +27,6 @@ from e2e_percep_jax.api import PerceiverOutputs
 from e2e_percep_jax.sim import rollout, sensors, world
 from e2e_percep_jax.sim import town as town_lib
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 VIDEO_FRAMES = 40
 
 # The subprocess: a run directory written with train's own checkpoint manager and train state, restored
@@ -81,7 +80,7 @@ def memory_run(tmp_path_factory):
     # appear at any time on a loaded machine, which says nothing about the evaluation.
     proc = subprocess.Popen(
         [sys.executable, "-c", _MEMORY_SCRIPT, run, str(VIDEO_FRAMES)],
-        cwd=REPO,
+        cwd=ROOT,
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,

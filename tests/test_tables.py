@@ -8,12 +8,11 @@ import subprocess
 import sys
 
 import pytest
-from helpers import load_experiment
+from helpers import ROOT, load_experiment
 
 from e2e_percep_jax import config, pose_belief
 
 tables = load_experiment("tables")
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PAPER = {
     "ap_percent": {"Inputs and roadmap (full)": {"0.1": 79.4, "0.3": 72.0, "0.5": 56.5, "0.7": 16.8}},
     "pose": {"Inputs and roadmap (full)": {"location_m": 11.4, "heading_rad": 0.33}},
@@ -280,7 +279,7 @@ def test_readme_blocks_are_filled_and_checked(results, tmp_path):
         "<!-- table:detection:begin --><!-- table:detection:end -->\n"
         "<!-- table:learning_curve:begin --><!-- table:learning_curve:end -->\n"
     )
-    cmd = [sys.executable, os.path.join(REPO, "experiments", "tables.py"), f"--results={results}", f"--readme={readme}"]
+    cmd = [sys.executable, os.path.join(ROOT, "experiments", "tables.py"), f"--results={results}", f"--readme={readme}"]
     stale = subprocess.run(cmd + ["--check"], capture_output=True, text=True, timeout=120)
     assert stale.returncode == 1 and "differ" in stale.stderr
     subprocess.run(cmd, check=True, capture_output=True, timeout=120)
@@ -293,6 +292,6 @@ def test_readme_blocks_are_filled_and_checked(results, tmp_path):
 
 
 def test_the_readme_shows_what_the_kept_evaluations_render():
-    with open(os.path.join(REPO, "README.md")) as f:
+    with open(os.path.join(ROOT, "README.md")) as f:
         text = f.read()
-    assert tables.fill(text, tables.render(os.path.join(REPO, "experiments", "results"))) == text
+    assert tables.fill(text, tables.render(os.path.join(ROOT, "experiments", "results"))) == text
