@@ -14,7 +14,7 @@ from etils import epath
 
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax.config import Config, MissingRunFileError, run_config
-from e2e_percep_jax.train_state import PERCEPTION, Objective, TrainState, init_state
+from e2e_percep_jax.train_state import PERCEPTION, Objective, TrainState, decay_start, init_state
 
 MAX_CHECKPOINTS_KEPT = 3
 # Fields that may change when a run resumes; anything else would make the checkpoint a different run.
@@ -195,5 +195,13 @@ def check_resumable(cfg: Config, workdir: str) -> int | None:
         raise ValueError(
             f"--{name}={config_lib.flag_value(value)} differs from the run being resumed in {workdir}; "
             f"pass --{name}={config_lib.flag_value(old.get(name))} to resume it, or use a new --workdir"
+        )
+    # A decaying rate is a schedule over num_steps: a new count moves where the decay starts, which the
+    # steps already trained cannot follow once either start lies behind them.
+    trained = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, num_steps=old["train.num_steps"]))
+    if cfg.train.num_steps != trained.train.num_steps and latest > min(decay_start(cfg), decay_start(trained)):
+        raise ValueError(
+            f"--train.num_steps={cfg.train.num_steps}: {workdir} reached step {latest}, and its rate decays from "
+            f"step {decay_start(trained)}; pass --train.num_steps={trained.train.num_steps} or use a new --workdir"
         )
     return latest

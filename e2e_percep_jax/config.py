@@ -214,13 +214,14 @@ _PLACE_FRAMES = 32
 
 PRESETS = {
     # the paper's network and batch with the `cpu` preset's recipe: the place stream, a belief head 512 wide,
-    # pose weight 16, lr 1e-3 and the clip (lr 1e-4 and no clip are the reference's; see the `cpu` preset);
+    # pose weight 16, lr 1e-3 decaying over the last 30 % and the clip (lr 1e-4 and no clip are the reference's;
+    # see the `cpu` preset);
     # 10 m belief cells, as measured at this size (5 m not yet)
     "paper": replace(
         Config(),
         data=dict(batch_size=32, batches_per_drive=_BATCHES_PER_DRIVE, place_frames=_PLACE_FRAMES),
         model=dict(pose_head="belief", pose_hidden_dim=512),
-        train=dict(num_steps=3000, learning_rate=1e-3, max_grad_norm=1e6, pose_weight=16.0),
+        train=dict(num_steps=3000, learning_rate=1e-3, lr_decay_share=0.3, max_grad_norm=1e6, pose_weight=16.0),
     ),
     "cpu": replace(
         Config(),
@@ -240,7 +241,9 @@ PRESETS = {
         ),
         # lr 1e-3, not the paper's 1e-4: reaches 1e-4's 600-step loss in 200 steps
         # max_grad_norm 1e6: above the steady norms (3e4-6e5), below a spike's (1e13)
-        train=dict(num_steps=3000, learning_rate=1e-3, max_grad_norm=1e6, pose_weight=16.0),
+        # the rate decays over the last 30 % of the steps: AP@0.5 +2.6-4.7 points and the location error 0.2-0.6 m
+        # lower at 3,000 steps on both seeds (BUILD_NOTES, "The decaying rate at the `cpu` preset's own 3,000 steps")
+        train=dict(num_steps=3000, learning_rate=1e-3, lr_decay_share=0.3, max_grad_norm=1e6, pose_weight=16.0),
         eval=dict(num_frames=15000),
     ),
     "demo": replace(

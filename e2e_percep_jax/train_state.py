@@ -63,14 +63,20 @@ def _empty_carry(cfg: Config) -> dict:
 def learning_rate(cfg: Config) -> optax.ScalarOrSchedule:
     """``--train.learning_rate``, constant; with ``--train.lr_decay_share`` > 0 a schedule of the update's
     count: constant until that share of ``--train.num_steps`` is left, then a cosine down to zero."""
-    lr, share = cfg.train.learning_rate, cfg.train.lr_decay_share
-    if not share:
+    lr = cfg.train.learning_rate
+    if not cfg.train.lr_decay_share:
         return lr  # a constant keeps the optimizer state of runs trained before the schedule existed
-    decay_steps = max(1, round(share * cfg.train.num_steps))
+    start = decay_start(cfg)
     return optax.join_schedules(
-        [optax.constant_schedule(lr), optax.cosine_decay_schedule(lr, decay_steps)],
-        [cfg.train.num_steps - decay_steps],
+        [optax.constant_schedule(lr), optax.cosine_decay_schedule(lr, cfg.train.num_steps - start)], [start]
     )
+
+
+def decay_start(cfg: Config) -> int:
+    """The update from which the rate decays (``num_steps`` where it stays constant)."""
+    if not cfg.train.lr_decay_share:
+        return cfg.train.num_steps
+    return cfg.train.num_steps - max(1, round(cfg.train.lr_decay_share * cfg.train.num_steps))
 
 
 def learning_rate_at(cfg: Config, step: int) -> float:

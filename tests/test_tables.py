@@ -42,6 +42,8 @@ def _metrics(
     )
     if place_frames is not None:
         cfg = config.replace(cfg, data=dict(place_frames=place_frames))
+    if step is not None and step != cfg.train.num_steps:  # a learning curve's checkpoint: a constant rate's run
+        cfg = config.replace(cfg, train=dict(lr_decay_share=0.0))
     pose = {
         "location_m": {"mean": location, "median": location, "p90": 2 * location, "within": {"5": 0.3, "10": 0.5}},
         "heading_rad": {"mean": 0.05, "median": 0.05, "p90": 0.1, "within": {}},
@@ -208,8 +210,8 @@ def test_learning_curve_reads_each_checkpoints_evaluations(results):
     assert _row(curve, "2,000")[1:] == ["5.0 ± 0.0 / 0.050 ± 0.000 / 40.0 ± 10.0", " |"]  # `place64`: none
     assert "`dead_reckoning`" not in curve  # no checkpoints evaluated
     assert (
-        "- `cpu` (2 runs): `python experiments/main.py --config=cpu --train.num_steps=2000 --train.seed={0,1}`"
-        in curve.splitlines()
+        "- `cpu` (2 runs): `python experiments/main.py --config=cpu --train.num_steps=2000 "
+        "--train.lr_decay_share=0.0 --train.seed={0,1}`" in curve.splitlines()  # a constant rate's checkpoints
     )
 
 
@@ -219,11 +221,11 @@ def test_a_decaying_rate_is_in_the_command_and_only_its_last_checkpoint_is_a_run
 
     def decayed(seed, step):
         m = dict(_metrics(seed, step=step), run=f"decay_s{seed}")
-        m["config"]["train"].update(num_steps=9000, lr_decay_share=0.3)
+        m["config"]["train"].update(num_steps=9000, lr_decay_share=0.5)  # the `cpu` preset's share is 0.3
         return m
 
     assert tables.command({"eval": [decayed(0, 9000), decayed(1, 9000)]}) == (
-        "python experiments/main.py --config=cpu --train.num_steps=9000 --train.lr_decay_share=0.3 --train.seed={0,1}"
+        "python experiments/main.py --config=cpu --train.num_steps=9000 --train.lr_decay_share=0.5 --train.seed={0,1}"
     )
     with pytest.raises(ValueError, match="checkpoint 6000 of a run whose rate decays to step 9000"):
         tables.command({"eval_step6000": [decayed(0, 6000)]})

@@ -39,7 +39,7 @@ from helpers import (
     xla_flags,
 )
 
-from e2e_percep_jax import config, loss, model, train
+from e2e_percep_jax import checkpoint, config, loss, model, train, train_state
 
 CFG = tiny(num_steps=8, checkpoint_every=2, log_every=2)
 POSE_TERMS = ("pose_place", "pose_heading", "pose_offset", "pose_speed")  # the belief head's loss terms
@@ -216,6 +216,32 @@ def test_learning_rate_decay_is_a_cosine_over_the_last_share_of_the_steps():
     half_way = schedule_state._replace(count=np.int32(80))  # update 80, half-way down the cosine: lr / 2
     updates, _ = opt.update(grads, (adam_state, half_way), params)
     np.testing.assert_allclose(updates["a"], -0.5 * lr * np.sign(grads["a"]), rtol=1e-4)
+
+
+def test_a_decaying_run_resumes_under_another_num_steps_only_before_its_decay(tmp_path):
+    """A run of 10 steps decaying over the last 3 (from update 7) saved at step `saved`: resuming it with
+    --train.num_steps=20 (decay from 14) follows the steps already trained only if both starts lie ahead."""
+    decaying = config.replace(CFG, train=dict(num_steps=10, lr_decay_share=0.3))
+    assert (
+        train_state.decay_start(decaying),
+        train_state.decay_start(config.replace(decaying, train=dict(num_steps=20))),
+    ) == (7, 14)
+    for saved, resumable in ((7, True), (8, False)):
+        workdir = tmp_path / str(saved)
+        workdir.mkdir()
+        (workdir / "config.json").write_text(decaying.to_json())
+        with checkpoint.manager(str(workdir)) as manager:
+            manager.save(saved, args=ocp.args.StandardSave(train.init_state(decaying)))
+        longer = config.replace(decaying, train=dict(num_steps=20))
+        if resumable:
+            assert checkpoint.check_resumable(longer, str(workdir)) == saved
+        else:
+            with pytest.raises(ValueError, match=r"--train\.num_steps=20: .* reached step 8, .* decays from step 7"):
+                checkpoint.check_resumable(longer, str(workdir))
+        assert checkpoint.check_resumable(decaying, str(workdir)) == saved  # its own count resumes
+        constant = config.replace(longer, train=dict(lr_decay_share=0.0))
+        (workdir / "config.json").write_text(config.replace(decaying, train=dict(lr_decay_share=0.0)).to_json())
+        assert checkpoint.check_resumable(constant, str(workdir)) == saved  # a constant rate extends freely
 
 
 @pytest.mark.slow
