@@ -240,9 +240,12 @@ def example_rows(frame, pred_boxes, pred_scores, panel_px=192):
 def line_chart(series, title, x_label, x_range, y_range, log_y=False, size=360):
     """uint8 BGR picture of one chart: ``series`` is [(legend text, BGR colour, xs, ys)], drawn on a grid
     over ``x_range`` x ``y_range`` (``log_y``: a log10 axis), with the legend above the axes (two entries
-    a row), where it covers no curve. Points with a non-finite y are left out; a lone point is a dot."""
+    a row, or one where a text would run into its neighbour), where it covers no curve. Points with a
+    non-finite y are left out; a lone point is a dot."""
     font, black = cv2.FONT_HERSHEY_SIMPLEX, (0, 0, 0)
-    left, right, bottom, top = 48, 12, 40, 32 + 16 * ((len(series) + 1) // 2)
+    widest_px = max((cv2.getTextSize(text, font, 0.38, 1)[0][0] for text, *_ in series), default=0)
+    columns = 2 if 25 + widest_px < size // 2 - 4 else 1
+    left, right, bottom, top = 48, 12, 40, 32 + 16 * -(-len(series) // columns)
     img = np.full((size + top + bottom, size + left + right, 3), 255, np.uint8)
     (x0, x1), (y0, y1) = x_range, y_range
     fy = np.log10 if log_y else (lambda v: v)
@@ -271,7 +274,7 @@ def line_chart(series, title, x_label, x_range, y_range, log_y=False, size=360):
             cv2.polylines(img, [pts], False, colour, 2, cv2.LINE_AA)
         elif len(pts):
             cv2.circle(img, tuple(map(int, pts[0])), 4, colour, -1, cv2.LINE_AA)
-        x, y = left + (size // 2) * (j % 2), 36 + 16 * (j // 2)
+        x, y = left + (size // 2) * (j % columns), 36 + 16 * (j // columns)
         cv2.line(img, (x, y - 4), (x + 20, y - 4), colour, 2)
         cv2.putText(img, text, (x + 25, y), font, 0.38, black, 1, cv2.LINE_AA)
     return img
