@@ -54,6 +54,8 @@ COLOURS = (
     (200, 200, 0),
     (120, 60, 220),
     (90, 200, 140),
+    (60, 60, 140),
+    (180, 180, 90),
 )
 
 flags.DEFINE_multi_string("collect", [], "METHOD=RUN_DIR[,RUN_DIR...]: keep these runs' evaluations as METHOD")
