@@ -144,8 +144,7 @@ def test_line_chart_places_a_point_by_its_axes_log_or_linear():
 
 def test_line_chart_legend_keeps_each_text_clear_of_its_neighbour():
     """Two entries a row while every text fits half the chart; a text that would run into the next column
-    puts every entry on a row of its own, its swatch at the left (the rows of the black text never meet a
-    swatch of another colour)."""
+    puts every entry on a row of its own, each swatch at the left."""
     blue, red = (200, 60, 20), (20, 40, 210)
 
     def swatches(texts):
@@ -153,11 +152,7 @@ def test_line_chart_legend_keeps_each_text_clear_of_its_neighbour():
             [(t, c, [1.0, 2.0], [1.0, 2.0]) for t, c in zip(texts, (blue, red))], "t", "x", (0.0, 10.0), (0.0, 10.0)
         )
         frame = np.flatnonzero((chart == 0).all(-1).sum(1) > chart.shape[1] // 2).min()  # the axes' top edge
-        legend = chart[:frame]
-        return [
-            (np.nonzero((legend == c).all(-1))[0].min(), np.nonzero((legend == c).all(-1))[1].min())
-            for c in (blue, red)
-        ]
+        return [np.argwhere((chart[:frame] == c).all(-1)).min(0) for c in (blue, red)]  # (top row, left column)
 
     (row_a, col_a), (row_b, col_b) = swatches(["short", "short too"])
     assert row_a == row_b and col_b > col_a  # side by side
