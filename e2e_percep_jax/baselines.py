@@ -42,6 +42,7 @@ from e2e_percep_jax import model as model_lib
 from e2e_percep_jax import train as train_lib
 from e2e_percep_jax.api import PerceiverOutputs
 from e2e_percep_jax.config import BASELINES, Config, ModelConfig
+from e2e_percep_jax.sim import geometry as geo
 from e2e_percep_jax.sim import motion as motion_lib
 from e2e_percep_jax.sim import odometry
 
@@ -166,7 +167,8 @@ class SingleFramePerceiver:
 def tracker_host(tracker_cfg=None):
     """``evaluate``'s ``host_fn``: a fresh ``tracking.Tracker`` per drive, fed each frame's NMS'd
     detections and the frame's true ego pose (ego-motion compensation); its confirmed tracks, coasting
-    ones included, replace the detections."""
+    ones included, replace the detections, those whose centre lies in the bird-eye view only (the rule of
+    the detections and of a valid ground truth: a track coasting out of the view is no false positive)."""
     tracker_cfg = tracker_cfg or tracking.TrackerConfig()
 
     def per_drive(world_index):
@@ -174,7 +176,8 @@ def tracker_host(tracker_cfg=None):
 
         def post(boxes, scores, pose_pred, pose):
             tracks = tracker.update(boxes, scores, pose)
-            return tracks.boxes, tracks.scores, pose_pred
+            shown = geo.in_bev_view(tracks.boxes[:, :2])
+            return tracks.boxes[shown], tracks.scores[shown], pose_pred
 
         return post
 

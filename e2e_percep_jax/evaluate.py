@@ -1,19 +1,28 @@
 """Online evaluation: drive held-out worlds, perceive every frame, score it against the world's truth.
 
-Protocol (the paper's): not a stored test set. ``E = cfg.eval.num_worlds`` worlds of town
-``cfg.eval.town_seed`` start from held-out keys (``PRNGKey(cfg.eval.seed)``, a root the training data,
-``PRNGKey(cfg.train.seed)`` folded with the step, does not use), warm their traffic up for
-``cfg.data.warmup_steps`` steps, then drive ``N = cfg.eval.num_frames`` frames in total (``N / E`` per
-world). A perceiver (the inference API's by default; the baselines' are others) filters each drive
-online from its first frame (posterior mean, or samples with ``sample=True``); frame t's output sees
-camera and lidar up to t and is scored against frame t's ground truth (no lag).
+Protocol (the paper's, with drives of detection's own): not a stored test set. Pose: ``E =
+cfg.eval.num_worlds`` worlds of town ``cfg.eval.town_seed`` start from held-out keys
+(``PRNGKey(cfg.eval.seed)``, a root the training data, ``PRNGKey(cfg.train.seed)`` folded with the step,
+does not use), warm their traffic up for ``cfg.data.warmup_steps`` steps, then drive ``N =
+cfg.eval.num_frames`` frames in total (``N / E`` per world). Detection: ``D = cfg.eval.detection_drives``
+drives of ``cfg.eval.detection_frames`` frames, chosen from ``cfg.eval.detection_pool`` candidates of
+their own held-out keys as those with the most remembered boxes (:func:`detection_start_keys`); with D = 0
+detection is scored on the pose drives. A perceiver (the inference API's by default; the baselines' are
+others) filters each drive online from its first frame (posterior mean, or samples with
+``sample=True``); frame t's output sees camera and lidar up to t and is scored against frame t's ground
+truth (no lag).
+
+Who saw each box: every ground-truth box falls in one group of ``metrics.GROUPS`` (the lidar now, the
+camera only, remembered: neither now but one within 3 s, unseen), and AP is reported over all boxes and
+per group. Every AP, and every pose figure, carries a 95 % bootstrap interval over whole drives.
 
 Device / host split. One jitted chunk program (:func:`make_chunk_fn`) drives ``cfg.eval.chunk_steps``
-frames of the E worlds with the perceiver in the loop (:func:`rollout.drive_perceiving`); memory is
-flat in N. Per frame it returns only what scoring needs: the true boxes and poses, the estimated pose,
-and ``top_k`` detection candidates chosen on the device, which the host filters
-(:mod:`e2e_percep_jax.detection`), optionally post-processes per drive (``host_fn``: a tracker, dead
-reckoning) and matches against the true boxes (:class:`metrics.DetectionAccumulator`).
+frames of E worlds with the perceiver in the loop (:func:`rollout.drive_perceiving`); memory is flat in
+N. Detection's drives run E at a time through the same program. Per frame it returns only what scoring
+needs: the true boxes, their groups and poses, the estimated pose, and ``top_k`` detection candidates
+chosen on the device, which the host filters (:mod:`e2e_percep_jax.detection`), optionally
+post-processes per drive (``host_fn``: a tracker, dead reckoning) and matches against the true boxes
+(:class:`metrics.DetectionAccumulator`).
 
 Score threshold. ``cfg.eval.score_threshold`` (0.5) is the operating point: the pictures show boxes
 above it, and precision / recall at it are reported. AP and the PR curves accumulate every candidate
@@ -36,9 +45,11 @@ Outputs in ``out_dir``: metrics.json, report.md, pr_curves.png, examples.png and
 
 import dataclasses
 import functools
+import hashlib
 import math
 import os
 import time
+import zipfile
 
 import jax
 import jax.numpy as jnp
@@ -48,21 +59,21 @@ from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import detection, pose_belief, report, summary
 from e2e_percep_jax import metrics as metrics_lib
 from e2e_percep_jax.api import Perceiver, run_perceiver
-from e2e_percep_jax.config import Config, WorldConfig
+from e2e_percep_jax.config import Config, EvalConfig, WorldConfig
 from e2e_percep_jax.launch import eta
-from e2e_percep_jax.sim import rollout, world
+from e2e_percep_jax.sim import geometry, motion, pixor, rollout, sensors, world
 from e2e_percep_jax.sim import town as town_lib
 
 IOU_THRESHOLDS = (0.1, 0.3, 0.5, 0.7)
-RESET_STREAM, SAMPLE_STREAM = 0, 1  # fold_in data of PRNGKey(cfg.eval.seed)
-_COMPILED = {}  # compiled chunk programs by everything they depend on
+RESET_STREAM, SAMPLE_STREAM, DETECTION_STREAM = 0, 1, 2  # fold_in data of PRNGKey(cfg.eval.seed)
+BOOTSTRAP_RESAMPLES = 1000
 
 
 # ----------------------------------------------------------------------------- device side
 
 
 def start_keys(cfg: Config):
-    """The E held-out world reset keys."""
+    """The E held-out world reset keys of the pose drives."""
     return jax.random.split(jax.random.fold_in(jax.random.PRNGKey(cfg.eval.seed), RESET_STREAM), cfg.eval.num_worlds)
 
 
@@ -73,17 +84,87 @@ def start_worlds(keys, town, world_cfg: WorldConfig):
     return jax.vmap(lambda k: world.reset(k, town, world_cfg))(keys)
 
 
+@functools.partial(jax.jit, static_argnames=("world_cfg", "image_size", "warmup", "num_frames"))
+def remembered_boxes(keys, town, world_cfg: WorldConfig, image_size: int, warmup: int, num_frames: int):
+    """int32 [P]: the remembered boxes (``metrics.GROUPS``) of each drive: reset from ``keys`` [P], warmed
+    up ``warmup`` steps, then ``num_frames`` frames, counted over the frames. The sensors run for their
+    visibility alone (XLA drops the images nobody reads); drives go 32 at a time to bound memory."""
+    remembered = metrics_lib.GROUPS.index("remembered")
+
+    def count(key):
+        state = rollout.advance(world.reset(key, town, world_cfg), town, warmup)
+
+        def frame(carry, _):
+            state, since = carry
+            seen = sensors.observe(state, town, image_size)
+            since = rollout.since_seen_step(since, seen)
+            group = metrics_lib.box_groups(seen["boxes_lidar_visible"], seen["boxes_camera_visible"], since)
+            return (world.step(state, town), since), jnp.sum(seen["boxes_valid"] & (group == remembered))
+
+        never = jnp.full(state.veh_box.shape[:1], rollout.NEVER_SEEN, jnp.int32)[1:]
+        return jnp.sum(jax.lax.scan(frame, (state, never), None, length=num_frames)[1])
+
+    return jax.lax.map(count, keys, batch_size=32)
+
+
+def detection_start_keys(cfg: Config, town):
+    """The D reset keys of detection's drives, and the remembered boxes each holds (None without a
+    choice): of ``cfg.eval.detection_pool`` candidate keys (their own stream of ``PRNGKey(eval.seed)``),
+    the D with the most remembered boxes, ties to the earlier key; without a pool, the first D. A function
+    of the town, the world's config, the image size and the seeds alone, never of a perceiver: with
+    ``E2E_PERCEP_JAX_TOWN_CACHE`` set the pool's counts are kept there for other evaluations (the search
+    drives every candidate's sensors: minutes on a CPU)."""
+    ev = cfg.eval
+    pool_size = max(ev.detection_pool, ev.detection_drives)
+    pool = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(ev.seed), DETECTION_STREAM), pool_size)
+    if not ev.detection_pool:
+        return pool[: ev.detection_drives], None
+    inputs = (
+        ev.town_seed,
+        cfg.world,
+        cfg.data.image_size,
+        cfg.data.warmup_steps,
+        ev.seed,
+        pool_size,
+        ev.detection_frames,
+    )
+    path = town_lib.cache_file(f"detection-pool-{_digest(inputs)}.npz")
+    try:
+        with np.load(path) as f:
+            counts = f["remembered"]
+    except (TypeError, OSError, KeyError, ValueError, zipfile.BadZipFile):  # no cache, none yet, or damaged
+        counts = np.asarray(
+            remembered_boxes(pool, town, cfg.world, cfg.data.image_size, cfg.data.warmup_steps, ev.detection_frames)
+        )
+        if path:
+            town_lib.write_cached(path, {"remembered": counts})
+    chosen = np.sort(np.argsort(-counts, kind="stable")[: ev.detection_drives])
+    return pool[chosen], counts[chosen]
+
+
+def _digest(inputs) -> str:
+    """A name for the pool's counts: their inputs and the code that drives and observes the worlds."""
+    digest = hashlib.sha256(repr(inputs).encode())
+    for module in (world, motion, sensors, rollout, metrics_lib, town_lib, geometry, pixor):
+        with open(module.__file__, "rb") as f:
+            digest.update(f.read())
+    return digest.hexdigest()[:16]
+
+
 def _to_uint8(image):
     return (jnp.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(jnp.uint8)
 
 
 def make_chunk_fn(cfg: Config, town, perceiver, sample: bool, detect: detection.Settings, heads=None):
-    """Jitted ``chunk(params, world_state, perceiver_state, key, warm) -> (world_state, perceiver_state,
-    out)``: ``cfg.eval.chunk_steps`` frames of all E worlds (:func:`rollout.drive_perceiving`), the
-    chunk's first ``warm`` frames only stepping the worlds (traffic warm-up).
+    """Jitted ``chunk(params, world_state, perceiver_state, since, key, warm) -> (world_state,
+    perceiver_state, since, out)``: ``cfg.eval.chunk_steps`` frames of all E worlds
+    (:func:`rollout.drive_perceiving`; ``since``: frames since each vehicle was seen), the chunk's first
+    ``warm`` frames only stepping the worlds (traffic warm-up). jax.jit's own cache keeps one compiled
+    program per E and params' shapes.
 
     ``out`` holds per frame [C, E, ...]: cand_boxes [k, 5], cand_scores [k] (k = ``detect.top_k``),
-    saturated, the true boxes / boxes_valid / boxes_occluded and pose, pose_pred (metres) and pose_nll
+    saturated, the true boxes / boxes_valid, boxes_group (each box's index into ``metrics.GROUPS``) and
+    pose, pose_pred (metres) and pose_nll
     (the perceiver's negative log-likelihood of the true pose, NaN if it has none); ``pictured`` int32
     [C, 2]: world 0 (the video's drive) and the world with the most vehicles in view (the examples'
     candidate), with those two worlds' images [C, 2, R, R, 3] uint8: camera, lidar, roadmap, the perceiver's reconstructions
@@ -126,7 +207,9 @@ def make_chunk_fn(cfg: Config, town, perceiver, sample: bool, detect: detection.
             "saturated": saturated,
             "boxes": frame["boxes"],
             "boxes_valid": frame["boxes_valid"],
-            "boxes_occluded": frame["boxes_occluded"],
+            "boxes_group": metrics_lib.box_groups(
+                frame["boxes_lidar_visible"], frame["boxes_camera_visible"], frame["boxes_frames_since_seen"]
+            ),
             "pose": frame["pose"],
             "pose_pred": outputs.pose,
             "pose_nll": nll,
@@ -140,11 +223,12 @@ def make_chunk_fn(cfg: Config, town, perceiver, sample: bool, detect: detection.
             out["pose_place"] = outputs.pose_place[pictured]
         return pstate, out
 
-    def chunk(params, wstate, pstate, key, warm):
+    def chunk(params, wstate, pstate, since, key, warm):
         c = cfg.eval.chunk_steps
         return rollout.drive_perceiving(
             wstate,
             pstate,
+            since,
             town,
             cfg.data.image_size,
             jax.random.split(key, c),
@@ -156,6 +240,67 @@ def make_chunk_fn(cfg: Config, town, perceiver, sample: bool, detect: detection.
 
 
 # ----------------------------------------------------------------------------- the evaluation
+
+
+def _program_config(cfg: Config) -> Config:
+    """``cfg`` with the evaluation fields the chunk program does not read at their defaults: evaluations that
+    differ only in frames, seeds, drives or thresholds share one program."""
+    ev = cfg.eval
+    return dataclasses.replace(
+        cfg, eval=EvalConfig(chunk_steps=ev.chunk_steps, town_seed=ev.town_seed, known_start=ev.known_start)
+    )
+
+
+@functools.lru_cache(maxsize=8)
+def chunk_program(cfg: Config, perceiver, sample: bool, detect: detection.Settings, heads=None):
+    """:func:`make_chunk_fn` once per program config (:func:`_program_config`), perceiver and settings;
+    jax.jit then compiles it once per shape of its arguments."""
+    return make_chunk_fn(cfg, town_lib.build_town(cfg.eval.town_seed), perceiver, sample, detect, heads)
+
+
+def _drive_chunks(program, params, perceiver, keys, town, cfg: Config, num_frames: int, sample_root):
+    """Drives the worlds reset from ``keys`` [W] through ``program``: warm-up, then ``num_frames`` frames.
+    Yields, per chunk, its ``out`` (NumPy) and the rows holding driven frames as (row, frame index from the
+    drive's start). The next chunk is queued before the caller works on this one."""
+    c, warmup = cfg.eval.chunk_steps, cfg.data.warmup_steps
+    wstate = start_worlds(keys, town, cfg.world)
+    since = jnp.full((len(keys), wstate.veh_box.shape[1] - 1), rollout.NEVER_SEEN, jnp.int32)
+    carry = (wstate, perceiver.init(len(keys)), since)
+
+    def dispatch(i, carry):
+        first = i * c - warmup  # drive frame index of the chunk's first frame (negative: warm-up)
+        return program(params, *carry, jax.random.fold_in(sample_root, i), jnp.int32(np.clip(-first, 0, c)))
+
+    num_chunks = math.ceil((warmup + num_frames) / c)
+    pending = dispatch(0, carry)
+    for i in range(num_chunks):
+        *carry, out = pending
+        if i + 1 < num_chunks:
+            pending = dispatch(i + 1, carry)
+        rows = [(t, i * c + t - warmup) for t in range(c) if 0 <= i * c + t - warmup < num_frames]
+        yield jax.tree.map(np.asarray, out), rows
+
+
+class _Progress:
+    """One log line per chunk: frames scored of all, their rate (chunks of driven frames only) and the time
+    left."""
+
+    def __init__(self, total: int, log):
+        self.total, self.log, self.done, self.seconds = total, log, 0, 0.0
+        self.last = time.perf_counter()
+
+    def chunk(self, frames: int, what: str):
+        now = time.perf_counter()
+        if not frames:
+            self.log(f"eval: {what}: warming up the traffic")
+        else:
+            self.done, self.seconds = self.done + frames, self.seconds + now - self.last
+            rate = self.done / max(self.seconds, 1e-9)
+            self.log(
+                f"eval: {what}: {self.done}/{self.total} frames ({100 * self.done / self.total:.0f}%)  "
+                f"{rate:.1f} frames/s  ETA {eta((self.total - self.done) / max(rate, 1e-9))}"
+            )
+        self.last = now
 
 
 def evaluate(
@@ -178,79 +323,49 @@ def evaluate(
     """Runs the online evaluation of ``perceiver`` with ``params`` under ``cfg`` and writes the report into
     ``out_dir``; returns the metrics dict (also written to metrics.json).
 
-    ``perceiver``: anything with the inference API's ``init(batch_size)`` and ``step(params, state, camera,
-    lidar, action, key=None, start_pose=None) -> (state, outputs)`` (state: any pytree the perceiver
-    carries; outputs: a :class:`~e2e_percep_jax.api.PerceiverOutputs`), and optionally ``pose_nll(state, pose)``
-    and ``pose_coverage(state, pose)``
-    (default: the filtered model, with the motion model of the run in ``workdir``, or the exact bicycle
-    without one: :func:`api.run_perceiver`). ``video_frames``: frames of world 0 in
-    drive.mp4 (0: no video); ``num_examples``: frames in examples.png; ``detect``: the candidates, score
-    floor and NMS (:class:`detection.Settings`). ``heads``: see
-    :func:`make_chunk_fn`. ``host_fn(w)``, called once per world w before its drive, returns a function
-    ``(boxes [M, 5], scores [M], pose_pred [5], pose [5]) -> (boxes, scores, pose_pred)`` that
-    post-processes each of that drive's frames in order, after NMS and before scoring (pose: the frame's
-    true ego pose; e.g. a tracker, or dead reckoning in place of the predicted pose). ``label`` names
-    what is evaluated in the report (default: the model variant); ``workdir`` and ``checkpoint_step``
-    say where the params came from. ``log`` gets one progress line per chunk.
+    ``perceiver``: anything hashable with the inference API's ``init(batch_size)`` and ``step(params,
+    state, camera, lidar, action, key=None, start_pose=None) -> (state, outputs)`` (state: any pytree the
+    perceiver carries; outputs: a :class:`~e2e_percep_jax.api.PerceiverOutputs`), and optionally
+    ``pose_nll(state, pose)`` and ``pose_coverage(state, pose)`` (default: the filtered model, with the
+    motion model of the run in ``workdir``, or the exact bicycle without one: :func:`api.run_perceiver`).
+    ``video_frames``: frames of world 0 in drive.mp4 (0: no video); ``num_examples``: frames in
+    examples.png; ``detect``: the candidates, score floor and NMS (:class:`detection.Settings`).
+    ``heads``: see :func:`make_chunk_fn`. ``host_fn(d)``, called once per drive d before it starts (the
+    pose drives 0..E-1, then detection's E..E+D-1), returns a function ``(boxes [M, 5], scores [M],
+    pose_pred [5], pose [5]) -> (boxes, scores, pose_pred)`` that post-processes each of that drive's
+    frames in order, after NMS and before scoring (pose: the frame's true ego pose; e.g. a tracker, or dead
+    reckoning in place of the predicted pose). ``label`` names what is evaluated in the report (default:
+    the model variant); ``workdir`` and ``checkpoint_step`` say where the params came from. ``log`` gets
+    one progress line per chunk.
     """
     config_lib.validate(cfg)
     ev = cfg.eval
     os.makedirs(out_dir, exist_ok=True)
-    e, c = ev.num_worlds, ev.chunk_steps
-    warmup = cfg.data.warmup_steps
+    e, num_det = ev.num_worlds, ev.detection_drives
     per_world = np.array([ev.num_frames // e + (w < ev.num_frames % e) for w in range(e)])  # frames to score
-    num_chunks = math.ceil((warmup + per_world.max()) / c)
     town = town_lib.build_town(ev.town_seed)
     params = jax.device_put(params)
-    t0 = time.perf_counter()
-    wstate = start_worlds(start_keys(cfg), town, cfg.world)
     # The pose figures come from the belief's histogram filter at its defaults (recorded with them) only for
     # the default perceiver whose pose neither ``heads`` nor ``host_fn`` replaces.
     filtered = perceiver is None and heads is None and host_fn is None
     filtered = filtered and cfg.model.pose_head == "belief" and cfg.model.pose_filter == "histogram"
-    # The default perceiver is keyed by its motion model: it depends on that, cfg.model and the image size
-    # alone, which the key holds, so evaluations that differ only in frames, seeds or thresholds share one program.
     if perceiver is None:
-        perceiver = run_perceiver(cfg, workdir) if workdir else Perceiver(cfg)
-        key_perceiver = perceiver.motion_model
-    else:
-        key_perceiver = perceiver
-    pstate = perceiver.init(e)
+        perceiver = run_perceiver(_program_config(cfg), workdir) if workdir else Perceiver(_program_config(cfg))
+    program = chunk_program(_program_config(cfg), perceiver, sample, detect, heads)
     sample_root = jax.random.fold_in(jax.random.PRNGKey(ev.seed), SAMPLE_STREAM)
-    cache_key = (
-        cfg.world,
-        cfg.data.image_size,
-        cfg.model,
-        ev.chunk_steps,
-        e,
-        ev.town_seed,
-        ev.known_start,
-        sample,
-        detect,
-        heads,
-        key_perceiver,
-        jax.tree.structure(params),
-        tuple(x.shape for x in jax.tree.leaves(params)),
-    )
-    if cache_key not in _COMPILED:  # one compile per program, reused by later evaluations in the process
-        _COMPILED[cache_key] = (
-            make_chunk_fn(cfg, town, perceiver, sample, detect, heads)
-            .lower(params, wstate, pstate, sample_root, jnp.int32(0))
-            .compile()
-        )
-    compiled = _COMPILED[cache_key]
-    compile_s = time.perf_counter() - t0
-    log(
-        f"eval: {ev.num_frames} frames = {e} worlds x {per_world.max()} frames after {warmup} warm-up steps, "
-        f"{num_chunks} chunks of {c}; compiled in {compile_s:.1f} s"
-    )
+    det_keys, det_remembered = detection_start_keys(cfg, town) if num_det else (None, None)
+    if num_det:
+        log(f"eval: detection's {num_det} drives chosen of {max(ev.detection_pool, num_det)} candidates")
+    progress = _Progress(ev.num_frames + num_det * ev.detection_frames, log)
 
     hosts = None if host_fn is None else [host_fn(w) for w in range(e)]
     det_acc = metrics_lib.DetectionAccumulator(IOU_THRESHOLDS)
     pose_acc = metrics_lib.PoseErrorAccumulator()
-    true_poses, nll, cover, saturated, done = [], [], [], 0, 0
-    # Per world and frame: true and estimated poses, copied out of the chunks' buffers (flat memory).
+    saturated = 0
+    # Per pose drive and frame: true and estimated poses, the belief's NLL of the truth and its 95 % regions'
+    # coverage, copied out of the chunks' buffers (flat memory).
     drives_true, drives_pred = np.zeros((e, per_world.max(), 5)), np.zeros((e, per_world.max(), 5))
+    nll, cover = np.zeros((e, per_world.max())), np.zeros((e, per_world.max(), 2), bool)
     pictures = report.Pictures(
         town,
         out_dir,
@@ -260,128 +375,154 @@ def evaluate(
         num_examples=num_examples,
         score_threshold=ev.score_threshold,
     )
-    tick = time.perf_counter()
 
-    def dispatch(i, wstate, pstate):
-        first = i * c - warmup  # drive frame index of the chunk's first frame (negative: warm-up)
-        return compiled(params, wstate, pstate, jax.random.fold_in(sample_root, i), jnp.int32(np.clip(-first, 0, c)))
-
-    pending = dispatch(0, wstate, pstate)
-    for i in range(num_chunks):
-        wstate, pstate, out = pending
-        if i + 1 < num_chunks:  # queue the next chunk before the host works on this one
-            pending = dispatch(i + 1, wstate, pstate)
-        out = jax.tree.map(np.asarray, out)
-        pose_pred = np.array(out["pose_pred"])  # writable: a host_fn may replace poses
-        for t in range(c):
-            frame_index = i * c + t - warmup
-            if frame_index < 0:
-                continue
-            for w in range(e):
-                if frame_index >= per_world[w]:
-                    continue
-                boxes, scores = detection.frame_detections(
-                    out["cand_boxes"][t, w], out["cand_scores"][t, w], detect.score_floor, detect.nms_iou
-                )
-                if hosts is not None:
-                    boxes, scores, pose_pred[t, w] = hosts[w](boxes, scores, pose_pred[t, w], out["pose"][t, w])
-                det_acc.add_frame(
-                    boxes, scores, out["boxes"][t, w], out["boxes_valid"][t, w], out["boxes_occluded"][t, w]
-                )
-                drives_true[w, frame_index], drives_pred[w, frame_index] = out["pose"][t, w], pose_pred[t, w]
-                saturated += bool(out["saturated"][t, w])
-                done += 1
-                pictures.add(out, t, w, frame_index, boxes, scores)
-            valid = frame_index < per_world
-            pose_acc.add(metrics_lib.pose_errors(pose_pred[t][valid], out["pose"][t][valid]), frame_index)
-            true_poses.append(out["pose"][t][valid])
-            nll.append(out["pose_nll"][t][valid])
-            cover.append(out["pose_cover"][t][valid])
-        if done == 0:
-            log(f"eval: warming up the traffic, step {min((i + 1) * c, warmup)}/{warmup}")
-            tick = time.perf_counter()  # frames/s counts driven frames only
-            continue
-        now = time.perf_counter()
-        rate = done / max(now - tick, 1e-9)
-        log(
-            f"eval: {done}/{ev.num_frames} frames ({100 * done / ev.num_frames:.0f}%)  {rate:.1f} frames/s  "
-            f"ETA {eta((ev.num_frames - done) / max(rate, 1e-9))}"
+    def detections(out, t, w, host):
+        nonlocal saturated
+        saturated += bool(out["saturated"][t, w])
+        boxes, scores = detection.frame_detections(
+            out["cand_boxes"][t, w], out["cand_scores"][t, w], detect.score_floor, detect.nms_iou
         )
-    seconds = time.perf_counter() - tick
+        return (boxes, scores, None) if host is None else host(boxes, scores, out["pose_pred"][t, w], out["pose"][t, w])
+
+    def score(out, t, w, boxes, scores, drive):
+        det_acc.add_frame(
+            boxes, scores, out["boxes"][t, w], out["boxes_valid"][t, w], out["boxes_group"][t, w], drive=drive
+        )
+
+    t0 = time.perf_counter()
+    chunks = _drive_chunks(program, params, perceiver, start_keys(cfg), town, cfg, per_world.max(), sample_root)
+    for out, rows in chunks:
+        pose_pred = np.array(out["pose_pred"])  # writable: a host_fn may replace poses
+        for t, f in rows:
+            for w in np.nonzero(f < per_world)[0]:
+                boxes, scores, pose = detections(out, t, w, None if hosts is None else hosts[w])
+                pose_pred[t, w] = pose_pred[t, w] if pose is None else pose
+                if not num_det:
+                    score(out, t, w, boxes, scores, w)
+                drives_true[w, f], drives_pred[w, f] = out["pose"][t, w], pose_pred[t, w]
+                nll[w, f], cover[w, f] = out["pose_nll"][t, w], out["pose_cover"][t, w]
+                pictures.add(out, t, w, f, boxes, scores)
+            valid = f < per_world
+            pose_acc.add(metrics_lib.pose_errors(pose_pred[t][valid], out["pose"][t][valid]), f)
+        progress.chunk(sum(int(np.sum(f < per_world)) for _, f in rows), "pose drives")
+    # Detection's drives, E at a time through the same program (the last group padded with its last key).
+    for first in range(0, num_det, e):
+        drives = np.arange(first, min(first + e, num_det))
+        keys = det_keys[np.minimum(np.arange(first, first + e), num_det - 1)]
+        group_hosts = None if host_fn is None else [host_fn(e + d) for d in drives]
+        root = jax.random.fold_in(sample_root, 1 + first // e)
+        for out, rows in _drive_chunks(program, params, perceiver, keys, town, cfg, ev.detection_frames, root):
+            for t, _ in rows:
+                for w, d in enumerate(drives):
+                    boxes, scores, _ = detections(out, t, w, None if group_hosts is None else group_hosts[w])
+                    score(out, t, w, boxes, scores, d)
+            progress.chunk(len(rows) * len(drives), f"detection drives {first + 1}-{drives[-1] + 1}")
+    seconds = time.perf_counter() - t0
     examples = pictures.close()
-
-    # Baseline: a constant pose, the mean of the drive's true poses, and no boxes (AP 0).
-    true_poses = np.concatenate(true_poses)
-    constant = metrics_lib.mean_pose(true_poses)
-    base_acc = metrics_lib.PoseErrorAccumulator()
-    base_acc.add(metrics_lib.pose_errors(np.broadcast_to(constant, true_poses.shape), true_poses), 0)
-
-    results = det_acc.results()
-    key = lambda t: f"{t:g}"
+    metrics = _metrics(
+        cfg,
+        det_acc,
+        pose_acc,
+        [d[:n] for d, n in zip(drives_true, per_world)],
+        [d[:n] for d, n in zip(drives_pred, per_world)],
+        [d[:n] for d, n in zip(cover, per_world)] if getattr(perceiver, "pose_coverage", None) else None,
+        float(np.mean(np.concatenate([d[:n] for d, n in zip(nll, per_world)]), dtype=np.float64)),
+    )
+    num_frames = int(per_world.sum()) + num_det * ev.detection_frames
     metrics = {
         "label": label or cfg.model.variant,
         "workdir": workdir,
         "checkpoint_step": checkpoint_step,
         "config": dataclasses.asdict(cfg),
         "sample": sample,
-        "num_frames": done,
+        "num_frames": num_frames,
         "num_worlds": e,
         "frames_per_world": int(per_world.max()),
         "seconds": seconds,
-        "frames_per_s": done / max(seconds, 1e-9),
-        "compile_s": compile_s,
-        "detection": {
-            "iou_thresholds": list(IOU_THRESHOLDS),
-            "score_threshold": ev.score_threshold,
-            "score_floor": detect.score_floor,
-            "nms_iou": detect.nms_iou,
-            "top_k": detect.top_k,
-            "dedup_cell_m": detection.DEDUP_CELL_M,
-            "topk_saturated_frac": saturated / max(done, 1),
-            "num_gt": {s: results[IOU_THRESHOLDS[0]][s].num_gt for s in metrics_lib.SUBSETS},
-            "ap": {key(t): {s: summary.defined(results[t][s].ap) for s in metrics_lib.SUBSETS} for t in IOU_THRESHOLDS},
-            "at_threshold": {
-                key(t): dict(
-                    zip(("precision", "recall"), metrics_lib.at_threshold(results[t]["all"], ev.score_threshold))
-                )
-                for t in IOU_THRESHOLDS
-            },
-            "pr_curves": {
-                key(t): {s: metrics_lib.curve_summary(results[t][s]) for s in metrics_lib.SUBSETS}
-                for t in IOU_THRESHOLDS
-            },
-        },
-        "pose": dict(
-            metrics_lib.pose_summary(pose_acc),
-            **metrics_lib.drive_pose_summary(
-                [d[:n] for d, n in zip(drives_true, per_world)], [d[:n] for d, n in zip(drives_pred, per_world)]
-            ),
-            nll_mean=summary.defined(float(np.mean(np.concatenate(nll), dtype=np.float64))),
-            # the share of frames whose true cell (place) and (heading bin, cell) (place_heading)
-            # lie in the belief's 95 % region: about 0.95 for a calibrated belief
-            coverage95=dict(zip(("place", "place_heading"), np.concatenate(cover).mean(0).tolist()))
-            if getattr(perceiver, "pose_coverage", None)
-            else None,
-            known_start=ev.known_start,
-            pose_filter=cfg.model.pose_filter,
-            filter_settings=pose_belief.default_settings() if filtered else None,
-        ),
+        "frames_per_s": num_frames / max(seconds, 1e-9),
+        **metrics,
         "examples": examples,
-        "baseline": {
-            "description": "constant pose = mean of the drive's true poses (circular mean heading); no boxes",
-            "mean_pose": [float(v) for v in constant],
-            "pose": metrics_lib.pose_summary(base_acc),
-            "ap": {key(t): 0.0 for t in IOU_THRESHOLDS},
-        },
-        "paper": {
-            "ap_percent": {k: dict(zip(map(key, IOU_THRESHOLDS), v)) for k, v in report.PAPER_AP.items()},
-            "pose": {k: {"location_m": v[0], "heading_rad": v[1]} for k, v in report.PAPER_POSE.items()},
-        },
     }
-    report.write(out_dir, metrics, results)
+    metrics["detection"].update(
+        score_threshold=ev.score_threshold,
+        score_floor=detect.score_floor,
+        nms_iou=detect.nms_iou,
+        top_k=detect.top_k,
+        dedup_cell_m=detection.DEDUP_CELL_M,
+        topk_saturated_frac=saturated / max(num_frames, 1),
+        drives=dict(
+            set="detection" if num_det else "pose",
+            num=num_det or e,
+            frames=ev.detection_frames if num_det else int(per_world.max()),
+            pool=max(ev.detection_pool, num_det) if num_det else None,
+            remembered_boxes_chosen=None if det_remembered is None else [int(v) for v in det_remembered],
+        ),
+    )
+    metrics["pose"].update(
+        known_start=ev.known_start,
+        pose_filter=cfg.model.pose_filter,
+        filter_settings=pose_belief.default_settings() if filtered else None,
+    )
+    report.write(out_dir, metrics, det_acc.results())
     log(
         f"eval: wrote {out_dir}: AP@0.5 {report.fmt(metrics['detection']['ap']['0.5']['all'], True)}, "
         f"location error {report.fmt(metrics['pose']['location_m']['mean'], digits=2)} m, "
         f"heading error {report.fmt(metrics['pose']['heading_rad']['mean'], digits=3)} rad"
     )
     return metrics
+
+
+def _metrics(cfg: Config, det_acc, pose_acc, drives_true, drives_pred, cover, nll_mean: float) -> dict:
+    """metrics.json's detection, pose and baseline sections from the accumulated drives (lists per pose drive;
+    ``cover``: bool [frames, 2] per drive, or None for a perceiver without a belief)."""
+    results, intervals = det_acc.results(), det_acc.intervals(BOOTSTRAP_RESAMPLES)
+    key = lambda t: f"{t:g}"
+    span = lambda lo_hi: [summary.defined(float(v)) for v in lo_hi]
+    true_poses = np.concatenate(drives_true)
+    # Baseline: a constant pose, the mean of the drives' true poses, and no boxes (AP 0).
+    constant = metrics_lib.mean_pose(true_poses)
+    base_acc = metrics_lib.PoseErrorAccumulator()
+    base_acc.add(metrics_lib.pose_errors(np.broadcast_to(constant, true_poses.shape), true_poses), 0)
+    subsets = metrics_lib.SUBSETS
+    return {
+        "detection": {
+            "iou_thresholds": list(IOU_THRESHOLDS),
+            "groups": list(metrics_lib.GROUPS),
+            "remember_frames": metrics_lib.REMEMBER_FRAMES,
+            "num_gt": det_acc.num_gt(),
+            "num_drives_with_boxes": det_acc.num_drives(),
+            "ap": {key(t): {s: summary.defined(results[t][s].ap) for s in subsets} for t in IOU_THRESHOLDS},
+            "ap_interval95": {key(t): {s: span(intervals[t][s]) for s in subsets} for t in IOU_THRESHOLDS},
+            "at_threshold": {
+                key(t): dict(
+                    zip(("precision", "recall"), metrics_lib.at_threshold(results[t]["all"], cfg.eval.score_threshold))
+                )
+                for t in IOU_THRESHOLDS
+            },
+            "pr_curves": {
+                key(t): {s: metrics_lib.curve_summary(results[t][s]) for s in subsets} for t in IOU_THRESHOLDS
+            },
+        },
+        "pose": dict(
+            metrics_lib.pose_summary(pose_acc),
+            **metrics_lib.drive_pose_summary(drives_true, drives_pred),
+            nll_mean=summary.defined(nll_mean),
+            # the share of frames whose true cell (place) and (heading bin, cell) (place_heading)
+            # lie in the belief's 95 % region: about 0.95 for a calibrated belief
+            coverage95=dict(zip(("place", "place_heading"), np.concatenate(cover).mean(0).tolist()))
+            if cover is not None
+            else None,
+            interval95={
+                k: [span(v) for v in lo_hi] if np.ndim(lo_hi[0]) else span(lo_hi)
+                for k, lo_hi in metrics_lib.drive_pose_intervals(
+                    drives_true, drives_pred, cover, pose_acc.step_bin_edges, BOOTSTRAP_RESAMPLES
+                ).items()
+            },
+        ),
+        "baseline": {
+            "description": "constant pose = mean of the drive's true poses (circular mean heading); no boxes",
+            "mean_pose": [float(v) for v in constant],
+            "pose": metrics_lib.pose_summary(base_acc),
+            "ap": {key(t): 0.0 for t in IOU_THRESHOLDS},
+        },
+    }

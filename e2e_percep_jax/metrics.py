@@ -8,28 +8,40 @@ Detection
 - :func:`nms`: greedy non-maximum suppression on that IoU.
 - :func:`match_detections`: greedy score-ordered matching; each ground truth matched at most once.
 - :func:`average_precision`: all-point interpolated AP of a PR curve.
-- :class:`DetectionAccumulator`: frame-by-frame AP and PR curves per IoU threshold, overall and split
-  into visible / occluded ground truth, in memory independent of the number of frames.
+- :class:`DetectionAccumulator`: frame-by-frame AP and PR curves per IoU threshold, overall and per
+  group of who saw each box (:data:`GROUPS`), with bootstrap intervals over whole drives
+  (:func:`bootstrap_interval`), in memory independent of the number of frames.
 
 Ego pose
 - :func:`pose_errors`: location, heading and speed errors.
 - :class:`PoseErrorAccumulator`: mean and median of each, and mean location error binned by the
   number of steps since the start of a drive (does filtering converge?).
 
-Everything here runs on the host in float64: evaluation calls these per frame with small, varying
-array sizes, where JAX's per-call dispatch (~1 ms) and per-shape compilation (~0.3 s) would dominate.
+Everything here but :func:`box_groups` runs on the host in float64: evaluation calls these per frame with
+small, varying array sizes, where JAX's per-call dispatch (~1 ms) and per-shape compilation (~0.3 s)
+would dominate.
 """
 
 import dataclasses
 import math
+import warnings
 from typing import NamedTuple
 
+import jax.numpy as jnp
 import numpy as np
 
 from e2e_percep_jax import summary
 from e2e_percep_jax.sim import geometry as geo
 
-SUBSETS = ("all", "visible", "occluded")
+# Who saw each ground-truth box, for AP by group; every box falls in exactly one (:func:`box_groups`).
+GROUPS = (
+    "lidar",  # some lidar beam ends on it in this frame
+    "camera_only",  # the camera shows some of it, the lidar none
+    "remembered",  # neither sensor now, but one of them within the last REMEMBER_FRAMES frames
+    "unseen",  # neither sensor for longer than that, or not since the drive began
+)
+SUBSETS = ("all",) + GROUPS
+REMEMBER_FRAMES = 30  # 3 s at 10 Hz
 NMS_IOU = 0.3  # the evaluation's and the inference API's greedy NMS threshold (rotated IoU)
 
 
@@ -190,71 +202,159 @@ class PRCurve:
     num_gt: int
 
 
+def box_groups(lidar_visible, camera_visible, frames_since_seen):
+    """Each box's group, int32 [...]: an index into :data:`GROUPS`, from who saw it (the frame contract's
+    ``boxes_lidar_visible``, ``boxes_camera_visible``, ``boxes_frames_since_seen``). In jax.numpy, the one
+    function here that runs on the device: the evaluation's program and its choice of drives call it."""
+    recent = jnp.asarray(frames_since_seen) <= REMEMBER_FRAMES
+    group = jnp.where(lidar_visible, 0, jnp.where(camera_visible, 1, jnp.where(recent, 2, 3)))
+    return group.astype(jnp.int32)
+
+
+def _ap_from_counts(counts, num_gt):
+    """AP of every subset from outcome counts, vectorised over leading axes.
+
+    counts [..., 1 + G, S]: unmatched, then matched to a box of each group, per score bin, highest scores
+    first; num_gt [..., G]. Returns [..., 1 + G]: all boxes, then each group (nan without ground truth).
+    Empty bins repeat the previous point of the curve, so the area equals that over the score levels.
+    """
+    fp, tp_group = counts[..., 0, :], counts[..., 1:, :]
+    tp = np.concatenate([tp_group.sum(-2, keepdims=True), tp_group], axis=-2)  # [..., 1 + G, S]
+    n = np.concatenate([num_gt.sum(-1, keepdims=True), num_gt], axis=-1).astype(np.float64)  # [..., 1 + G]
+    cum_tp, cum_fp = np.cumsum(tp, -1), np.cumsum(fp, -1)[..., None, :]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        precision = np.where(cum_tp + cum_fp > 0, cum_tp / (cum_tp + cum_fp), 0.0)
+        recall = cum_tp / n[..., None]
+    envelope = np.flip(np.maximum.accumulate(np.flip(precision, -1), axis=-1), -1)
+    ap = np.sum(np.diff(recall, prepend=0.0, axis=-1) * envelope, -1)
+    return np.where(n > 0, ap, np.nan)
+
+
+def bootstrap_interval(statistic, num_drives: int, num_resamples: int = 1000, seed: int = 0, level: float = 0.95):
+    """Percentile bootstrap interval over whole drives: ``num_resamples`` resamples of the ``num_drives``
+    drives with replacement, each given to ``statistic`` as multiplicities ``weights`` int [n, D]; returns
+    (low, high) arrays of the statistic's shape (NaN resamples, e.g. a group with no box in them, are
+    left out). ``statistic(weights) -> [n, ...]``."""
+    rng = np.random.default_rng(seed)
+    weights = rng.multinomial(num_drives, np.full(num_drives, 1.0 / num_drives), size=num_resamples)
+    values = np.asarray(statistic(weights), np.float64)
+    tail = 100.0 * (1.0 - level) / 2.0
+    with warnings.catch_warnings():  # a statistic NaN in every resample has a NaN interval
+        warnings.simplefilter("ignore", RuntimeWarning)
+        low, high = np.nanpercentile(values, [tail, 100.0 - tail], axis=0)
+    return low, high
+
+
 class DetectionAccumulator:
-    """Frame-by-frame detection AP, overall and split by ground-truth occlusion.
+    """Frame-by-frame detection AP, over all boxes and per group of who saw each box (:data:`GROUPS`),
+    kept per drive so that every AP has a bootstrap interval over whole drives.
 
     Matching (see :func:`match_detections`) runs once per frame against all valid ground truths.
-    The visible / occluded split then only reinterprets its outcome; for a subset:
-    - recall is over the ground truths of that subset;
-    - a detection matched to a ground truth of the subset is a true positive;
-    - a detection matched to a ground truth of the other subset is excluded (neither TP nor FP);
-    - an unmatched detection is a false positive in both subsets (it cannot be attributed to one),
-      so subset precision is pessimistic.
+    The groups then only reinterpret its outcome; for a group:
+    - recall is over the ground truths of that group;
+    - a detection matched to a ground truth of the group is a true positive;
+    - a detection matched to a ground truth of another group is excluded (neither TP nor FP);
+    - an unmatched detection is a false positive in every group (it cannot be attributed to one),
+      so a group's precision is pessimistic.
 
-    Memory stays flat over any number of frames: outcomes are counted per score bin, so scores
+    Memory is flat in the number of frames: outcomes are counted per drive and score bin, so scores
     (in [0, 1]) closer than ``1 / score_bins`` count as ties (one point of the PR curve).
     """
 
-    def __init__(self, iou_thresholds=(0.1, 0.3, 0.5, 0.7), score_bins=10_000):
+    def __init__(self, iou_thresholds=(0.1, 0.3, 0.5, 0.7), score_bins=1000):
         self.iou_thresholds = tuple(float(t) for t in iou_thresholds)
         self.score_bins = int(score_bins)
-        # [threshold, outcome (0 unmatched, 1 matched a visible GT, 2 matched an occluded GT), score bin]
-        self._counts = np.zeros((len(self.iou_thresholds), 3, self.score_bins), dtype=np.int64)
-        self._num_gt = np.zeros(2, dtype=np.int64)  # visible, occluded
+        # per drive: [threshold, outcome (0 unmatched, 1 + g matched a box of group g), score bin], and
+        # the ground truths of each group
+        self._counts, self._num_gt = {}, {}
         self.num_frames = 0
 
-    def add_frame(self, pred_boxes, pred_scores, gt_boxes, gt_valid, gt_occluded):
-        """Adds one frame.
+    def add_frame(self, pred_boxes, pred_scores, gt_boxes, gt_valid, gt_group, drive: int = 0):
+        """Adds one frame of drive ``drive``.
 
         Args:
           pred_boxes: ``[M, 5]`` detections (after NMS). pred_scores: ``[M]`` in [0, 1].
           gt_boxes: ``[G, 5]`` the world's ground-truth boxes, same frame as the detections.
-          gt_valid: bool ``[G]``, False for padding. gt_occluded: bool ``[G]``.
+          gt_valid: bool ``[G]``, False for padding. gt_group: int ``[G]``, each box's index into
+          :data:`GROUPS` (:func:`box_groups`).
         """
         pred_scores = np.asarray(pred_scores, dtype=np.float64)
         if not np.all((pred_scores >= 0.0) & (pred_scores <= 1.0)):  # also catches nan
             raise ValueError("detection scores must lie in [0, 1]")
         gt_valid = np.asarray(gt_valid, dtype=bool)
         gt_boxes = _as_boxes(gt_boxes)[gt_valid]
-        gt_occluded = np.asarray(gt_occluded, dtype=bool)[gt_valid]
+        gt_group = np.asarray(gt_group, dtype=np.int64)[gt_valid]
+        if np.any((gt_group < 0) | (gt_group >= len(GROUPS))):
+            raise ValueError(f"gt_group must index GROUPS {GROUPS}")
+        if drive not in self._counts:
+            self._counts[drive] = np.zeros((len(self.iou_thresholds), 1 + len(GROUPS), self.score_bins), np.int64)
+            self._num_gt[drive] = np.zeros(len(GROUPS), np.int64)
         matched = match_detections(pred_boxes, pred_scores, gt_boxes, self.iou_thresholds)  # [T, M]
         # Index -1 (unmatched) picks the appended entry, which is then overridden by outcome 0.
-        matched_occluded = np.append(gt_occluded, False)[matched]
-        outcome = np.where(matched < 0, 0, 1 + matched_occluded)
+        outcome = np.where(matched < 0, 0, 1 + np.append(gt_group, 0)[matched])
         score_bin = np.minimum((pred_scores * self.score_bins).astype(np.int64), self.score_bins - 1)
         thr_index = np.broadcast_to(np.arange(len(self.iou_thresholds))[:, None], matched.shape)
-        np.add.at(self._counts, (thr_index, outcome, np.broadcast_to(score_bin, matched.shape)), 1)
-        self._num_gt += [np.sum(~gt_occluded), np.sum(gt_occluded)]
+        np.add.at(self._counts[drive], (thr_index, outcome, np.broadcast_to(score_bin, matched.shape)), 1)
+        self._num_gt[drive] += np.bincount(gt_group, minlength=len(GROUPS))
         self.num_frames += 1
 
+    def _stacked(self):
+        """Counts [D, T, 1 + G, S] with the highest scores first, and ground truths [D, G], over the drives."""
+        if not self._counts:
+            shape = (len(self.iou_thresholds), 1 + len(GROUPS), self.score_bins)
+            return np.zeros((1,) + shape, np.int64), np.zeros((1, len(GROUPS)), np.int64)
+        drives = sorted(self._counts)
+        counts = np.stack([self._counts[d] for d in drives])[..., ::-1]
+        return counts, np.stack([self._num_gt[d] for d in drives])
+
+    def num_gt(self) -> dict:
+        """Ground-truth boxes counted, over all boxes and per group: ``{subset: int}``."""
+        n = self._stacked()[1].sum(0)
+        return dict(zip(SUBSETS, [int(n.sum())] + [int(v) for v in n]))
+
+    def num_drives(self) -> dict:
+        """Drives holding at least one box, over all boxes and per group: ``{subset: int}``."""
+        per_drive = self._stacked()[1]
+        return dict(zip(SUBSETS, [int(np.sum(per_drive.sum(1) > 0))] + [int(v) for v in (per_drive > 0).sum(0)]))
+
     def results(self):
-        """PR curves: ``{iou_threshold: {"all" | "visible" | "occluded": PRCurve}}``."""
-        num_gt = {"all": int(self._num_gt.sum()), "visible": int(self._num_gt[0]), "occluded": int(self._num_gt[1])}
+        """PR curves: ``{iou_threshold: {subset: PRCurve}}``, subsets :data:`SUBSETS`."""
+        counts, per_drive_gt = self._stacked()
+        counts, num_gt = counts.sum(0), per_drive_gt.sum(0)
+        n = dict(zip(SUBSETS, [int(num_gt.sum())] + [int(v) for v in num_gt]))
         score = np.arange(self.score_bins)[::-1] / self.score_bins
         out = {}
-        for thr, counts in zip(self.iou_thresholds, self._counts[:, :, ::-1]):  # high scores first
-            fp = counts[0]
-            tp = {"all": counts[1] + counts[2], "visible": counts[1], "occluded": counts[2]}
+        for thr, c in zip(self.iou_thresholds, counts):  # high scores first
+            fp = c[0]
+            tp = dict(zip(SUBSETS, [c[1:].sum(0)] + list(c[1:])))
             out[thr] = {}
             for subset in SUBSETS:
                 level = (tp[subset] + fp) > 0  # score levels holding a counted detection
                 cum_tp, cum_fp = np.cumsum(tp[subset][level]), np.cumsum(fp[level])
                 precision = cum_tp / (cum_tp + cum_fp)
-                n = num_gt[subset]
-                recall = cum_tp / n if n else np.full(cum_tp.shape, np.nan)
-                ap = average_precision(precision, recall) if n else float("nan")
-                out[thr][subset] = PRCurve(ap, precision, recall, score[level], n)
+                recall = cum_tp / n[subset] if n[subset] else np.full(cum_tp.shape, np.nan)
+                ap = average_precision(precision, recall) if n[subset] else float("nan")
+                out[thr][subset] = PRCurve(ap, precision, recall, score[level], n[subset])
         return out
+
+    def intervals(self, num_resamples: int = 1000, seed: int = 0, level: float = 0.95):
+        """Bootstrap intervals of every AP over whole drives (:func:`bootstrap_interval`):
+        ``{iou_threshold: {subset: (low, high)}}``."""
+        counts, num_gt = self._stacked()
+        flat = counts.reshape(len(counts), -1)
+
+        def ap(weights):
+            out = []
+            for w in np.array_split(weights, max(1, len(weights) // 50)):  # bounded memory
+                resampled = (w @ flat).reshape((len(w),) + counts.shape[1:])
+                out.append(_ap_from_counts(resampled, (w @ num_gt)[:, None, :]))
+            return np.concatenate(out)  # [n, T, 1 + G]
+
+        low, high = bootstrap_interval(ap, len(counts), num_resamples, seed, level)
+        return {
+            thr: {s: (float(low[i, j]), float(high[i, j])) for j, s in enumerate(SUBSETS)}
+            for i, thr in enumerate(self.iou_thresholds)
+        }
 
 
 class PoseErrors(NamedTuple):
@@ -413,6 +513,49 @@ def drive_pose_summary(drives_true, drives_pred) -> dict:
         },
         "drift_per_100m": summary.defined(float(100.0 * end_error / distance)) if distance > 0 else None,
     }
+
+
+def drive_pose_intervals(drives_true, drives_pred, cover, step_bin_edges, num_resamples: int = 1000) -> dict:
+    """95 % bootstrap intervals over whole drives (:func:`bootstrap_interval`) of the pose figures, from each
+    drive's true and estimated poses ([frames, 5] each) and ``cover`` (bool [frames, 2] per drive: the truth
+    in the belief's 95 % place and (heading, place) regions; None: no belief). Returns ``{name: (low,
+    high)}``: location_m_mean, location_m_p90, heading_rad_mean, location_within_5m, location_within_10m,
+    drift_per_100m, coverage_place, coverage_place_heading (NaN without a belief) and location_m_by_step_mean
+    (arrays [B], per bin of ``step_bin_edges``)."""
+    errors = [pose_errors(p, t) for t, p in zip(drives_true, drives_pred)]
+    loc = [np.asarray(e.location_m, np.float64) for e in errors]
+    frames = np.array([len(v) for v in loc], np.float64)
+    sums = lambda values: np.array([np.sum(v) for v in values], np.float64)
+    bins = [np.searchsorted(step_bin_edges, np.arange(len(v)), side="right") - 1 for v in loc]
+    by_step_sum = np.stack([np.bincount(b, v, len(step_bin_edges)) for b, v in zip(bins, loc)])
+    by_step_count = np.stack([np.bincount(b, minlength=len(step_bin_edges)) for b in bins]).astype(np.float64)
+    travelled = sums([np.linalg.norm(np.diff(np.asarray(t)[:, :2], axis=0), axis=-1) for t in drives_true])
+    end_error = np.array([v[-1] if len(v) else 0.0 for v in loc])
+    cover_sum = np.stack([np.sum(c, 0) for c in cover]).astype(np.float64) if cover is not None else None
+
+    def statistic(w):
+        with np.errstate(invalid="ignore", divide="ignore"):
+            n = w @ frames
+            p90 = [np.percentile(np.concatenate([np.repeat(v, k) for v, k in zip(loc, row)]), 90) for row in w]
+            out = {
+                "location_m_mean": (w @ sums(loc)) / n,
+                "location_m_p90": np.array(p90),
+                "heading_rad_mean": (w @ sums(e.heading_rad for e in errors)) / n,
+                "location_within_5m": (w @ sums(v <= 5.0 for v in loc)) / n,
+                "location_within_10m": (w @ sums(v <= 10.0 for v in loc)) / n,
+                "drift_per_100m": 100.0 * (w @ end_error) / (w @ travelled),
+                "coverage_place": (w @ cover_sum[:, 0]) / n if cover is not None else np.full(len(w), np.nan),
+                "coverage_place_heading": (w @ cover_sum[:, 1]) / n if cover is not None else np.full(len(w), np.nan),
+            }
+            by_step = (w @ by_step_sum) / (w @ by_step_count)
+        return np.concatenate([np.stack(list(out.values()), 1), by_step], 1), list(out)
+
+    names = statistic(np.ones((1, len(loc)), np.int64))[1]
+    low, high = bootstrap_interval(lambda w: statistic(w)[0], len(loc), num_resamples)
+    k = len(names)
+    intervals = {name: (low[i], high[i]) for i, name in enumerate(names)}
+    intervals["location_m_by_step_mean"] = (low[k:], high[k:])
+    return intervals
 
 
 def pose_summary(acc: PoseErrorAccumulator) -> dict:

@@ -19,7 +19,9 @@ from e2e_percep_jax.sim import motion
 from e2e_percep_jax.sim import town as town_lib
 
 VISIBLE_RGB = (60, 230, 60)
-OCCLUDED_RGB = (255, 150, 30)
+# Ground-truth boxes by who saw them (metrics.GROUPS): lidar green, camera only yellow, remembered orange,
+# unseen grey.
+GROUP_RGB = (VISIBLE_RGB, (240, 230, 40), (255, 130, 20), (150, 150, 150))
 PREDICTED_RGB = (40, 220, 255)
 ESTIMATE_RGB = (255, 60, 60)  # the estimated ego pose on the map
 _SHIFT = 4  # cv2 fractional bits: sub-pixel box corners
@@ -129,12 +131,22 @@ def draw_boxes(view, boxes, color, thickness=1):
     return view
 
 
+def box_groups(frame):
+    """Each true box's index into ``metrics.GROUPS``, int [N]: the frame's ``boxes_group`` (as the evaluation
+    records it), else from the frame contract's who-saw fields."""
+    if "boxes_group" in frame:
+        return np.asarray(frame["boxes_group"])
+    keys = ("boxes_lidar_visible", "boxes_camera_visible", "boxes_frames_since_seen")
+    return np.asarray(metrics_lib.box_groups(*(np.asarray(frame[k]) for k in keys)))
+
+
 def draw_ground_truth(view, frame):
-    """A frame's true boxes onto a BEV ``view``: green where the lidar sees them, orange where not."""
-    boxes, valid, occluded = (np.asarray(frame[k]) for k in ("boxes", "boxes_valid", "boxes_occluded"))
+    """A frame's true boxes onto a BEV ``view``, coloured by who saw them (:data:`GROUP_RGB`); the lidar's
+    last, on top."""
+    boxes, valid, group = np.asarray(frame["boxes"]), np.asarray(frame["boxes_valid"]), box_groups(frame)
     thickness = max(1, view.shape[0] // 160)
-    draw_boxes(view, boxes[valid & occluded], OCCLUDED_RGB, thickness)
-    draw_boxes(view, boxes[valid & ~occluded], VISIBLE_RGB, thickness)
+    for g in reversed(range(len(GROUP_RGB))):
+        draw_boxes(view, boxes[valid & (group == g)], GROUP_RGB[g], thickness)
     return view
 
 
@@ -151,8 +163,8 @@ def draw_predictions(view, boxes, scores=None):
 def frame_panel(frame, panel_px=256, pred_boxes=None, pred_scores=None, titles=True):
     """uint8 [panel_px, 4 * panel_px, 3]: camera | lidar | roadmap | boxes, from one frame of the contract.
 
-    frame: dict with camera, lidar, roadmap [R, R, 3] and boxes [N, 5], boxes_valid, boxes_occluded [N]
-    (NumPy or JAX). pred_boxes [M, 5] (ego frame) and pred_scores [M] are optional predictions.
+    frame: dict with camera, lidar, roadmap [R, R, 3] and boxes [N, 5], boxes_valid [N] and who saw each
+    box (:func:`box_groups`) (NumPy or JAX). pred_boxes [M, 5] (ego frame) and pred_scores [M] are optional predictions.
     """
     up = lambda im, how: cv2.resize(np.asarray(im), (panel_px, panel_px), interpolation=how)
     camera = up(frame["camera"], cv2.INTER_LINEAR)
@@ -212,12 +224,13 @@ def title(view, text):
 def example_rows(frame, pred_boxes, pred_scores, panel_px=192):
     """The paper's Fig. 6 layout for one frame: uint8 [2 * panel_px, 4 * panel_px, 3].
 
-    Row 1: camera, lidar, ground-truth roadmap, ground-truth boxes (green visible / orange occluded).
+    Row 1: camera, lidar, ground-truth roadmap, ground-truth boxes (:data:`GROUP_RGB`: green lidar, yellow
+    camera only, orange remembered, grey unseen).
     Row 2: reconstructed camera, lidar, roadmap (black where the variant does not reconstruct it), and
     the decoded boxes (cyan, brighter for higher scores) over the reconstructed (else true) roadmap.
     """
     r = frame["camera"].shape[0]
-    no_boxes = dict(boxes=np.zeros((0, 5), np.float32), boxes_valid=np.zeros(0, bool), boxes_occluded=np.zeros(0, bool))
+    no_boxes = dict(boxes=np.zeros((0, 5), np.float32), boxes_valid=np.zeros(0, bool), boxes_group=np.zeros(0, int))
     top = frame_panel(frame, panel_px, titles=False)
     blank = np.zeros((r, r, 3), np.uint8)
     recon = {k: frame.get(f"recon_{k}", blank) for k in ("camera", "lidar", "roadmap")}
@@ -281,7 +294,7 @@ def line_chart(series, title, x_label, x_range, y_range, log_y=False, size=360):
 
 
 def pr_curves_image(results, size=360):
-    """uint8 BGR picture of the PR curves: one panel per subset (all / visible / occluded), one curve per IoU."""
+    """uint8 BGR picture of the PR curves: one panel per subset (all boxes, then each group), one curve per IoU."""
     colours = {0.1: (200, 120, 30), 0.3: (40, 160, 40), 0.5: (30, 110, 230), 0.7: (160, 40, 160)}  # BGR
     views = []
     for subset in metrics_lib.SUBSETS:
@@ -296,5 +309,9 @@ def pr_curves_image(results, size=360):
                 )
             ap = "n/a" if not np.isfinite(curve.ap) else f"{100 * curve.ap:.1f}%"
             series.append((f"IoU {thr:.1f}: AP {ap}", colours.get(thr, (0, 0, 0)), rec, prec))
-        views.append(line_chart(series, f"precision vs recall: {subset} GT", "recall", (0, 1), (0, 1), size=size))
+        views.append(
+            line_chart(
+                series, f"precision vs recall: {subset.replace('_', ' ')} GT", "recall", (0, 1), (0, 1), size=size
+            )
+        )
     return np.concatenate(views, 1)

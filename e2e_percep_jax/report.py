@@ -16,6 +16,7 @@ import numpy as np
 
 from e2e_percep_jax import pictures, pose_belief
 from e2e_percep_jax.config import Config
+from e2e_percep_jax.summary import markdown_table
 
 # The paper's Tables I and II (CARLA Town03), one row per variant.
 PAPER_AP = {  # AP (%) at IoU 0.1 / 0.3 / 0.5 / 0.7
@@ -32,6 +33,14 @@ PAPER_VARIANT_ROW = {
     "full": "Inputs and roadmap (full)",
     "no_input_recon": "No inputs reconstruction (no_input_recon)",
     "no_roadmap_recon": "No roadmap reconstruction (no_roadmap_recon)",
+}
+
+
+GROUP_TEXT = {  # metrics.GROUPS: a row's name and what the group holds
+    "lidar": ("lidar", "a lidar beam ends on the box now"),
+    "camera_only": ("camera only", "the camera shows some of it, the lidar none"),
+    "remembered": ("remembered", "neither sensor now, one of them within the last {seconds:g} s"),
+    "unseen": ("unseen", "neither sensor for longer, or not since the drive began"),
 }
 
 
@@ -84,39 +93,54 @@ def markdown(m: dict) -> str:
     variant, label = m["config"]["model"]["variant"], m["label"]
     is_variant = label == variant  # else a baseline: it has no model variant, and no paper row is its own
     thr = [f"{t:g}" for t in det["iou_thresholds"]]
+    span = pose.get("interval95", {})
+
+    def bracket(name, pct=False, digits=1):
+        low, high = span.get(name, (None, None))
+        return f"[{fmt(low, pct, digits)}, {fmt(high, pct, digits)}]"
+
     lines = [
         f"# Evaluation report: {m['workdir'] or '(library call)'}",
         "",
         f"Checkpoint step {m['checkpoint_step']}, {'variant' if is_variant else 'baseline'} `{label}`, image size "
-        f"{m['config']['data']['image_size']}. Online drive: {m['num_frames']} frames "
+        f"{m['config']['data']['image_size']}. Online drives: {m['num_frames']} frames in all; pose "
         f"({m['num_worlds']} worlds x {m['frames_per_world']} frames, town seed {m['config']['eval']['town_seed']}, "
         f"start keys from eval.seed {m['config']['eval']['seed']}, {m['config']['data']['warmup_steps']} warm-up steps), "
         f"latent = {'posterior samples' if m['sample'] else 'posterior mean'}. "
-        f"{m['frames_per_s']:.1f} frames/s ({m['seconds']:.0f} s, compile {m['compile_s']:.0f} s).",
+        f"{m['frames_per_s']:.1f} frames/s ({m['seconds']:.0f} s, compile and warm-up included).",
         "",
         "## Table I: average precision of surrounding-vehicle boxes",
         "",
-        "| | " + " | ".join(f"AP<sub>{t}</sub>" for t in thr) + " |",
-        "|---|" + "---|" * len(thr),
     ]
-    ap = det["ap"]
-    lines.append(f"| **this run ({label})** | " + " | ".join(fmt(ap[t]["all"], True) for t in thr) + " |")
-    lines.append("| this run, visible GT | " + " | ".join(fmt(ap[t]["visible"], True) for t in thr) + " |")
-    lines.append("| this run, occluded GT | " + " | ".join(fmt(ap[t]["occluded"], True) for t in thr) + " |")
-    lines.append("| baseline: no boxes | " + " | ".join("0.0%" for _ in thr) + " |")
-    for row, vals in PAPER_AP.items():
-        mark = " (same variant)" if is_variant and PAPER_VARIANT_ROW.get(variant) == row else ""
-        lines.append(f"| paper: {row}{mark} | " + " | ".join(f"{v:.1f}%" for v in vals) + " |")
+    ap, interval, n = det["ap"], det["ap_interval95"], det["num_gt"]
+    cell = lambda t, s: f"{fmt(ap[t][s], True)} [{fmt(interval[t][s][0], True)}, {fmt(interval[t][s][1], True)}]"
+    same = lambda row: " (same variant)" if is_variant and PAPER_VARIANT_ROW.get(variant) == row else ""
+    rows = [[f"**this run ({label}), all boxes**", *(cell(t, "all") for t in thr)]]
+    rows += [[f"this run, {GROUP_TEXT[g][0]} ({n[g]} boxes)", *(cell(t, g) for t in thr)] for g in det["groups"]]
+    rows += [["baseline: no boxes", *("0.0%" for _ in thr)]]
+    rows += [[f"paper: {row}{same(row)}", *(f"{v:.1f}%" for v in vals)] for row, vals in PAPER_AP.items()]
+    lines.append(markdown_table(["", *(f"AP<sub>{t}</sub>" for t in thr)], rows))
+    drives = det["drives"]
+    where = (
+        f"{drives['num']} drives of {drives['frames']} frames chosen of {drives['pool']} candidates as those "
+        "holding the most remembered boxes (detection's own drives)"
+        if drives["set"] == "detection"
+        else f"the {drives['num']} pose drives"
+    )
     lines += [
         "",
-        f"Ground truths: {det['num_gt']['all']} ({det['num_gt']['visible']} visible, "
-        f"{det['num_gt']['occluded']} occluded: no lidar return). Detections: PIXOR class map -> "
+        f"Detection is scored on {where}: {n['all']} ground-truth boxes. In brackets: the 95 % bootstrap "
+        "interval over whole drives. Groups, by who saw each box: "
+        + "; ".join(f"{GROUP_TEXT[g][0]}: {GROUP_TEXT[g][1]}" for g in det["groups"]).format(
+            seconds=det["remember_frames"] / 10
+        )
+        + ". A group's recall is over its "
+        "boxes; a detection matched to a box of another group is ignored, an unmatched one is a false "
+        f"positive in every group. Detections: PIXOR class map -> "
         f"boxes, top {det['top_k']} centre-cell candidates per frame (cut in "
         f"{100 * det['topk_saturated_frac']:.1f}% of frames), score >= {det['score_floor']} "
         f"(AP sweeps the score over this range), centre in the BEV view, greedy NMS at rotated IoU "
-        f"{det['nms_iou']}. Greedy matching by score, each ground truth at most once; all-point AP. "
-        "Occluded / visible rows: recall over that subset, a detection matched to the other subset "
-        "ignored, unmatched detections false positives in both.",
+        f"{det['nms_iou']}. Greedy matching by score, each ground truth at most once; all-point AP.",
         "",
         f"At the operating threshold {det['score_threshold']}: "
         + ", ".join(
@@ -126,20 +150,24 @@ def markdown(m: dict) -> str:
         )
         + ".",
         "",
-        "## Table II: ego global pose error",
+        "## Table II: ego global pose error (in brackets: the 95 % bootstrap interval over the pose drives)",
         "",
-        "| | Location (m) | Heading (rad) | Speed (m/s) |",
-        "|---|---|---|---|",
-        f"| **this run ({label}), mean** | {fmt(pose['location_m']['mean'], digits=2)} | "
-        f"{fmt(pose['heading_rad']['mean'], digits=3)} | {fmt(pose['speed_mps']['mean'], digits=2)} |",
-        f"| this run, median | {fmt(pose['location_m']['median'], digits=2)} | "
-        f"{fmt(pose['heading_rad']['median'], digits=3)} | {fmt(pose['speed_mps']['median'], digits=2)} |",
-        f"| baseline: constant mean pose, mean | {fmt(base['pose']['location_m']['mean'], digits=2)} | "
-        f"{fmt(base['pose']['heading_rad']['mean'], digits=3)} | {fmt(base['pose']['speed_mps']['mean'], digits=2)} |",
     ]
-    for row, (loc, head) in PAPER_POSE.items():
-        mark = " (same variant)" if is_variant and PAPER_VARIANT_ROW.get(variant) == row else ""
-        lines.append(f"| paper: {row}{mark} | {loc} | {head} | - |")
+    errors = lambda p, stat: [
+        fmt(p[f"{k}"][stat], digits=d) for k, d in (("location_m", 2), ("heading_rad", 3), ("speed_mps", 2))
+    ]
+    rows = [
+        [
+            f"**this run ({label}), mean**",
+            f"{fmt(pose['location_m']['mean'], digits=2)} {bracket('location_m_mean', digits=2)}",
+            f"{fmt(pose['heading_rad']['mean'], digits=3)} {bracket('heading_rad_mean', digits=3)}",
+            fmt(pose["speed_mps"]["mean"], digits=2),
+        ],
+        ["this run, median", *errors(pose, "median")],
+        ["baseline: constant mean pose, mean", *errors(base["pose"], "mean")],
+    ]
+    rows += [[f"paper: {row}{same(row)}", str(loc), str(head), "-"] for row, (loc, head) in PAPER_POSE.items()]
+    lines.append(markdown_table(["", "Location (m)", "Heading (rad)", "Speed (m/s)"], rows))
     loc, head = pose["location_m"], pose["heading_rad"]
     share = lambda d, bound: fmt(d.get("within", {}).get(bound), True)
     conv = pose.get("converged_frame", {})
@@ -152,21 +180,37 @@ def markdown(m: dict) -> str:
         f"Pose protocol: {known if pose.get('known_start') else 'global (no start pose given)'}"
         f"{'; the belief head read frame by frame (no filter)' if pose.get('pose_filter') == 'none' else ''}.",
         "",
-        "| location p90 (m) | within 5 / 10 / 50 m | heading p90 (rad) | within 0.1 rad | "
-        f"drives converged (< {conv['within_m']:g} m to the end), median frame | "
-        "belief NLL of the true pose (nats per m² rad) | drift (m per 100 m driven) |",
-        "|---|---|---|---|---|---|---|",
-        f"| {fmt(loc.get('p90'), digits=2)} | {share(loc, '5')} / {share(loc, '10')} / {share(loc, '50')} | "
-        f"{fmt(head.get('p90'), digits=3)} | {share(head, '0.1')} | {fmt(conv.get('share'), True)}, "
-        f"{fmt(conv.get('median'), digits=0)} | {fmt(pose.get('nll_mean'), digits=2)} | "
-        f"{fmt(pose.get('drift_per_100m'), digits=2)} |",
+        markdown_table(
+            [
+                "location p90 (m)",
+                "within 5 / 10 / 50 m",
+                "heading p90 (rad)",
+                "within 0.1 rad",
+                f"drives converged (< {conv['within_m']:g} m to the end), median frame",
+                "belief NLL of the true pose (nats per m² rad)",
+                "drift (m per 100 m driven)",
+            ],
+            [
+                [
+                    f"{fmt(loc.get('p90'), digits=2)} {bracket('location_m_p90', digits=2)}",
+                    f"{share(loc, '5')} {bracket('location_within_5m', True)} / {share(loc, '10')} / {share(loc, '50')}",
+                    fmt(head.get("p90"), digits=3),
+                    share(head, "0.1"),
+                    f"{fmt(conv.get('share'), True)}, {fmt(conv.get('median'), digits=0)}",
+                    fmt(pose.get("nll_mean"), digits=2),
+                    f"{fmt(pose.get('drift_per_100m'), digits=2)} {bracket('drift_per_100m', digits=2)}",
+                ]
+            ],
+        ),
     ]
     cover = pose.get("coverage95")
     if cover:
         lines += [
             "",
-            f"The belief's 95 % region holds the true cell in {fmt(cover['place'], True)} of frames and the "
-            f"true (heading bin, cell) in {fmt(cover['place_heading'], True)} (about 95 % when calibrated).",
+            f"The belief's 95 % region holds the true cell in {fmt(cover['place'], True)} "
+            f"{bracket('coverage_place', True)} of frames and the true (heading bin, cell) in "
+            f"{fmt(cover['place_heading'], True)} {bracket('coverage_place_heading', True)} (about 95 % when "
+            "calibrated).",
         ]
     by = pose["location_m_by_step"]
     edges = by["bin_edges"] + [None]
@@ -179,19 +223,19 @@ def markdown(m: dict) -> str:
         "",
         "Location error by time since the start of a drive (does filtering converge?):",
         "",
-        "| steps since start | frames | mean location error (m) |",
-        "|---|---|---|",
     ]
-    for i, (count, mean) in enumerate(zip(by["count"], by["mean"])):
-        if count:
-            hi = edges[i + 1]
-            lines.append(f"| {edges[i]}-{hi - 1 if hi is not None else ''} | {count} | {fmt(mean, digits=2)} |")
+    steps = [
+        [f"{edges[i]}-{edges[i + 1] - 1 if edges[i + 1] is not None else ''}", str(count), fmt(mean, digits=2)]
+        for i, (count, mean) in enumerate(zip(by["count"], by["mean"]))
+        if count
+    ]
+    lines.append(markdown_table(["steps since start", "frames", "mean location error (m)"], steps))
     pictured = ", ".join(
         f"world {x['world']} frame {x['frame']} ({x['vehicles_in_view']} vehicles in view)" for x in m["examples"]
     )
     lines += [
         "",
-        "Pictures: `pr_curves.png` (PR curves per IoU; all / visible / occluded), `examples.png` "
+        "Pictures: `pr_curves.png` (PR curves per IoU; all boxes and each group), `examples.png` "
         f"(the paper's Fig. 6 layout: {pictured or 'none'}), `drive.mp4` (the same panels over world 0's drive).",
     ]
     return "\n".join(lines) + "\n"
@@ -293,7 +337,7 @@ def pictured_frame(out, t, slot):
         if k in ("camera", "lidar", "roadmap", "pose_place") or k.startswith("recon_")
     }
     w = out["pictured"][t, slot]
-    frame.update({k: np.array(out[k][t, w]) for k in ("boxes", "boxes_valid", "boxes_occluded")})
+    frame.update({k: np.array(out[k][t, w]) for k in ("boxes", "boxes_valid", "boxes_group")})
     return frame
 
 

@@ -35,6 +35,12 @@ def summary_metrics(metrics: dict) -> dict:
     return row
 
 
+def markdown_table(header: list[str], rows: list[list[str]]) -> str:
+    """A Markdown table: the header row, its rule, a line per row (every table of the reports and the README)."""
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    return "\n".join(lines + ["| " + " | ".join(row) + " |" for row in rows])
+
+
 def mean_std(rows: list) -> dict:
     """{metric: (mean, std, n)} over runs, ignoring runs where the metric is undefined (None)."""
     out = {}

@@ -20,7 +20,7 @@ from absl import app, flags
 
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax.config import BASELINES
-from e2e_percep_jax.summary import mean_std, summary_metrics
+from e2e_percep_jax.summary import markdown_table, mean_std, summary_metrics
 
 CONSTANT = "constant pose"
 
@@ -112,21 +112,17 @@ def table(found: dict) -> str:
         + ", ".join(f"{m} {'/'.join(str(len(found[m].get(t, []))) for t in towns)}" for m in methods)
         + ".",
         "",
-        "Ground-truth boxes (all / occluded): "
+        "Ground-truth boxes: "
         + "; ".join(
-            f"town {t} {any_eval[t]['detection']['num_gt']['all']} / {any_eval[t]['detection']['num_gt']['occluded']}"
+            f"town {t} "
+            + ", ".join(f"{s.replace('_', ' ')} {n}" for s, n in any_eval[t]["detection"]["num_gt"].items())
             for t in towns
         )
         + ".",
         "",
-        "| metric | " + " | ".join(columns) + " |",
-        "|---" * (len(columns) + 1) + "|",
     ]
-    body = [
-        f"| {row} | " + " | ".join(" / ".join(fmt(row, v) for v in cells[(row, c)]) for c in columns) + " |"
-        for row in rows
-    ]
-    return "\n".join(header + body) + "\n"
+    body = [[row] + [" / ".join(fmt(row, v) for v in cells[(row, c)]) for c in columns] for row in rows]
+    return "\n".join(header) + "\n" + markdown_table(["metric", *columns], body) + "\n"
 
 
 def main(argv):

@@ -10,8 +10,8 @@ writes to ``--out_dir``:
   current state (red / yellow / green dots at the stop lines), buildings and landmarks in their colours,
   vehicles (black outline, a tick towards the front; the ego outlined in magenta);
 - ``traffic.mp4``: the same view while the traffic drives for ``--seconds`` (10 frames per second);
-- ``sensors_R<R>.png``: camera | lidar | roadmap | ground-truth boxes (green: seen by the lidar, orange:
-  occluded), in the reference's layout, of the video's frame where the lidar sees the most vehicles;
+- ``sensors_R<R>.png``: camera | lidar | roadmap | ground-truth boxes (coloured by who saw them: green the
+  lidar, yellow the camera only, orange remembered, grey unseen), in the reference's layout, of the video's frame where the lidar sees the most vehicles;
 - ``sensors_R<R>.mp4``: those four views while the ego drives, frame for frame with ``traffic.mp4``.
 """
 
@@ -66,7 +66,7 @@ def main(argv):
     cv2.imwrite(out("town.png"), view.draw(at(states, 0))[..., ::-1])
     write_video(out("traffic.mp4"), (view.draw(at(states, t)) for t in range(num_frames)))
     panel = lambda t: pictures.frame_panel(at(frames, t), FLAGS.panel_px)
-    seen = (frames["boxes_valid"] & ~frames["boxes_occluded"]).sum(-1)  # [T] vehicles the lidar sees
+    seen = (frames["boxes_valid"] & frames["boxes_lidar_visible"]).sum(-1)  # [T] vehicles the lidar sees
     cv2.imwrite(out(f"sensors_R{r}.png"), panel(int(np.argmax(seen)))[..., ::-1])
     write_video(out(f"sensors_R{r}.mp4"), (panel(t) for t in range(num_frames)))
     print(f"wrote town.png, traffic.mp4, sensors_R{r}.png, sensors_R{r}.mp4 ({num_frames} frames) to {FLAGS.out_dir}")

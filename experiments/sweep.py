@@ -33,6 +33,7 @@ import time
 from absl import app, flags
 
 from e2e_percep_jax import config as config_lib
+from e2e_percep_jax.summary import markdown_table
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 MAIN, BASELINES = os.path.join(HERE, "main.py"), os.path.join(HERE, "baselines.py")
@@ -59,14 +60,9 @@ def table_markdown(summary: dict, seeds) -> str:
     methods = list(summary)
     keys = list(dict.fromkeys(k for rows in summary.values() for k in rows))  # a baseline may lack a head
     cell = lambda m, s, n: "n/a" if m is None else f"{m:.3g} ± {s:.2g}"
-    lines = [
-        f"Mean ± std over seeds {', '.join(map(str, seeds))} (population std).",
-        "",
-        "| metric | " + " | ".join(methods) + " |",
-        "|---" * (len(methods) + 1) + "|",
-    ]
-    lines += [f"| {k} | " + " | ".join(cell(*summary[m].get(k, (None, None, 0))) for m in methods) + " |" for k in keys]
-    return "\n".join(lines) + "\n"
+    rows = [[k] + [cell(*summary[m].get(k, (None, None, 0))) for m in methods] for k in keys]
+    title = f"Mean ± std over seeds {', '.join(map(str, seeds))} (population std)."
+    return f"{title}\n\n{markdown_table(['metric', *methods], rows)}\n"
 
 
 def _overrides():

@@ -27,9 +27,9 @@ import cv2
 import numpy as np
 from absl import app, flags
 
-from e2e_percep_jax import checkpoint, pictures, pose_belief
+from e2e_percep_jax import checkpoint, pictures, pose_belief, report
 from e2e_percep_jax import config as config_lib
-from e2e_percep_jax.summary import mean_std, summary_metrics
+from e2e_percep_jax.summary import markdown_table, mean_std, summary_metrics
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 DROPPED = {"detection": ("pr_curves", "at_threshold"), "": ("examples", "sample")}  # large, no table reads them
@@ -229,11 +229,6 @@ def _frames_cell(evaluations: list[dict] | None, lo: int, hi: int) -> str:
     return _format(*mean_std([{"error": _error_by_frames(m, lo, hi)} for m in evaluations])["error"])
 
 
-def _markdown(header: list[str], rows: list[list[str]]) -> str:
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    return "\n".join(lines + ["| " + " | ".join(row) + " |" for row in rows])
-
-
 def _label(evaluations: dict) -> str:
     """A method's variant (``config.VARIANTS``) or, for a baseline, its label."""
     return next(iter(evaluations.values()))[0]["label"]
@@ -256,11 +251,14 @@ def _paper_rows(found: dict) -> list[tuple[str | None, str | None]]:
     return rows + [(m, None) for m in shown if _label(found[m]) not in config_lib.VARIANTS]
 
 
-def _paper_figures(found: dict, table: str) -> dict:
-    """{variant: the paper's figures} of ``table`` ("ap_percent" or "pose"), keyed by the variant its name
-    ends with ("Inputs and roadmap (full)")."""
-    paper = next(iter(next(iter(found.values())).values()))[0]["paper"][table]
-    return {re.search(r"\((\w+)\)$", name).group(1): (name, figures) for name, figures in paper.items()}
+def _paper_figures(table: str) -> dict:
+    """{variant: (the paper's row name, its figures)} of ``table`` ("ap_percent": {IoU: AP %} or "pose":
+    {"location_m", "heading_rad"}), from ``report.PAPER_AP`` and ``report.PAPER_POSE``."""
+    if table == "ap_percent":
+        rows = {name: dict(zip(("0.1", "0.3", "0.5", "0.7"), ap)) for name, ap in report.PAPER_AP.items()}
+    else:
+        rows = {name: {"location_m": loc, "heading_rad": head} for name, (loc, head) in report.PAPER_POSE.items()}
+    return {variant: (name, rows[name]) for variant, name in report.PAPER_VARIANT_ROW.items()}
 
 
 def _runs_note(found: dict, methods: list[str]) -> str:
@@ -299,7 +297,7 @@ def localisation(found: dict) -> str:
         "known-start drift per 100 m: town 0 / " + " / ".join(map(str, HELD_OUT_TOWNS)) + " (m)",
         "against the paper's row: location / heading",
     ]
-    rows, shown, constant, paper, marked = [], [], None, _paper_figures(found, "pose"), False
+    rows, shown, constant, paper, marked = [], [], None, _paper_figures("pose"), False
     for method, variant in _paper_rows(found):
         if method is None:
             if variant in paper:
@@ -355,7 +353,7 @@ def localisation(found: dict) -> str:
             ]
         )
     note = f"\n{EARLIER_FILTER_NOTE}" if marked else ""
-    return _markdown(header, rows) + "\n\n" + _runs_note(found, shown) + note + "\n"
+    return markdown_table(header, rows) + "\n\n" + _runs_note(found, shown) + note + "\n"
 
 
 def detection(found: dict) -> str:
@@ -370,14 +368,15 @@ def detection(found: dict) -> str:
         "AP@0.5 town " + " / ".join(map(str, HELD_OUT_TOWNS)) + " (%)",
         "against the paper's row",
     ]
-    methods, rows, paper = [], [], _paper_figures(found, "ap_percent")
+    methods, rows, paper = [], [], _paper_figures("ap_percent")
     for method, variant in _paper_rows(found):
         if method is None:
             if variant in paper:
                 name, ap = paper[variant]
                 rows.append([f"paper: {name}", *(f"{ap[iou]}" for iou in ious), "", "", "", ""])
             continue
-        ev = found[method]
+        # the evaluations that split by lidar returns alone (the others are in the groups' table)
+        ev = {name: runs for name, runs in found[method].items() if not any(map(_by_group, runs))}
         town0 = ev.get("eval") or ev.get("eval_known_start")
         if town0 is None or not mean_std([summary_metrics(m) for m in town0])["AP@0.5 all (%)"][0]:
             continue  # a method without boxes (an odometry, the pose regressor)
@@ -410,7 +409,56 @@ def detection(found: dict) -> str:
                 against,
             ]
         )
-    return _markdown(header, rows) + "\n\n" + _runs_note(found, methods) + "\n"
+    return markdown_table(header, rows) + "\n\n" + _runs_note(found, methods) + "\n"
+
+
+def _by_group(metrics: dict) -> bool:
+    """Whether an evaluation splits detection by who saw each box (``metrics.GROUPS``, with intervals over
+    drives), not by lidar returns alone as before."""
+    return "groups" in metrics["detection"]
+
+
+def _interval_cell(evaluations: list[dict], iou: str, subset: str) -> str:
+    """Mean ± std over the runs of an AP (%), then in brackets the 95 % interval over drives of one run (its
+    bounds averaged over the runs)."""
+    ap = _cell(evaluations, f"AP@{iou} {subset} (%)")
+    bounds = [m["detection"]["ap_interval95"][iou][subset] for m in evaluations]
+    if not ap or any(b is None for pair in bounds for b in pair):
+        return ap
+    low, high = (100.0 * np.mean([pair[i] for pair in bounds]) for i in (0, 1))
+    return f"{ap} [{low:.1f}, {high:.1f}]"
+
+
+def groups(found: dict) -> str:
+    """Detection by who saw each box: per method and town, AP at every IoU over all boxes and per group
+    (``metrics.GROUPS``), with the boxes each holds and the intervals over drives; the evaluations of the
+    protocol with detection's own drives only."""
+    ious = ("0.1", "0.3", "0.5", "0.7")
+    header = ["method", "town", "boxes (drives)", *(f"AP@{iou} (%)" for iou in ious)]
+    rows, methods = [], []
+    for method in _order(found):
+        ev = found[method]
+        for town in (0, *HELD_OUT_TOWNS):
+            names = ("eval", "eval_known_start") if town == 0 else (f"eval_town{town}", f"eval_town{town}_known_start")
+            # detection is the same under either pose protocol
+            runs = next((r for r in (ev.get(n, []) for n in names) if r and all(map(_by_group, r))), None)
+            if not runs or not mean_std([summary_metrics(m) for m in runs])["AP@0.5 all (%)"][0]:
+                continue
+            for subset in ("all", *runs[0]["detection"]["groups"]):
+                count = runs[0]["detection"]["num_gt"][subset]
+                drives = runs[0]["detection"]["num_drives_with_boxes"][subset]
+                rows.append(
+                    [
+                        f"`{method}`" if subset == "all" else "",
+                        str(town) if subset == "all" else "",
+                        f"{subset.replace('_', ' ')}: {count:,} ({drives})",
+                        *(_interval_cell(runs, iou, subset) for iou in ious),
+                    ]
+                )
+            methods += [] if method in methods else [method]
+    if not rows:
+        return "No kept evaluation splits detection by who saw each box yet.\n"
+    return markdown_table(header, rows) + "\n\n" + _runs_note(found, methods) + "\n"
 
 
 def learning_curve(found: dict) -> str:
@@ -444,7 +492,7 @@ def learning_curve(found: dict) -> str:
     ]
     # the runs trained to the last kept step, evaluated at each checkpoint on the way
     last = {m: {"eval": c[max(c)]} for m, c in curves.items()}
-    return _markdown(header, rows) + "\n\n" + _runs_note(last, list(curves)) + "\n"
+    return markdown_table(header, rows) + "\n\n" + _runs_note(last, list(curves)) + "\n"
 
 
 def _evaluations_by_step(evaluations: dict) -> dict:
@@ -508,7 +556,7 @@ def figure(results_dir: str):
     return np.concatenate([np.concatenate(views[:2], 1), np.concatenate(views[2:], 1)], 0)
 
 
-TABLES = {"localisation": localisation, "detection": detection, "learning_curve": learning_curve}
+TABLES = {"localisation": localisation, "detection": detection, "groups": groups, "learning_curve": learning_curve}
 
 
 def render(results_dir: str) -> dict:

@@ -64,8 +64,9 @@ def load_experiment(name):
 
 
 def frame_contract(image_size, num_boxes):
-    """One observed frame's keys and their (dtype, shape): the frame contract, less the ``action`` that
-    ``rollout.drive`` adds (it needs the next state)."""
+    """One observed frame's keys and their (dtype, shape): the frame contract, less what ``rollout.drive``
+    adds: the ``action`` (it needs the next state) and ``boxes_frames_since_seen`` (it needs the earlier
+    frames)."""
     r, n = image_size, num_boxes
     return {
         "camera": (np.uint8, (r, r, 3)),
@@ -76,7 +77,8 @@ def frame_contract(image_size, num_boxes):
         "pose": (np.float32, (5,)),
         "boxes": (np.float32, (n, 5)),
         "boxes_valid": (np.bool_, (n,)),
-        "boxes_occluded": (np.bool_, (n,)),
+        "boxes_lidar_visible": (np.bool_, (n,)),
+        "boxes_camera_visible": (np.bool_, (n,)),
     }
 
 

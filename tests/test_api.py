@@ -1,6 +1,7 @@
 """The public inference API: batching, streaming vs the training-time scan, jit/scan inside user code,
 and loading a trained run. (Bad arguments and damaged runs are rows of test_bad_input.py.)"""
 
+import dataclasses
 import os
 import subprocess
 import sys
@@ -16,7 +17,9 @@ from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import model as model_lib
 from e2e_percep_jax import pose_belief
 from e2e_percep_jax import train as train_lib
-from e2e_percep_jax.sim import pixor
+from e2e_percep_jax.sim import batch as batch_lib
+from e2e_percep_jax.sim import pixor, rollout
+from e2e_percep_jax.sim import town as town_lib
 from e2e_percep_jax.sim.motion import MotionModel
 
 CFG = config_lib.get_config("tiny")
@@ -292,26 +295,41 @@ def test_load_imports_no_evaluation_world_or_cv2():
     assert not [m for m in modules if m in heavy or m.startswith("cv2.")], modules
 
 
+def _in_top_mass(p, index, mass=0.95):
+    """Whether entry ``index`` of probabilities p [M] is among the most probable entries that, sorted,
+    first hold ``mass`` of the total (a brute-force sort)."""
+    order = np.argsort(-p, kind="stable")
+    return index in order[: np.searchsorted(np.cumsum(p[order]), mass * np.sum(p)) + 1]
+
+
 @pytest.mark.slow
 def test_filter_sweep_reports_the_regions_coverage_under_each_heading_noise(trained_run):
     """The filter sweep replays the run's heads through each setting (every combination of the listed
     values, at the one position asked for) and reports how often the truth lies in the belief's 95 %
-    regions, as percentages; a heading noise scaled 10,000-fold changes the joint (heading, place) region's
-    share, so the scale reaches the filter."""
+    regions. Counted again here for the filter's defaults with the heading noise 10,000-fold: the sweep's
+    drives perceived through ``Perceiver.step``, its motion model's heading noise scaled by 10,000 /
+    ``HEADING_NOISE_SCALE``; the true cell and (heading bin, cell) indexed by hand, each region found by
+    sorting the belief's probabilities. The sweep's place / joint shares, and the joint share in standing
+    / moving frames, are these counts (78.3 % of the joint, so not all frames inside)."""
     workdir, _, _ = trained_run
+    worlds, frames, seed, scale = 2, 30, 2000, 10000.0
+    defaults = pose_belief.default_settings()
     sweep = os.path.join(ROOT, "experiments", "pose_filter_sweep.py")
     result = subprocess.run(
         [
             sys.executable,
             sweep,
             f"--workdir={workdir}",
-            "--frames=30",
-            "--worlds=2",
-            "--floors=0.05",
-            "--powers=0.25",
-            "--heading_noise_scales=1,10000",
-            "--full_measure_distances=0,0.5",
-            "--stopped_shares=0.1",
+            f"--eval_seed={seed}",
+            f"--frames={frames}",
+            f"--worlds={worlds}",
+            f"--floors={defaults['floor']:g}",
+            f"--powers={defaults['power']:g}",
+            f"--speed_gains={defaults['speed_gain']:g}",
+            f"--relocations={defaults['relocation']:g}",
+            f"--heading_noise_scales=1,{scale:g}",
+            f"--full_measure_distances=0,{defaults['full_measure_m']:g}",
+            f"--stopped_shares={defaults['stopped_share']:g}",
             "--positions=local_mean",
         ],
         capture_output=True,
@@ -324,6 +342,47 @@ def test_filter_sweep_reports_the_regions_coverage_under_each_heading_noise(trai
     assert len(rows) == 4 and all("local_mean" in row for row in rows), result.stdout
     header = [c.strip() for c in next(line for line in lines if line.startswith("| filter")).split("|")]
     column = header.index("truth in 95 % region: place / + heading")
-    coverage = [tuple(map(float, row.split("|")[column].strip(" %").split(" / "))) for row in rows]
-    assert all(0.0 <= c <= 100.0 for pair in coverage for c in pair), result.stdout
+    (split_column,) = [i for i, c in enumerate(header) if c.startswith("+ heading in standing / moving frames (")]
+    shares = lambda row, i: tuple(map(float, row.split("|")[i].strip(" %").split(" / ")))
+    coverage = [shares(row, column) for row in rows]
     assert coverage[0][1] != coverage[2][1], coverage  # heading noise x1 against x10000, measurements in full
+    name = ", ".join(f"{k} {v:g}" for k, v in (defaults | {"heading_noise_scale": scale}).items()) + ", local_mean"
+    (recounted,) = [row for row in rows if row.split("|")[1].strip() == name]
+
+    # The same drives as the sweep's: its seed, warm-up and frames.
+    perceiver, params = e2e.load(str(workdir))
+    cfg, grid = perceiver.cfg, pose_belief.grid_of(perceiver.cfg.model)
+    town = town_lib.build_town(cfg.world.town_seed)
+    drive_cfg = config_lib.replace(cfg, data=dict(batch_size=worlds))
+    states = jax.jit(batch_lib.warm_up, static_argnames="cfg")(jax.random.PRNGKey(seed), town, drive_cfg)
+    _, drive = jax.jit(jax.vmap(lambda s: rollout.drive(s, town, frames, cfg.data.image_size)))(states)
+    camera, lidar, action = (np.asarray(drive[k]) for k in ("camera", "lidar", "action"))
+    prev_action = np.concatenate([np.zeros_like(action[:, :1]), action[:, :-1]], 1)
+    truth = np.asarray(drive["pose"], np.float64)  # [W, T, 5]
+    model = perceiver.motion_model
+    noisy = dataclasses.replace(
+        perceiver,
+        motion_model=dataclasses.replace(
+            model, heading_noise_rad2pm=model.heading_noise_rad2pm * scale / pose_belief.HEADING_NOISE_SCALE
+        ),
+    )
+    step, state = jax.jit(noisy.step), noisy.init(worlds)
+    n, h = grid.n, grid.heading_bins
+    inside = np.zeros((frames, worlds, 2), bool)  # (place, joint)
+    for t in range(frames):
+        state, _ = step(params, state, camera[:, t], lidar[:, t], prev_action[:, t])
+        belief = np.asarray(state.pose.belief, np.float64).reshape(worlds, h, n * n)
+        for w in range(worlds):
+            j, i = ((truth[w, t, :2] - pose_belief.AREA_ORIGIN_M) // grid.cell_m).astype(int)
+            cell = i * n + j  # row i along y, column j along x, row-major
+            # bin k: headings [-pi + k bin, -pi + (k + 1) bin) plus the belief's heading offset
+            yaw = np.arctan2(truth[w, t, 3], truth[w, t, 2]) - float(state.pose.yaw_offset_rad[w])
+            k = int(((yaw + np.pi) % (2 * np.pi)) // grid.bin_rad) % h
+            inside[t, w] = _in_top_mass(belief[w].sum(0), cell), _in_top_mass(belief[w].ravel(), k * n * n + cell)
+    standing = truth[..., 4].T < 0.5  # [T, W]: the sweep's standing car, under 0.5 m/s
+    assert f"({100 * standing.mean():.0f} % stand)" in header[split_column], header[split_column]
+    assert 0 < inside[..., 1].mean() < 1, inside.mean((0, 1))
+    percent = lambda x: float(f"{100 * x.mean():.1f}")
+    split = inside[..., 1][standing], inside[..., 1][~standing]
+    want = (percent(inside[..., 0]), percent(inside[..., 1])), tuple(map(percent, split))
+    assert (shares(recounted, column), shares(recounted, split_column)) == want, (recounted, want)

@@ -22,14 +22,19 @@ def first_batch(town):
 @pytest.mark.slow
 def test_batch_follows_the_contract(first_batch):
     b, t1 = CFG.data.batch_size, CFG.data.seq_len + 1
-    expected = frame_contract(CFG.data.image_size, CFG.world.num_vehicles) | {"action": (np.float32, (2,))}
+    n = CFG.world.num_vehicles
+    expected = frame_contract(CFG.data.image_size, n) | {
+        "action": (np.float32, (2,)),
+        "boxes_frames_since_seen": (np.int32, (n,)),
+    }
     assert set(first_batch) == set(expected)
     for key, (dtype, shape) in expected.items():
         assert first_batch[key].dtype == dtype and first_batch[key].shape == (b, t1) + shape, key
         assert np.all(np.isfinite(first_batch[key].astype(np.float32))), key
     np.testing.assert_allclose(np.hypot(first_batch["pose"][..., 2], first_batch["pose"][..., 3]), 1.0, atol=1e-5)
-    assert np.all(np.abs(first_batch["action"][..., 0]) <= 3.0 + 1e-6)
-    assert np.all(np.abs(first_batch["action"][..., 1]) <= 0.3 + 1e-6)
+    # the contract's commands: the pedal in [-1, 1] (not the m/s^2 it asks for), the steering within +-0.3 rad
+    assert np.all(np.abs(first_batch["action"][..., 0]) <= 1.0 + 1e-6), first_batch["action"][..., 0]
+    assert np.all(np.abs(first_batch["action"][..., 1]) <= 0.3 + 1e-6), first_batch["action"][..., 1]
 
 
 @pytest.mark.slow

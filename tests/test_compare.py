@@ -12,7 +12,10 @@ from helpers import ROOT, load_experiment
 
 compare = load_experiment("compare")
 
-IOUS, SUBSETS = ("0.1", "0.3", "0.5", "0.7"), ("all", "visible", "occluded")  # as evaluate writes them
+IOUS, SUBSETS = (
+    ("0.1", "0.3", "0.5", "0.7"),
+    ("all", "lidar", "camera_only", "remembered", "unseen"),
+)  # as evaluate writes them
 
 
 def _metrics(ap, location_m, town=0, eval_frames=100, pose_defined=True):
@@ -29,7 +32,7 @@ def _metrics(ap, location_m, town=0, eval_frames=100, pose_defined=True):
         },
         "detection": {
             "ap": {iou: {s: ap for s in SUBSETS} for iou in IOUS},
-            "num_gt": {"all": 50 + town, "visible": 45, "occluded": 5},
+            "num_gt": {"all": 50 + town, "lidar": 42, "camera_only": 1, "remembered": 2, "unseen": 5 + town},
         },
         "pose": {"location_m": pose(location_m), "heading_rad": pose(0.5), "speed_mps": pose(1.0)},
         "baseline": {
@@ -69,7 +72,11 @@ def test_cells_are_the_seed_means_per_town(runs):
     assert [c.strip() for c in header.strip("|").split("|")][1:] == ["full", "detector", "constant pose"]
     assert _cells(text, "AP@0.5 all (%)") == ["60.0 / 30.0", "25.0 / n/a", "0.0 / 0.0"]
     assert _cells(text, "location mean (m)") == ["15.0 / 40.0", "n/a / n/a", "99.0 / 99.0"]
-    assert "Towns 0 / 7" in text and "full 2/1, detector 1/0" in text and "town 7 57 / 5" in text
+    assert (
+        "Towns 0 / 7" in text
+        and "full 2/1, detector 1/0" in text
+        and "town 7 all 57, lidar 42, camera only 1, remembered 2, unseen 12" in text
+    )
 
 
 def test_different_protocols_are_refused_by_name(runs):

@@ -37,22 +37,28 @@ def test_heading_tick_points_to_the_front():
         assert (view[row - 1 : row + 2, col - 1 : col + 2].max() > 0) == lit
 
 
-def test_frame_panel_colours_visible_and_occluded_boxes():
+def test_frame_panel_colours_the_boxes_by_who_saw_them():
+    """Four boxes, one per group, from the frame contract's who-saw fields: each group's colour is drawn, and
+    a frame without the remembered box lacks its colour."""
     r = 32
+    shift = lambda dx, dy: BOX + [dx, dy, 0, 0, 0]
     frame = dict(
         camera=np.zeros((r, r, 3), np.uint8),
         lidar=np.zeros((r, r, 3), np.uint8),
         roadmap=np.zeros((r, r, 3), np.uint8),
-        boxes=np.stack([BOX, BOX * [-1, -1, 1, 1, 1]]),
-        boxes_valid=np.array([True, True]),
-        boxes_occluded=np.array([False, True]),
+        boxes=np.stack([shift(0, 0), shift(0, -12), shift(-14, 0), shift(-14, -12)]),
+        boxes_valid=np.array([True, True, True, True]),
+        boxes_lidar_visible=np.array([True, False, False, False]),
+        boxes_camera_visible=np.array([True, True, False, False]),
+        boxes_frames_since_seen=np.array([0, 0, 12, 31]),  # lidar, camera only, remembered, unseen
     )
-    panel = pictures.frame_panel(frame, panel_px=VIEW_PX, titles=False)
-    boxes_view = panel[:, 3 * VIEW_PX :]
-    pixels = boxes_view.reshape(-1, 3).astype(float)
-    for colour in (pictures.VISIBLE_RGB, pictures.OCCLUDED_RGB):  # each drawn (anti-aliased: near, not equal)
-        assert np.min(np.linalg.norm(pixels - colour, axis=-1)) < 40, colour
-    assert panel.shape == (VIEW_PX, 4 * VIEW_PX, 3)
+    near = lambda panel, colour: np.min(np.linalg.norm(panel.reshape(-1, 3).astype(float) - colour, axis=-1)) < 40
+    panel = pictures.frame_panel(frame, panel_px=VIEW_PX, titles=False)[:, 3 * VIEW_PX :]
+    for colour in pictures.GROUP_RGB:  # each drawn (anti-aliased: near, not equal)
+        assert near(panel, colour), colour
+    frame["boxes_valid"] = np.array([True, True, False, True])
+    panel = pictures.frame_panel(frame, panel_px=VIEW_PX, titles=False)[:, 3 * VIEW_PX :]
+    assert not near(panel, pictures.GROUP_RGB[2])
 
 
 def test_town_map_puts_the_belief_and_the_paths_where_the_town_frame_says():

@@ -58,9 +58,11 @@ def test_frames_are_a_read_only_mapping_of_the_contract(start, drive):
         "action",
         "boxes",
         "boxes_valid",
-        "boxes_occluded",
+        "boxes_lidar_visible",
+        "boxes_camera_visible",
+        "boxes_frames_since_seen",
     ]
     assert frames["camera"] is frames.camera and frames.camera.shape == (NUM_FRAMES, IMAGE_SIZE, IMAGE_SIZE, 3)
-    assert dict(frames).keys() == set(frames) and len(frames) == 10
+    assert dict(frames).keys() == set(frames) and len(frames) == 12
     with pytest.raises(KeyError):
         frames["replace"]  # a dataclass method, not a field

@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 from helpers import frame_contract
 
+from e2e_percep_jax import metrics
 from e2e_percep_jax.sim import geometry as geo
-from e2e_percep_jax.sim import sensors
+from e2e_percep_jax.sim import rollout, sensors
 from e2e_percep_jax.sim.town import SEM_CENTRE_YELLOW, SEM_COLORS, SEM_OFFROAD, SEM_ROAD, SEM_STOP_LINE, Town
 from e2e_percep_jax.sim.world import WorldState
 
@@ -76,7 +77,7 @@ FAR = ([1e4, 1e4, 0.0, 1.0, 1.0], 1.0, [0, 0, 0], False)  # an obstacle nobody s
 
 
 def camera_image(items, r, town=None, yaw=0.0):
-    return np.asarray(render_camera(make_obstacles(items), town or make_town(), jnp.zeros(2), yaw, r))
+    return np.asarray(render_camera(make_obstacles(items), town or make_town(), jnp.zeros(2), yaw, r)[0])
 
 
 def focal_px(r):
@@ -366,7 +367,7 @@ def test_observe_follows_the_frame_contract(r):
     np.testing.assert_allclose(frame["boxes"][:, :2], [[14.0, 1.0], [-6.0, 6.0], [45.0, -30.0]], atol=1e-4)
     np.testing.assert_allclose(frame["boxes"][:, 2:], [[0.2, 4.5, 1.9], [1.0, 4.2, 1.8], [0.0, 4.0, 1.8]], atol=1e-5)
     np.testing.assert_array_equal(frame["boxes_valid"], [True, True, False])
-    np.testing.assert_array_equal(frame["boxes_occluded"], [True, False, True])
+    np.testing.assert_array_equal(frame["boxes_lidar_visible"], [False, True, False])
     assert frame["det_cls"].sum() > 0 and np.all(frame["lidar"][..., 2] == 0)
 
 
@@ -403,7 +404,7 @@ def marched_lidar_hits(boxes_ego, heights_m, reach_m):
 
 
 @pytest.mark.slow
-def test_boxes_occluded_means_no_lidar_return_on_the_box():
+def test_boxes_lidar_visible_means_a_lidar_return_on_the_box():
     # Two walls with a car right behind each (hidden from the sensor), and cars scattered over the view.
     walls = [([13.0, 9.0, 0.3, 2.0, 9.0], 6.0, [120, 110, 100]), ([-7.0, -9.0, 1.0, 1.0, 7.0], 4.0, [90, 90, 90])]
     vehicles = [([18.0, 12.5, 0.2, 4.5, 1.9], 2.0, [0, 0, 200]), ([-10.5, -13.5, -1.0, 4.2, 1.8], 1.6, [0, 200, 0])]
@@ -424,7 +425,7 @@ def test_boxes_occluded_means_no_lidar_return_on_the_box():
             vehicles.append((list(box), rng.uniform(1.4, 2.4), [100, 100, 100]))
     town, state = make_town(blocky_sem_map(3), walls), make_state([0.0, 0.0, 0.0, 4.6, 1.9], vehicles)
     frame = observe(state, town, 64)
-    occluded, valid = np.asarray(frame["boxes_occluded"]), np.asarray(frame["boxes_valid"])
+    occluded, valid = ~np.asarray(frame["boxes_lidar_visible"]), np.asarray(frame["boxes_valid"])
     obstacles = vehicles + walls
     hits = marched_lidar_hits(np.array([b for b, _, _ in obstacles]), np.array([h for _, h, _ in obstacles]), 28.0)
     hits = hits[: len(vehicles)]
@@ -433,3 +434,60 @@ def test_boxes_occluded_means_no_lidar_return_on_the_box():
     # may fall between 10 cm samples, hence the margin of 2 beams.
     assert not np.any(occluded & (hits > 2)), hits[occluded]
     assert np.all(hits[~occluded] > 0), hits[~occluded]
+
+
+def shadowed(sensor_xy, corners, wall_corners):
+    """Whether every corner [4, 2] lies behind the wall (corners [4, 2]) seen from ``sensor_xy``: inside the
+    wall's angular extent and farther than its far face. The wall stands higher than any ray that could pass
+    over it onto a car (checked in the test), so this is the truth for both sensors."""
+    angle = lambda p: np.arctan2(p[:, 1] - sensor_xy[1], p[:, 0] - sensor_xy[0])
+    lo, hi = angle(wall_corners).min(), angle(wall_corners).max()
+    a = angle(corners)
+    return bool(np.all((a > lo) & (a < hi)) and corners[:, 0].min() > wall_corners[:, 0].max())
+
+
+def in_the_open(sensor_xy, corners, wall_corners):
+    """Whether every corner's line of sight from ``sensor_xy`` passes right of the wall (below its angular
+    extent: the car comes from the right)."""
+    angle = lambda p: np.arctan2(p[:, 1] - sensor_xy[1], p[:, 0] - sensor_xy[0])
+    return bool(np.all(angle(corners) < angle(wall_corners).min()))
+
+
+@pytest.mark.slow
+def test_a_car_passing_behind_a_building_goes_from_the_lidar_to_remembered_to_unseen_after_3_s():
+    """A car drives 0.2 m a frame along the ego's left, 15 m ahead, behind a 6 m wall 11 m ahead; frame by
+    frame, who sees it is checked against the wall's shadow, and its group against the 3-s rule."""
+    wall = ([11.0, 7.5, 0.0, 1.0, 11.0], 6.0, [120, 110, 100])  # x 10.5..11.5, y 2..13 (ego frame = town)
+    # rays over the wall's top edge from the sensors climb above the car before reaching it
+    assert 1.7 + (6.0 - 1.7) / (11.5 - 0.8) * (15.0 - 2.25 - 0.8) > 1.6
+    assert 2.1 + (11.5 * np.tan(np.deg2rad(10.0))) < 6.0  # the lidar's highest beam meets the wall
+    town = make_town(blocky_sem_map(2), [wall])
+    num_frames, car_y0 = 90, -4.0
+    states = [
+        make_state([0.0, 0.0, 0.0, 4.6, 1.9], [([15.0, car_y0 + 0.2 * f, np.pi / 2, 4.5, 1.9], 1.6, [30, 90, 200])])
+        for f in range(num_frames)
+    ]
+    frames = [observe(s, town, 64) for s in states]
+    seen = {k: jnp.stack([f[k] for f in frames]) for k in ("boxes_lidar_visible", "boxes_camera_visible")}
+    since = np.asarray(rollout.frames_since_seen(seen))[:, 0]
+    lidar, camera = (np.asarray(seen[k])[:, 0] for k in ("boxes_lidar_visible", "boxes_camera_visible"))
+    group = [metrics.GROUPS[g] for g in np.asarray(metrics.box_groups(lidar, camera, since))]
+    wall_corners = np.asarray(geo.box_corners(jnp.asarray(wall[0])))
+    for f, state in enumerate(states):
+        corners = np.asarray(geo.box_corners(jnp.asarray(state.veh_box[1])))
+        if in_the_open((0.0, 0.0), corners, wall_corners):
+            assert lidar[f] and group[f] == "lidar", f
+        if shadowed((0.0, 0.0), corners, wall_corners):
+            assert not lidar[f], f
+        if shadowed((sensors.CAMERA_X_M, 0.0), corners, wall_corners):
+            assert not camera[f], f
+    # the car was seen, then hidden for longer than 3 s before the drive ends
+    last_seen = int(np.nonzero(lidar | camera)[0].max())
+    assert 0 < last_seen < num_frames - metrics.REMEMBER_FRAMES - 5
+    assert group[0] == "lidar" and set(group[: last_seen + 1]) <= {"lidar", "camera_only"}
+    assert group[last_seen + 1 : last_seen + 1 + metrics.REMEMBER_FRAMES] == ["remembered"] * metrics.REMEMBER_FRAMES
+    assert set(group[last_seen + 1 + metrics.REMEMBER_FRAMES :]) == {"unseen"}
+    np.testing.assert_array_equal(since[last_seen:], np.arange(num_frames - last_seen))
+    # a car never seen since the drive's start is unseen from its first frame
+    hidden_from_start = np.asarray(rollout.frames_since_seen({k: v[last_seen + 1 :] for k, v in seen.items()}))
+    assert np.all(hidden_from_start == rollout.NEVER_SEEN)

@@ -13,10 +13,6 @@ from helpers import ROOT, load_experiment
 from e2e_percep_jax import config, pose_belief
 
 tables = load_experiment("tables")
-PAPER = {
-    "ap_percent": {"Inputs and roadmap (full)": {"0.1": 79.4, "0.3": 72.0, "0.5": 56.5, "0.7": 16.8}},
-    "pose": {"Inputs and roadmap (full)": {"location_m": 11.4, "heading_rad": 0.33}},
-}
 
 
 def _metrics(
@@ -62,10 +58,11 @@ def _metrics(
     return {
         "label": label,
         "config": json.loads(cfg.to_json()),
-        "paper": PAPER,
         "checkpoint_step": step,
         "detection": {
-            "ap": {iou: {"all": ap, "visible": ap, "occluded": ap / 2} for iou in ("0.1", "0.3", "0.5", "0.7")},
+            "ap": {
+                iou: {"all": ap, "visible": ap, "occluded": ap / 2} for iou in ("0.1", "0.3", "0.5", "0.7")
+            },  # the earlier split
             "pr_curves": [[0.0] * 100],
         },
         "examples": [1],
@@ -180,12 +177,19 @@ def test_cells_are_the_mean_and_std_over_seeds(results):
 
 
 def test_the_papers_tables_set_each_variant_beside_the_papers_row(results):
-    """Our `full` runs, then the paper's `full` row, then the modular pipeline; `place64` (only a checkpoint's
-    evaluation kept: a superseded recipe's curve) only in the learning curve."""
+    """Our `full` runs, then the paper's `full` row, then the paper's rows of the other variants (we have no
+    runs of them here), then the modular pipeline; `place64` (only a checkpoint's evaluation kept: a
+    superseded recipe's curve) only in the learning curve."""
     rendered = tables.render(str(results))
     for name, first_baseline in (("detection", "`detector`"), ("localisation", "`dead_reckoning`")):
         methods = [line.split(" | ")[0][2:] for line in rendered[name].splitlines()[2:] if line.startswith("| ")]
-        assert methods[:3] == ["`cpu`", "paper: Inputs and roadmap (full)", first_baseline], methods
+        assert methods[:5] == [
+            "`cpu`",
+            "paper: Inputs and roadmap (full)",
+            "paper: No inputs reconstruction (no_input_recon)",
+            "paper: No roadmap reconstruction (no_roadmap_recon)",
+            first_baseline,
+        ], methods
         assert "place64" not in rendered[name]
     assert "`place64`" in rendered["learning_curve"]
 
@@ -279,6 +283,7 @@ def test_readme_blocks_are_filled_and_checked(results, tmp_path):
     readme.write_text(
         "# x\n<!-- table:localisation:begin -->\nold\n<!-- table:localisation:end -->\ntext\n"
         "<!-- table:detection:begin --><!-- table:detection:end -->\n"
+        "<!-- table:groups:begin --><!-- table:groups:end -->\n"
         "<!-- table:learning_curve:begin --><!-- table:learning_curve:end -->\n"
     )
     cmd = [sys.executable, os.path.join(ROOT, "experiments", "tables.py"), f"--results={results}", f"--readme={readme}"]
@@ -297,3 +302,35 @@ def test_the_readme_shows_what_the_kept_evaluations_render():
     with open(os.path.join(ROOT, "README.md")) as f:
         text = f.read()
     assert tables.fill(text, tables.render(os.path.join(ROOT, "experiments", "results"))) == text
+
+
+def test_groups_table_gives_each_group_its_boxes_seed_means_and_the_drives_interval(tmp_path):
+    """Two seeds of an evaluation split by who saw each box: a row per group with its boxes and drives, each
+    AP the mean ± std over the seeds and the interval over drives averaged; the earlier split stays in the
+    detection table, the new one only here."""
+    subsets = ("all", "lidar", "camera_only", "remembered", "unseen")
+    for seed, ap in ((0, 0.5), (1, 0.6)):
+        m = _metrics(seed, ap=ap)
+        m["detection"] = {
+            "groups": list(subsets[1:]),
+            "ap": {iou: dict.fromkeys(subsets, ap) for iou in ("0.1", "0.3", "0.5", "0.7")},
+            "ap_interval95": {
+                iou: dict.fromkeys(subsets, [ap - 0.1, ap + 0.2]) for iou in ("0.1", "0.3", "0.5", "0.7")
+            },
+            "num_gt": dict(zip(subsets, (1300, 1000, 10, 90, 200))),
+            "num_drives_with_boxes": dict(zip(subsets, (40, 40, 3, 25, 9))),
+        }
+        path = tmp_path / "cpu" / f"s{seed}" / "eval.json"
+        path.parent.mkdir(parents=True)
+        path.write_text(json.dumps(m))
+    rendered = tables.render(str(tmp_path))
+    rows = [line for line in rendered["groups"].splitlines() if line.startswith("| ")][1:]
+    assert [r.split(" | ")[2] for r in rows] == [
+        "all: 1,300 (40)",
+        "lidar: 1,000 (40)",
+        "camera only: 10 (3)",
+        "remembered: 90 (25)",
+        "unseen: 200 (9)",
+    ]
+    assert rows[0].startswith("| `cpu` | 0 |") and rows[3].endswith("| 55.0 ± 5.0 [45.0, 75.0] |")
+    assert "`cpu`" not in rendered["detection"]

@@ -17,8 +17,11 @@ from collections.abc import Callable, Mapping
 import flax.struct
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from e2e_percep_jax.sim import sensors, world
+
+NEVER_SEEN = np.iinfo(np.int32).max  # boxes_frames_since_seen of a vehicle not seen since the drive began
 
 
 @flax.struct.dataclass
@@ -32,8 +35,12 @@ class Frames(Mapping):
     (x m, y m, cos yaw, sin yaw, speed m/s) in the town frame; action: float32 [..., 2], the ego's commands
     from this frame to the next, as a car logs them: (pedal in [-1, 1], steering command rad); the plant
     that turns them into motion (``world.EgoPlant``) is not part of the contract; boxes: float32 [..., N, 5],
-    the N other vehicles in the ego frame (x m, y m, yaw rad, length m, width m); boxes_valid: bool
-    [..., N], inside the bird-eye view; boxes_occluded: bool [..., N], no lidar return.
+    the N other vehicles in the ego frame (x m, y m, yaw rad, length m, width m), in the world's vehicle
+    order; boxes_valid: bool [..., N], inside the bird-eye view. Who saw each vehicle, for the evaluation
+    (the model never reads them): boxes_lidar_visible: bool [..., N], some lidar beam ends on it;
+    boxes_camera_visible: bool [..., N], the camera image shows some of it (after the depth test, at R
+    pixels); boxes_frames_since_seen: int32 [..., N], frames (0.1 s each) since either sensor last saw
+    it: 0 when one sees it now, ``NEVER_SEEN`` when none has since the drive's first frame.
     """
 
     camera: jax.Array
@@ -45,7 +52,9 @@ class Frames(Mapping):
     action: jax.Array
     boxes: jax.Array
     boxes_valid: jax.Array
-    boxes_occluded: jax.Array
+    boxes_lidar_visible: jax.Array
+    boxes_camera_visible: jax.Array
+    boxes_frames_since_seen: jax.Array
 
     def __getitem__(self, name):
         if name not in self.__dataclass_fields__:
@@ -57,6 +66,21 @@ class Frames(Mapping):
 
     def __len__(self):
         return len(self.__dataclass_fields__)
+
+
+def since_seen_step(frames_since_seen, frame):
+    """Frames since each vehicle was last seen, int32 [..., N], after ``frame`` (``sensors.observe``'s
+    dict): 0 where a sensor sees it now, else one more than before (``NEVER_SEEN`` stays)."""
+    seen = frame["boxes_lidar_visible"] | frame["boxes_camera_visible"]
+    return jnp.where(seen, 0, jnp.where(frames_since_seen == NEVER_SEEN, NEVER_SEEN, frames_since_seen + 1))
+
+
+def frames_since_seen(frames: dict) -> jax.Array:
+    """``boxes_frames_since_seen`` [T, N] of a drive's observed frames ([T, ...]), counted from frame 0."""
+    never = jnp.full(frames["boxes_lidar_visible"].shape[1:], NEVER_SEEN, jnp.int32)
+    step = lambda since, frame: (since_seen_step(since, frame),) * 2
+    seen = {k: frames[k] for k in ("boxes_lidar_visible", "boxes_camera_visible")}
+    return jax.lax.scan(step, never, seen)[1]
 
 
 def advance(state: world.WorldState, town, num_steps) -> world.WorldState:
@@ -82,21 +106,23 @@ def drive(state: world.WorldState, town, num_frames: int, image_size: int, with_
 
     last, (states, actions) = jax.lax.scan(body, state, None, length=num_frames)
     frames = jax.vmap(lambda s: sensors.observe(s, town, image_size))(states)
-    frames = Frames(**frames, action=actions)
+    frames = Frames(**frames, action=actions, boxes_frames_since_seen=frames_since_seen(frames))
     return (last, frames, states) if with_states else (last, frames)
 
 
-def drive_perceiving(world_state, perceiver_state, town, image_size: int, keys, warming, perceive: Callable):
+def drive_perceiving(world_state, perceiver_state, since, town, image_size: int, keys, warming, perceive: Callable):
     """``len(keys)`` frames of W worlds (``world_state`` batched over W), each observed and perceived before
     the worlds step: a ``lax.scan`` whose carry is (world state, perceiver state), so memory does not grow
     with the drive.
 
     ``perceive(perceiver_state, frame, prev_action, key) -> (perceiver_state, out)`` sees frame t of the W
-    worlds (``sensors.observe``'s dict, [W, ...]) and ``prev_action`` [W, 2], the ego action applied from
-    t-1 to t (meaningless on a drive's first frame). ``warming`` bool [C]: frames that only step the
-    worlds (traffic warm-up: nothing observed or perceived; their ``out`` is zeros), decided at run
-    time, so one compiled program serves warm-up and driven frames. Returns (world state, perceiver
-    state, ``out`` stacked [C, ...]).
+    worlds (``sensors.observe``'s dict with ``boxes_frames_since_seen``, [W, ...]) and ``prev_action``
+    [W, 2], the ego action applied from t-1 to t (meaningless on a drive's first frame). ``warming`` bool
+    [C]: frames that only step the worlds (traffic warm-up: nothing observed or perceived; their ``out`` is
+    zeros), decided at run time, so one compiled program serves warm-up and driven frames; the drive, and
+    its count of frames since each vehicle was seen, starts at the first frame that is not warming.
+    ``since`` int32 [W, N]: that count before the chunk (``NEVER_SEEN`` to start a drive). Returns (world
+    state, perceiver state, ``since`` after the chunk, ``out`` stacked [C, ...]).
     """
     observe = jax.vmap(lambda s: sensors.observe(s, town, image_size))
     step = jax.vmap(lambda s: world.step(s, town))
@@ -104,18 +130,24 @@ def drive_perceiving(world_state, perceiver_state, town, image_size: int, keys, 
     # (jitted so that the shape query below and the scan's branch share one trace: the sensors and the
     # perceiver are traced once, not twice)
     @jax.jit
-    def seen(wstate, pstate, key):
+    def seen(wstate, pstate, since, key):
+        frame = observe(wstate)
+        frame["boxes_frames_since_seen"] = since = since_seen_step(since, frame)
         # state t's ego_action is the action applied from t-1 to t
-        return perceive(pstate, observe(wstate), wstate.ego_action, key)
+        return perceive(pstate, frame, wstate.ego_action, key) + (since,)
 
-    shapes = jax.eval_shape(lambda: seen(world_state, perceiver_state, keys[0])[1])
+    shapes = jax.eval_shape(lambda: seen(world_state, perceiver_state, since, keys[0])[1])
     zeros = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)
 
     def body(carry, xs):
-        wstate, pstate = carry
+        wstate, pstate, since = carry
         key, warm = xs
-        pstate, out = jax.lax.cond(warm, lambda: (pstate, zeros), lambda: seen(wstate, pstate, key))
-        return (step(wstate), pstate), out
+        never = jnp.full_like(since, NEVER_SEEN)
+        pstate, out, since = jax.lax.cond(
+            warm, lambda: (pstate, zeros, never), lambda: seen(wstate, pstate, since, key)
+        )
+        return (step(wstate), pstate, since), out
 
-    (world_state, perceiver_state), out = jax.lax.scan(body, (world_state, perceiver_state), (keys, warming))
-    return world_state, perceiver_state, out
+    carry = (world_state, perceiver_state, since)
+    (world_state, perceiver_state, since), out = jax.lax.scan(body, carry, (keys, warming))
+    return world_state, perceiver_state, since, out

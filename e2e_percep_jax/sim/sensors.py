@@ -299,7 +299,8 @@ def _pack_rgb(channels):
 
 
 def render_camera(obstacles: Obstacles, town: Town, ego_xy, ego_yaw_rad, image_size):
-    """Front camera image, uint8 [R, R, 3].
+    """Front camera image, uint8 [R, R, 3], and per-obstacle flags bool [M]: the image shows some of that
+    obstacle (it is the first surface met by at least one pixel's ray, after the depth test).
 
     obstacles: ego frame; ego_xy [2], ego_yaw_rad []: the ego's town pose (for the ground texture
     and the sun). Pixel (i, j) looks along ego (1, t_j, t_i) with t_k = (R/2 - k - 0.5) / f and
@@ -345,6 +346,9 @@ def render_camera(obstacles: Obstacles, town: Town, ego_xy, ego_yaw_rad, image_s
     haze = jnp.clip(depth / CAMERA_MAX_DEPTH_M, 0.0, 1.0)
     haze = haze * jnp.sqrt(haze)  # haze ** 1.5
 
+    owner = jnp.where(hit, pick(cand.idx), -1)  # obstacle row each pixel shows, -1: ground or sky
+    shown = _mark(owner.ravel(), obstacles.box.shape[0]) > 0
+
     channels = []
     for c in range(3):
         v = pick(obstacles.color[:, c][cand.idx])
@@ -354,7 +358,7 @@ def render_camera(obstacles: Obstacles, town: Town, ego_xy, ego_yaw_rad, image_s
         sky = (1.0 - up) * _SKY_HORIZON_RGB[c] + up * _SKY_ZENITH_RGB[c]
         v = jnp.where(hit, v, jnp.where(slope < 0.0, ground, sky))
         channels.append(jnp.where(jnp.isfinite(depth), (1.0 - haze) * v + haze * _SKY_HORIZON_RGB[c], v))
-    return _pack_rgb(channels)
+    return _pack_rgb(channels), shown
 
 
 # ----------------------------------------------------------------------------- lidar
@@ -543,7 +547,9 @@ def observe(state: WorldState, town: Town, image_size: int):
 
     Returns a dict: camera, lidar, roadmap uint8 [R, R, 3]; det_cls float32 [R, R, 1]; det_reg
     float32 [R, R, 6]; pose float32 [5]; boxes float32 [N, 5] (ego frame); boxes_valid,
-    boxes_occluded bool [N], N = surrounding vehicles (``veh_box.shape[0] - 1``).
+    boxes_lidar_visible (some lidar beam ends on the box), boxes_camera_visible (the camera image shows
+    some of it) bool [N], N = surrounding vehicles (``veh_box.shape[0] - 1``), in the world's vehicle order.
+    Who saw a vehicle in earlier frames is the rollout's (``rollout.frames_since_seen``).
     """
     town = jax.tree.map(jnp.asarray, town)  # NumPy fields cannot be indexed by traced indices
     ego = state.veh_box[EGO]
@@ -553,10 +559,14 @@ def observe(state: WorldState, town: Town, image_size: int):
     seen_by_lidar = lidar_obstacles(state, town, buildings, boxes)
     lidar, returned = render_lidar(seen_by_lidar, image_size)
     n = boxes.shape[0]
-    vehicle_returned = _mark(jnp.where(seen_by_lidar.is_vehicle & returned, seen_by_lidar.vehicle_index, -1), n) > 0
+    seen_by_camera = camera_obstacles(state, town, buildings, boxes)
+    camera, shown = render_camera(seen_by_camera, town, ego_xy, ego_yaw, image_size)
+    vehicles = lambda obstacles, flags: (
+        _mark(jnp.where(obstacles.is_vehicle & flags, obstacles.vehicle_index, -1), n) > 0
+    )
     det_cls, det_reg = pixor.targets(boxes, image_size)
     return {
-        "camera": render_camera(camera_obstacles(state, town, buildings, boxes), town, ego_xy, ego_yaw, image_size),
+        "camera": camera,
         "lidar": lidar,
         "roadmap": render_roadmap(town, ego_xy, ego_yaw, ego[3], ego[4], image_size),
         "det_cls": det_cls,
@@ -566,5 +576,6 @@ def observe(state: WorldState, town: Town, image_size: int):
         ),
         "boxes": boxes.astype(jnp.float32),
         "boxes_valid": geo.in_bev_view(boxes[:, :2]),
-        "boxes_occluded": ~vehicle_returned,
+        "boxes_lidar_visible": vehicles(seen_by_lidar, returned),
+        "boxes_camera_visible": vehicles(seen_by_camera, shown),
     }

@@ -2,7 +2,8 @@
 
 Built once per seed with NumPy (:func:`build_town`, cached), then held as a pytree of arrays (:class:`Town`)
 that every pure-JAX world and sensor function takes as a constant argument. A directory named by the
-environment variable ``E2E_PERCEP_JAX_TOWN_CACHE`` keeps built towns for other processes (:data:`CACHE_ENV`).
+environment variable ``E2E_PERCEP_JAX_TOWN_CACHE`` keeps built towns for other processes (:data:`CACHE_ENV`; the
+evaluation keeps its choice of drives there too).
 
 What a town is (all procedural from the seed; right-hand traffic):
 
@@ -242,9 +243,24 @@ def _code_digest() -> str:
     return digest.hexdigest()[:16]
 
 
-def _cache_path(seed: int) -> str | None:
+def cache_file(name: str) -> str | None:
+    """Where ``CACHE_ENV``'s directory keeps ``name`` (None when it is not set)."""
     directory = os.environ.get(CACHE_ENV)
-    return os.path.join(directory, f"town-{seed}-{_code_digest()}.npz") if directory else None
+    return os.path.join(directory, name) if directory else None
+
+
+def write_cached(path: str, arrays: dict) -> None:
+    """``arrays`` into the .npz file ``path``, renamed into place when complete: a reader never sees half a
+    file."""
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    partial = f"{path}.{os.getpid()}.partial"
+    with open(partial, "wb") as f:
+        np.savez(f, **arrays)
+    os.replace(partial, path)
+
+
+def _cache_path(seed: int) -> str | None:
+    return cache_file(f"town-{seed}-{_code_digest()}.npz")
 
 
 def _read_cached(seed: int, fields=Town._fields) -> dict | None:
@@ -266,11 +282,7 @@ def _town_np(seed: int) -> Town:
         return Town(**cached)
     town, path = _build_town_np(seed), _cache_path(seed)
     if path:
-        os.makedirs(os.path.dirname(path), exist_ok=True)
-        partial = f"{path}.{os.getpid()}.partial"  # renamed when complete: a reader never sees half a file
-        with open(partial, "wb") as f:
-            np.savez(f, **town._asdict())
-        os.replace(partial, path)
+        write_cached(path, town._asdict())
     return town
 
 
