@@ -493,9 +493,12 @@ def _metrics(cfg: Config, det_acc, pose_acc, drives_true, drives_pred, cover, nl
             "num_drives_with_boxes": det_acc.num_drives(),
             "ap": {key(t): {s: summary.defined(results[t][s].ap) for s in subsets} for t in IOU_THRESHOLDS},
             "ap_interval95": {key(t): {s: span(intervals[t][s]) for s in subsets} for t in IOU_THRESHOLDS},
+            # at the operating score: precision over all boxes, and each subset's recall (the share of its boxes
+            # found, which, unlike a small group's AP, no false positive elsewhere in the scene pulls down)
             "at_threshold": {
                 key(t): dict(
-                    zip(("precision", "recall"), metrics_lib.at_threshold(results[t]["all"], cfg.eval.score_threshold))
+                    precision=metrics_lib.at_threshold(results[t]["all"], cfg.eval.score_threshold)[0],
+                    recall={s: metrics_lib.at_threshold(results[t][s], cfg.eval.score_threshold)[1] for s in subsets},
                 )
                 for t in IOU_THRESHOLDS
             },
