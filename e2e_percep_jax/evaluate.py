@@ -265,7 +265,10 @@ def _drive_chunks(program, params, perceiver, keys, town, cfg: Config, num_frame
     c, warmup = cfg.eval.chunk_steps, cfg.data.warmup_steps
     wstate = start_worlds(keys, town, cfg.world)
     since = jnp.full((len(keys), wstate.veh_box.shape[1] - 1), rollout.NEVER_SEEN, jnp.int32)
-    carry = (wstate, perceiver.init(len(keys)), since)
+    # Weakly typed leaves made strong, as the scan returns them: else the second chunk's arguments differ in
+    # type from the first's and jax.jit compiles the whole program again.
+    strong = lambda x: x.astype(x.dtype) if getattr(x, "weak_type", False) else x
+    carry = jax.tree.map(strong, (wstate, perceiver.init(len(keys)), since))
 
     def dispatch(i, carry):
         first = i * c - warmup  # drive frame index of the chunk's first frame (negative: warm-up)

@@ -150,6 +150,14 @@ CASES = {
     "train score_threshold": Case(
         "train", ["--eval.score_threshold=1.5"], "--eval.score_threshold=1.5: must lie in (0, 1)"
     ),
+    "train detection_drives negative": Case(
+        "train", ["--eval.detection_drives=-1"], "--eval.detection_drives=-1: must be >= 0"
+    ),
+    "train detection_pool below its drives": Case(
+        "train",
+        ["--eval.detection_drives=8", "--eval.detection_pool=4"],
+        "--eval.detection_pool=4: must be 0 (no choice) or at least --eval.detection_drives=8",
+    ),
     "train a positional argument": Case("train", ["extra"], "unexpected arguments ['extra']"),
     "train no workdir": Case("train", ["--workdir="], "--workdir is required"),
     # ---------------------------------------------------------------- experiments/train.py resuming the run
