@@ -352,9 +352,10 @@ def evaluate(
     # the default perceiver whose pose neither ``heads`` nor ``host_fn`` replaces.
     filtered = perceiver is None and heads is None and host_fn is None
     filtered = filtered and cfg.model.pose_head == "belief" and cfg.model.pose_filter == "histogram"
+    program_cfg = _program_config(cfg)
     if perceiver is None:
-        perceiver = run_perceiver(_program_config(cfg), workdir) if workdir else Perceiver(_program_config(cfg))
-    program = chunk_program(_program_config(cfg), perceiver, sample, detect, heads)
+        perceiver = run_perceiver(program_cfg, workdir) if workdir else Perceiver(program_cfg)
+    program = chunk_program(program_cfg, perceiver, sample, detect, heads)
     sample_root = jax.random.fold_in(jax.random.PRNGKey(ev.seed), SAMPLE_STREAM)
     det_keys, det_remembered = detection_start_keys(cfg, town) if num_det else (None, None)
     if num_det:

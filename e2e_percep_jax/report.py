@@ -162,7 +162,7 @@ def markdown(m: dict) -> str:
         "",
     ]
     errors = lambda p, stat: [
-        fmt(p[f"{k}"][stat], digits=d) for k, d in (("location_m", 2), ("heading_rad", 3), ("speed_mps", 2))
+        fmt(p[k][stat], digits=d) for k, d in (("location_m", 2), ("heading_rad", 3), ("speed_mps", 2))
     ]
     rows = [
         [

@@ -7,7 +7,7 @@ import itertools
 import jax
 import numpy as np
 import pytest
-from helpers import TINY
+from helpers import TINY, frame_contract
 
 from e2e_percep_jax import config, loss, model, pose_belief
 from e2e_percep_jax.sim import batch, world
@@ -19,17 +19,7 @@ CFG = config.replace(TINY, data=dict(place_frames=6))
 @pytest.mark.slow
 def test_place_frames_keep_the_frame_contract_and_stand_on_a_lane_with_no_body_near(town):
     frames = jax.tree.map(np.asarray, batch.make_batch(jax.random.PRNGKey(3), town, CFG))
-    for name in (
-        "camera",
-        "lidar",
-        "roadmap",
-        "det_cls",
-        "det_reg",
-        "pose",
-        "boxes",
-        "boxes_valid",
-        "boxes_lidar_visible",
-    ):
+    for name in frame_contract(CFG.data.image_size, CFG.world.num_vehicles):  # every observed field
         place, sequence = frames[f"place_{name}"], frames[name]
         assert place.shape == (6,) + sequence.shape[2:] and place.dtype == sequence.dtype, name
     town = jax.tree.map(np.asarray, town)
