@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from e2e_percep_jax import checkpoint, detection, pose_belief, xla_cpu
+from e2e_percep_jax import checkpoint, detection, ego_motion, pose_belief, xla_cpu
 from e2e_percep_jax import model as model_lib
 from e2e_percep_jax.config import Config
 from e2e_percep_jax.sim.motion import MotionModel
@@ -82,6 +82,12 @@ class Perceiver:
     def belief(self) -> bool:
         return self.cfg.model.pose_head == "belief"
 
+    @property
+    def lidar_odometry(self) -> bool:
+        """Whether ``measure=False`` corrects the commands' heading with the lidar's scans
+        (:func:`ego_motion.step`: the motion model has the scan matcher's fitted noise)."""
+        return self.belief and self.cfg.model.pose_filter == "histogram" and ego_motion.uses_scans(self.motion_model)
+
     def init(self, batch_size: int) -> model_lib.FilterState:
         """The filter state (:class:`~e2e_percep_jax.model.FilterState`) before the first frame of
         ``batch_size`` streams; with the belief pose head its ``pose`` is the pose belief's
@@ -115,8 +121,9 @@ class Perceiver:
         ``start_pose`` [B, 5] (belief head only): the known-start protocol. Streams starting a drive start
         their belief at this pose; it then follows the commands through the motion model and, with
         ``measure`` (the town the model was trained on), the place measurements as in the global protocol.
-        ``measure=False`` (a town the model has not seen) is an odometry: the commands alone, through the
-        motion model, with the head's speed.
+        ``measure=False`` (a town the model has not seen) is an odometry: the commands through the motion
+        model, their heading corrected by the lidar's scans when the model has the scan matcher's fitted noise
+        (:attr:`lidar_odometry`, :mod:`e2e_percep_jax.ego_motion`).
         """
         camera, lidar, action = jnp.asarray(camera), jnp.asarray(lidar), jnp.asarray(action)
         first = state.first if isinstance(state, model_lib.FilterState) else None
@@ -148,9 +155,10 @@ class Perceiver:
                 self.motion_model,
                 start_pose=start_pose,
                 measure=measure,
+                lidar=lidar,
             )
         else:  # the frame's head alone: its own distribution is the belief
-            pose_state, pose = pose_belief.head_state(head, grid), pose_belief.decode(head, grid)
+            pose_state, pose = pose_belief.head_state(head, grid, state.pose.odometry), pose_belief.decode(head, grid)
         pose_place = pose_belief.place_marginal(pose_state.belief)
         return latent_state.replace(pose=pose_state), PerceiverOutputs(pose=pose, pose_place=pose_place, **common)
 

@@ -14,6 +14,9 @@ Baselines (``BASELINES``), each run in ``<workdir>/<baseline>/``:
 - ``dead_reckoning``: no network, on the same information as the pose belief's motion: from each drive's
   true first pose and speed, the logged commands through the same calibrated motion model
   (:class:`CommandOdometry`, :mod:`e2e_percep_jax.sim.motion`). Evaluated under the known-start protocol.
+- ``lidar_odometry``: no network; dead reckoning's commands with the lidar's scans matched every few frames,
+  which correct the heading and estimate the drive's steering offset and gain on the way
+  (:mod:`e2e_percep_jax.ego_motion`; the matcher's noise fitted on training drives). Known-start protocol.
 - ``wheel_odometry``: no network; ``odometry.DeadReckoner`` from each drive's true first pose, integrating
   wheel-speed and yaw-rate sensors: the true speed and yaw rate with a per-drive wheel-radius error and
   gyro bias, and per-sample noise (:func:`wheel_odometry_host`). Evaluated under the known-start protocol.
@@ -34,7 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from e2e_percep_jax import checkpoint, report, tracking
+from e2e_percep_jax import calibration, checkpoint, ego_motion, report, tracking
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import evaluate as eval_lib
 from e2e_percep_jax import loss as loss_lib
@@ -47,7 +50,7 @@ from e2e_percep_jax.sim import motion as motion_lib
 from e2e_percep_jax.sim import odometry
 
 HEADS = ("detection", "pose")
-ODOMETRY = ("dead_reckoning", "wheel_odometry")  # no network; evaluated from the true start
+ODOMETRY = ("dead_reckoning", "lidar_odometry", "wheel_odometry")  # no network; evaluated from the true start
 # Wheel odometry's sensors: a wheel radius off by 2 % (std over drives: wear and pressure, as the world's
 # distance scale), a yaw-rate gyro biased by 0.1 deg/s (std over drives; an automotive MEMS gyro's
 # run-to-run bias), and per-sample noise of 0.05 m/s and 0.2 deg/s. See BUILD_NOTES.md, "The ego plant".
@@ -191,27 +194,36 @@ class OdometryState:
     pose: float32 [B, 5], the last frame's pose in the town frame (x m, y m, cos ψ, sin ψ, speed m/s).
     actuator: float32 [B, 2], the actuators' state (pedal, steering rad), as in the pose belief's filter.
     started: bool [B], whether the stream's drive has started (False: its next frame is a first one).
+    scans: the lidar odometry's keyframe and steering estimate (:class:`ego_motion.OdometryState`).
     """
 
     pose: jax.Array
     actuator: jax.Array
     started: jax.Array
+    scans: ego_motion.OdometryState
 
 
 @dataclasses.dataclass(frozen=True)
 class CommandOdometry:
     """Dead reckoning on the logged commands, as the inference API's ``init`` / ``step``: each stream
     starts at ``start_pose`` (its true first pose and speed) and then moves by the commands through
-    ``motion_model`` alone (no sensor). No boxes."""
+    ``motion_model`` (:func:`ego_motion.step`), with ``scans`` the lidar's scans correcting its heading
+    (the model must have the matcher's fitted noise), else alone. No boxes."""
 
     cfg: Config
     motion_model: motion_lib.MotionModel
+    scans: bool = False
+
+    @property
+    def lidar_odometry(self) -> bool:
+        return self.scans
 
     def init(self, batch_size: int) -> OdometryState:
         return OdometryState(
             pose=jnp.zeros((batch_size, 5)),
             actuator=jnp.zeros((batch_size, 2)),
             started=jnp.zeros((batch_size,), bool),
+            scans=ego_motion.init_state(batch_size),
         )
 
     def step(self, params, state, camera, lidar, action, key=None, start_pose=None, measure=True):
@@ -219,12 +231,23 @@ class CommandOdometry:
             raise ValueError("dead reckoning starts from the true pose: evaluate it with --eval.known_start")
         # (the first commands of a drive set the actuators, as in the pose belief's filter)
         actuator = jnp.where(state.started[:, None], state.actuator, action)
-        actuator, moved = motion_lib.advance_pose(self.motion_model, actuator, action, state.pose)
         first = ~state.started
-        pose = jnp.where(first[:, None], start_pose, moved)
+        scans, actuator, pose = ego_motion.step(
+            state.scans,
+            self.motion_model,
+            actuator,
+            action,
+            state.pose,
+            lidar if self.scans else None,
+            first,
+            start_pose,
+        )
         b, r = camera.shape[0], self.cfg.data.image_size
+        new = OdometryState(
+            pose=pose, actuator=jnp.where(first[:, None], 0.0, actuator), started=jnp.ones_like(first), scans=scans
+        )
         return (
-            OdometryState(pose=pose, actuator=jnp.where(first[:, None], 0.0, actuator), started=jnp.ones_like(first)),
+            new,
             PerceiverOutputs(det_cls=jnp.zeros((b, r, r, 1)), det_reg=jnp.zeros((b, r, r, 6)), pose=pose),
         )
 
@@ -292,12 +315,14 @@ def trained_params(cfg: Config, workdir: str, run: str, log=print):
     return params, step
 
 
-def odometry_model(cfg: Config, workdir: str) -> motion_lib.MotionModel:
+def odometry_model(cfg: Config, workdir: str, scans: bool = False) -> motion_lib.MotionModel:
     """The calibrated motion model of ``cfg``'s world in ``<workdir>/dead_reckoning`` (fitted once, as a
-    training run fits its own: the same drives, so the same model)."""
+    training run fits its own: the same drives, so the same model), with ``scans`` the scan matcher's
+    noise too."""
     path = os.path.join(workdir, "dead_reckoning")
     os.makedirs(path, exist_ok=True)
-    return train_lib.ensure_motion_model(cfg, path)
+    model = train_lib.ensure_motion_model(cfg, path)
+    return calibration.ensure_scans(cfg, path) if scans else model
 
 
 def evaluated_under(baselines, cfg: Config, own: Config) -> list:
@@ -322,6 +347,9 @@ def run(baseline: str, cfg: Config, workdir: str, *, video_frames: int = 300, lo
     if baseline == "dead_reckoning":
         label = "dead reckoning (commands through the calibrated motion model)"
         hooks = dict(perceiver=CommandOdometry(cfg, odometry_model(cfg, workdir)))
+    elif baseline == "lidar_odometry":
+        label = "lidar odometry (the commands, their heading corrected by scan matching)"
+        hooks = dict(perceiver=CommandOdometry(cfg, odometry_model(cfg, workdir, scans=True), scans=True))
     elif baseline == "wheel_odometry":
         label = (
             f"wheel odometry (wheel radius {100 * WHEEL_SCALE_STD:g} %, gyro bias "

@@ -18,10 +18,12 @@ import dataclasses
 import functools
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
+from e2e_percep_jax import ego_motion
 from e2e_percep_jax.config import Config, WorldConfig
-from e2e_percep_jax.sim import motion, world
+from e2e_percep_jax.sim import motion, sensors, world
 from e2e_percep_jax.sim import town as town_lib
 from e2e_percep_jax.sim.geometry import wrap_angle
 from e2e_percep_jax.sim.motion import DT_S, WHEELBASE_M, MotionModel
@@ -32,12 +34,16 @@ HORIZONS = (10, 30, 100, 300)  # steps
 MIN_SPEED_MPS = 1.0  # slower steps are left out of the fits (curvature is ill-defined when standing)
 
 
-@functools.partial(jax.jit, static_argnames=("world_cfg", "warmup_steps", "num_worlds", "num_steps"))
-def _drive(key, town, world_cfg: WorldConfig, warmup_steps: int, num_worlds: int, num_steps: int):
+@functools.partial(jax.jit, static_argnames=("world_cfg", "warmup_steps", "num_worlds", "num_steps", "image_size"))
+def _drive(key, town, world_cfg: WorldConfig, warmup_steps: int, num_worlds: int, num_steps: int, image_size: int = 0):
+    """Per step of ``num_worlds`` drives: the ego's (x, y, yaw), speed, commands and, with ``image_size``,
+    its lidar image."""
+
     def one(k):
         def body(s, _):
             after = world.step(s, town)
-            return after, (s.veh_box[world.EGO, :3], s.veh_speed_mps[world.EGO], after.ego_action)
+            lidar = sensors.observe_lidar(s, town, image_size) if image_size else None
+            return after, (s.veh_box[world.EGO, :3], s.veh_speed_mps[world.EGO], after.ego_action, lidar)
 
         # (one loop through the warm-up and the drive: the world's step is compiled once, not twice)
         drive = jax.lax.scan(body, world.reset(k, town, world_cfg), None, length=warmup_steps + num_steps)[1]
@@ -56,7 +62,7 @@ def training_drives(cfg: Config, num_worlds: int = 8, num_steps: int = 1500) -> 
         town = town_lib.build_town(cfg.world.town_seed)
         # (the world and the warm-up alone are static: runs that differ in anything else share one compilation)
         drives = _drive(key, town, cfg.world, cfg.data.warmup_steps, num_worlds, num_steps)
-        pose, speed, command = jax.tree.map(np.asarray, drives)
+        pose, speed, command, _ = jax.tree.map(np.asarray, drives)
     return {
         "pose": pose.astype(np.float64),
         "speed_mps": speed.astype(np.float64),
@@ -115,7 +121,7 @@ def fit(drives: dict) -> MotionModel:
         steer_bias=float(curve_coef[1]),
         understeer_s2pm2=float(curve_coef[2]),
     )
-    return _with_process_noise(model, drives, rear, ds, dyaw)
+    return _with_yaw_spread(_with_process_noise(model, drives, rear, ds, dyaw), drives, ds, dyaw)
 
 
 def _with_process_noise(model: MotionModel, drives: dict, rear, ds, dyaw) -> MotionModel:
@@ -145,6 +151,82 @@ def _with_process_noise(model: MotionModel, drives: dict, rear, ds, dyaw) -> Mot
     )
 
 
-def calibrate(cfg: Config, **drive_kwargs) -> MotionModel:
-    """The motion model of ``cfg``'s world, fitted on :func:`training_drives`."""
-    return fit(training_drives(cfg, **drive_kwargs))
+def _with_yaw_spread(model: MotionModel, drives: dict, ds, dyaw) -> MotionModel:
+    """The lidar odometry's prior: per drive, the least-squares curvature bias and yaw gain error of the
+    model's yaw changes (``dyaw - model_dyaw ~ bias * ds + gain_error * model_dyaw``); their root mean square
+    over drives, and the residual's variance per metre."""
+    actuator = _lagged(drives["command"], model.lag_share)[:, :-1]
+    v = drives["speed_mps"]
+    model_dyaw = ds * np.asarray(motion.curvature(model, actuator[..., 1], 0.5 * (v[:, 1:] + v[:, :-1])))
+    per_drive, residuals = [], []
+    for w in range(ds.shape[0]):
+        moving = ds[w] > MIN_SPEED_MPS * DT_S
+        features = np.stack([ds[w], model_dyaw[w]], -1)[moving]
+        coef, mse = _least_squares(features, (dyaw - model_dyaw)[w][moving])
+        per_drive.append(coef)
+        residuals.append(mse / np.mean(ds[w][moving]))
+    bias_std, gain_std = np.sqrt(np.mean(np.square(per_drive), 0))
+    return dataclasses.replace(
+        model,
+        yaw_bias_std_1pm=float(bias_std),
+        yaw_gain_std=float(gain_std),
+        yaw_noise_rad2pm=float(np.mean(residuals)),
+    )
+
+
+def scan_errors(cfg: Config, model: MotionModel, town_seed: int, key, num_worlds: int = 4, num_frames: int = 300):
+    """The scan matcher's heading errors on ``num_worlds`` lidar drives of town ``town_seed`` (reset from
+    ``key``): every ``ego_motion.KEYFRAME_FRAMES`` frames, the matched heading change minus the true one,
+    searched around the motion ``model``'s own prediction from the true pose. Returns (errors [M] rad,
+    the fewer of each pair's returns [M])."""
+    with jax.default_device(jax.local_devices()[0]):
+        town = town_lib.build_town(town_seed)
+        pose, speed, command, lidar = _drive(
+            key, town, cfg.world, cfg.data.warmup_steps, num_worlds, num_frames, cfg.data.image_size
+        )
+    k = ego_motion.KEYFRAME_FRAMES
+    starts = np.arange(0, num_frames - k, k)
+    predicted = []
+    for start in starts:  # the model's motion over each interval, from the true pose
+        local = jnp.zeros((num_worlds, 5)).at[:, 2].set(1.0).at[:, 4].set(speed[:, start])
+        actuator = command[:, start]
+        for t in range(start, start + k):
+            actuator, local = motion.advance_pose(model, actuator, command[:, t], local)
+        predicted.append(jnp.concatenate([local[:, :2], jnp.arctan2(local[:, 3:4], local[:, 2:3])], -1))
+    predicted = jnp.stack(predicted, 1).reshape(-1, 3)
+    pairs = lambda x, offset: x[:, starts + offset].reshape((-1,) + x.shape[2:])
+    points, weight = jax.vmap(ego_motion.scan_points)(pairs(lidar, 0))
+    measured, num_returns = jax.jit(jax.vmap(ego_motion.match))(points, weight, pairs(lidar, k), predicted)
+    yaw = np.asarray(pose[..., 2])
+    true = wrap_angle(yaw[:, starts + k] - yaw[:, starts]).reshape(-1)
+    return wrap_angle(np.asarray(measured[:, 2]) - true), np.asarray(num_returns)
+
+
+def fit_scans(cfg: Config, model: MotionModel) -> MotionModel:
+    """``model`` with the scan matcher's heading noise (:mod:`e2e_percep_jax.ego_motion`), fitted on lidar
+    drives of the training town from a key of their own (:func:`scan_errors`): the errors' robust spread
+    (1.4826 times the median absolute error) times the square root of the scans' returns, over matches
+    with at least ``ego_motion.MIN_RETURNS`` returns."""
+    key = jax.random.fold_in(jax.random.PRNGKey(CALIBRATION_SEED), 1)
+    error, num_returns = scan_errors(cfg, model, cfg.world.town_seed, key)
+    kept = num_returns >= ego_motion.MIN_RETURNS
+    spread = 1.4826 * np.median(np.abs(error[kept]) * np.sqrt(num_returns[kept]))
+    return dataclasses.replace(model, scan_yaw_noise_rad=float(spread))
+
+
+def calibrate(cfg: Config, scans: bool = False, **drive_kwargs) -> MotionModel:
+    """The motion model of ``cfg``'s world, fitted on :func:`training_drives`; with ``scans``, also the scan
+    matcher's noise (:func:`fit_scans`), which only the lidar odometry reads."""
+    model = fit(training_drives(cfg, **drive_kwargs))
+    return fit_scans(cfg, model) if scans else model
+
+
+def ensure_scans(cfg: Config, workdir: str) -> MotionModel:
+    """Run ``workdir``'s motion model with the scan matcher's noise, fitted (:func:`fit_scans`, about a
+    minute) and saved into the run the first time the lidar odometry needs it."""
+    model = MotionModel.load(workdir)
+    if not ego_motion.uses_scans(model):
+        print("fitting the scan matcher's noise on training drives", flush=True)
+        model = fit_scans(cfg, model)
+        model.save(workdir)
+    return model

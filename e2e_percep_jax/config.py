@@ -24,7 +24,7 @@ from typing import Any
 
 VARIANTS = ("full", "no_input_recon", "no_roadmap_recon")
 # The modular pipeline's methods (e2e_percep_jax.baselines), named here so that launchers check them cheaply.
-BASELINES = ("detector", "tracker", "pose", "dead_reckoning", "wheel_odometry")
+BASELINES = ("detector", "tracker", "pose", "dead_reckoning", "lidar_odometry", "wheel_odometry")
 # belief: a heatmap over the town (pose_belief.py), filtered through motion at evaluation; regression: an MLP
 # on the latent sample, smooth-L1 in normalised units (what runs saved before the field was added used);
 # reference: the same head on the reference code's objective, 10 x smooth-L1 on raw metres.

@@ -55,8 +55,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from e2e_percep_jax import calibration, detection, pose_belief, report, summary
 from e2e_percep_jax import config as config_lib
-from e2e_percep_jax import detection, pose_belief, report, summary
 from e2e_percep_jax import metrics as metrics_lib
 from e2e_percep_jax.api import Perceiver, run_perceiver
 from e2e_percep_jax.config import Config, EvalConfig, WorldConfig
@@ -354,6 +354,8 @@ def evaluate(
     filtered = filtered and cfg.model.pose_head == "belief" and cfg.model.pose_filter == "histogram"
     program_cfg = _program_config(cfg)
     if perceiver is None:
+        if workdir and ev.known_start and ev.town_seed != cfg.world.town_seed and cfg.model.pose_head == "belief":
+            calibration.ensure_scans(cfg, workdir)  # the lidar odometry of a town the head does not know
         perceiver = run_perceiver(program_cfg, workdir) if workdir else Perceiver(program_cfg)
     program = chunk_program(program_cfg, perceiver, sample, detect, heads)
     sample_root = jax.random.fold_in(jax.random.PRNGKey(ev.seed), SAMPLE_STREAM)
@@ -466,6 +468,10 @@ def evaluate(
         known_start=ev.known_start,
         pose_filter=cfg.model.pose_filter,
         filter_settings=pose_belief.default_settings() if filtered else None,
+        # (from a known start on a town the model has not seen: whether the lidar's scans corrected the pose)
+        lidar_odometry=bool(
+            ev.known_start and ev.town_seed != cfg.world.town_seed and getattr(perceiver, "lidar_odometry", False)
+        ),
     )
     report.write(out_dir, metrics, det_acc.results())
     log(

@@ -38,6 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from e2e_percep_jax import ego_motion
 from e2e_percep_jax.config import ModelConfig
 from e2e_percep_jax.sim import motion as motion_lib
 from e2e_percep_jax.sim.geometry import pose_yaw, wrap_angle
@@ -224,6 +225,8 @@ class PoseBeliefState:
     actuator: float32 [B, 2], the actuators' state (pedal, steering rad): the commands seen through the
         motion model's lag.
     actuator_set: bool [B], whether ``actuator`` has been set (from a drive's first logged commands).
+    odometry: the lidar odometry's keyframe and steering estimate (:class:`ego_motion.OdometryState`), which
+        only the odometry of a town the head does not know (``measure=False``) moves.
     """
 
     belief: jax.Array
@@ -231,10 +234,12 @@ class PoseBeliefState:
     yaw_offset_rad: jax.Array
     actuator: jax.Array
     actuator_set: jax.Array
+    odometry: ego_motion.OdometryState
 
 
 def init_state(batch_size: int, grid: Grid) -> PoseBeliefState:
-    """Before a drive's first frame: a uniform belief, zero speed and heading offset, actuators not set."""
+    """Before a drive's first frame: a uniform belief, zero speed and heading offset, actuators not set,
+    no odometry keyframe."""
     shape = (batch_size, grid.heading_bins, grid.n, grid.n)
     return PoseBeliefState(
         belief=jnp.full(shape, 1.0 / math.prod(shape[1:]), jnp.float32),
@@ -242,6 +247,7 @@ def init_state(batch_size: int, grid: Grid) -> PoseBeliefState:
         yaw_offset_rad=jnp.zeros((batch_size,), jnp.float32),
         actuator=jnp.zeros((batch_size, 2), jnp.float32),
         actuator_set=jnp.zeros((batch_size,), bool),
+        odometry=ego_motion.init_state(batch_size),
     )
 
 
@@ -325,6 +331,7 @@ def filter_step(
     *,
     start_pose=None,
     measure: bool = True,
+    lidar=None,
     floor: float = MEASUREMENT_FLOOR,
     power: float = MEASUREMENT_POWER,
     speed_gain: float = SPEED_GAIN,
@@ -344,8 +351,10 @@ def filter_step(
     :func:`estimate`).
 
     ``measure=False`` (known start only: an odometry for a town the head does not know) takes no
-    measurement; the belief is then kept a point (:func:`start_at`) that the motion model moves, and the
-    pose is that point (a histogram without measurements spreads over the town, and its mode says little).
+    measurement; the belief is then kept a point (:func:`start_at`) that the odometry moves
+    (:func:`ego_motion.step`: the commands through the motion model, with the scans of ``lidar`` [B, R, R,
+    3] correcting the heading when the model has the matcher's fitted noise), and the pose is that point (a
+    histogram without measurements spreads over the town, and its mode says little).
     A stream's actuators start at its first logged commands (the car is taken to be in steady state).
     """
     if start_pose is None and not measure:
@@ -357,10 +366,13 @@ def filter_step(
         actuator_set=~first,
     )
     if start_pose is not None and not measure:
-        _, moved = motion_lib.advance_pose(model, actuator, prev_action, mean_pose(state, grid))
-        pose = jnp.where(rows(moved), start_pose, moved)
+        odometry, _, pose = ego_motion.step(
+            state.odometry, model, actuator, prev_action, mean_pose(state, grid), lidar, first, start_pose
+        )
         belief, offset = start_at(pose, grid)
-        return PoseBeliefState(belief=belief, speed_mps=pose[:, 4], yaw_offset_rad=offset, **started), pose
+        return PoseBeliefState(
+            belief=belief, speed_mps=pose[:, 4], yaw_offset_rad=offset, odometry=odometry, **started
+        ), pose
     yaw = jnp.asarray(grid.bin_centres()) + state.yaw_offset_rad[:, None]
     _, v_new, ds, move, dyaw = motion_lib.step(model, actuator, prev_action, state.speed_mps, yaw)
     moved, offset = jax.vmap(lambda b, m, o, d: predict(b, m, o, d, model, grid, heading_noise_scale))(
@@ -379,15 +391,18 @@ def filter_step(
         belief=_normalised(jnp.where(rows(moved), first_belief, prior) * measured),
         speed_mps=jnp.where(first, first_speed, v_new + speed_gain * (head_speed - v_new)),
         yaw_offset_rad=jnp.where(first, first_offset, offset),
+        odometry=state.odometry,
         **started,
     )
     return new, estimate(new.belief, head, new.speed_mps, grid, position)
 
 
-def head_state(head: dict, grid: Grid) -> PoseBeliefState:
+def head_state(head: dict, grid: Grid, odometry: ego_motion.OdometryState) -> PoseBeliefState:
     """The filter state of B streams that is the head's own distribution (place x heading, no filtering),
-    its speed, no heading offset and no actuators: the belief of ``--model.pose_filter=none``."""
+    its speed, no heading offset and no actuators: the belief of ``--model.pose_filter=none``
+    (``odometry`` carried unchanged)."""
     return PoseBeliefState(
+        odometry=odometry,
         belief=_normalised(likelihood(head, grid, floor=0.0, power=1.0)),
         speed_mps=head["speed"] * SPEED_SCALE_MPS,
         yaw_offset_rad=jnp.zeros_like(head["speed"]),

@@ -2,8 +2,8 @@
 
     python experiments/baselines.py --config=demo --workdir=runs/baselines [--baseline=detector,tracker]
 
-``--baseline``: a comma list of detector, tracker, pose, dead_reckoning, wheel_odometry (default: all). The
-detector and the pose regressor train like the main model (``config.json``, ``metrics.jsonl``,
+``--baseline``: a comma list of detector, tracker, pose, dead_reckoning, lidar_odometry, wheel_odometry
+(default: all). The detector and the pose regressor train like the main model (``config.json``, ``metrics.jsonl``,
 ``checkpoints/``; resumed if stopped, skipped if finished) on the same ``--config`` and overrides; the
 tracker evaluates the detector's run (trained first if needed); the odometry baselines train nothing
 (dead reckoning fits the motion model once) and are evaluated under the known-start protocol. Each evaluation goes to

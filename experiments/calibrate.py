@@ -4,7 +4,8 @@ dead reckoning follow, fitted on training drives of the run's world (``e2e_perce
     python experiments/calibrate.py --workdir=runs/demo [--refit]
 
 Training fits it at the start of a run with the belief pose head; this launcher fits it for a run that
-has none, or again with ``--refit``. Prints the fitted model. A bad flag prints one line and exits with
+has none, or again with ``--refit``, with the scan matcher's noise that the lidar odometry reads (which an
+evaluation from a known start on a held-out town otherwise fits the first time it needs it). Prints the fitted model. A bad flag prints one line and exits with
 status 1.
 """
 
@@ -32,7 +33,7 @@ def main(argv):
     path = os.path.join(FLAGS.workdir, FILE_NAME)
     if os.path.exists(path) and not FLAGS.refit:
         sys.exit(f"error: {path} exists; --refit fits it again")
-    model = calibration.calibrate(cfg)
+    model = calibration.calibrate(cfg, scans=True)
     print(f"wrote {model.save(FLAGS.workdir)}")
     for name, value in dataclasses.asdict(model).items():
         print(f"  {name} = {value:.6g}")

@@ -39,6 +39,11 @@ EARLIER_FILTER_NOTE = (
     "- † Pose figures from the filter's settings before 2026-11-27 (every frame measured in full, the car "
     "standing or not): [BUILD_NOTES](BUILD_NOTES.md#measurements-while-the-car-stands)."
 )
+COMMANDS_ONLY = " ‡"  # after a held-out town's drift that the commands alone made (_commands_only)
+COMMANDS_ONLY_NOTE = (
+    "- ‡ Evaluated before the lidar odometry: on a town the model never saw, the belief followed the commands "
+    "alone (the network plays no part there): [BUILD_NOTES](BUILD_NOTES.md#odometry-from-the-lidar-on-towns-never-seen)."
+)
 TRAINING_EVERY = 100  # steps between the kept training records (a 9,000-step run: 90 lines)
 # BGR, one per method in the learning curves' figure
 COLOURS = (
@@ -283,6 +288,12 @@ def _earlier_filter(evaluations: list[dict] | None) -> bool:
     )
 
 
+def _commands_only(evaluations: list[dict] | None) -> bool:
+    """Whether an end-to-end model's known-start evaluations on a held-out town followed the commands alone
+    (evaluated before the lidar odometry, which metrics.json records)."""
+    return any(m["label"] in config_lib.VARIANTS and not m["pose"].get("lidar_odometry") for m in evaluations or [])
+
+
 def localisation(found: dict) -> str:
     """The paper's Table II: town 0 under the global protocol, each variant beside the paper's row, then the
     modular pipeline; with what the paper lacks: the frames within 5 and 10 m, the belief's coverage, and
@@ -298,6 +309,7 @@ def localisation(found: dict) -> str:
         "against the paper's row: location / heading",
     ]
     rows, shown, constant, paper, marked = [], [], None, _paper_figures("pose"), False
+    commands_only = False
     for method, variant in _paper_rows(found):
         if method is None:
             if variant in paper:
@@ -306,10 +318,11 @@ def localisation(found: dict) -> str:
             continue
         ev = found[method]
         known = ev.get("eval_known_start")
-        drift = [
-            _cell(ev.get(name), "drift per 100 m (m)", digits=2)
-            for name in ("eval_known_start", *(f"eval_town{t}_known_start" for t in HELD_OUT_TOWNS))
+        held_out = [ev.get(f"eval_town{t}_known_start") for t in HELD_OUT_TOWNS]
+        drift = [_cell(ev.get("eval_known_start"), "drift per 100 m (m)", digits=2)] + [
+            _cell(e, "drift per 100 m (m)", digits=2) + (COMMANDS_ONLY if _commands_only(e) else "") for e in held_out
         ]
+        commands_only = commands_only or any(map(_commands_only, held_out))
         glob_ = ev.get("eval")
         against = ""
         if glob_ and variant in paper:
@@ -353,6 +366,7 @@ def localisation(found: dict) -> str:
             ]
         )
     note = f"\n{EARLIER_FILTER_NOTE}" if marked else ""
+    note += f"\n{COMMANDS_ONLY_NOTE}" if commands_only else ""
     return markdown_table(header, rows) + "\n\n" + _runs_note(found, shown) + note + "\n"
 
 

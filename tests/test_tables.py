@@ -28,11 +28,13 @@ def _metrics(
     step=None,
     place_frames=None,
     earlier_filter=False,
+    commands_only=False,
 ):
     """A metrics.json with what the tables read, every AP ``ap`` and the location mean ``location``
     (of checkpoint ``step``, or of the trained run where None), of the `cpu` preset (with ``place_frames``
     where given: another recipe), its belief filtered at today's defaults (``earlier_filter``: from before
-    evaluations recorded the filter's settings)."""
+    evaluations recorded the filter's settings), on a held-out town from the known start by the lidar
+    odometry (``commands_only``: from before evaluations recorded it)."""
     cfg = config.replace(
         config.get_config("cpu"), train=dict(seed=seed), eval=dict(town_seed=town, known_start=known_start)
     )
@@ -55,6 +57,8 @@ def _metrics(
     }
     if not earlier_filter:
         pose["filter_settings"] = pose_belief.default_settings()
+    if not commands_only:
+        pose["lidar_odometry"] = town != 0 and known_start
     return {
         "label": label,
         "config": json.loads(cfg.to_json()),
@@ -206,6 +210,19 @@ def test_a_variant_filtered_at_earlier_settings_is_marked(results, tmp_path):
     assert localisation.count(tables.EARLIER_FILTER) == 1 + tables.EARLIER_FILTER_NOTE.count(tables.EARLIER_FILTER)
     assert _row(localisation, f"`cpu`{tables.EARLIER_FILTER}")[1] == "5.0 ± 1.0 / 10.0 ± 2.0"
     assert tables.EARLIER_FILTER_NOTE in localisation
+
+
+def test_a_held_out_drift_of_the_commands_alone_is_marked(results, tmp_path):
+    """A variant's held-out known-start evaluation (one seed of two) from before the lidar odometry gets the
+    mark on that town's drift, and the note; with every evaluation by the lidar odometry, neither appears."""
+    localisation = tables.render(str(results))["localisation"]
+    assert tables.COMMANDS_ONLY not in localisation and tables.COMMANDS_ONLY_NOTE not in localisation
+    old = _metrics(1, town=7, known_start=True, drift=2.0, commands_only=True)
+    _write_run(tmp_path / "runs" / "place_s1", {"eval_town7_known_start": old})
+    tables.collect("cpu", [str(tmp_path / "runs" / name) for name in ("place_s0", "place_s1")], str(results))
+    localisation = tables.render(str(results))["localisation"]
+    assert _row(localisation, "`cpu`")[6] == f"1.00 ± 0.50 / 2.00 ± 0.00{tables.COMMANDS_ONLY} / -"
+    assert tables.COMMANDS_ONLY_NOTE in localisation
 
 
 def test_learning_curve_reads_each_checkpoints_evaluations(results):

@@ -45,6 +45,13 @@ class MotionModel:
     understeer_s2pm2: float = 0.0
     heading_noise_rad2pm: float = 0.0
     position_noise_m2pm: float = 0.0
+    # The lidar odometry's (e2e_percep_jax.ego_motion): the spread over drives of each drive's curvature bias
+    # and yaw gain error, the yaw error per metre left within a drive, and the scan matcher's heading error
+    # (times the square root of the scans' returns). A scan noise of 0: not fitted, no scans used.
+    yaw_bias_std_1pm: float = 0.0
+    yaw_gain_std: float = 0.0
+    yaw_noise_rad2pm: float = 0.0
+    scan_yaw_noise_rad: float = 0.0
 
     def save(self, workdir: str) -> str:
         path = os.path.join(workdir, FILE_NAME)

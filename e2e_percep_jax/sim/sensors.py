@@ -541,6 +541,18 @@ def lidar_obstacles(state: WorldState, town: Town, building_box_ego, vehicle_box
     )
 
 
+def _in_ego_frame(state: WorldState, town: Town):
+    """(the other vehicles' boxes [N, 5], the buildings' boxes) in the ego frame."""
+    ego = state.veh_box[EGO]
+    return geo.box_to_ego(state.veh_box[1:], ego[:2], ego[2]), geo.box_to_ego(town.building_box, ego[:2], ego[2])
+
+
+def observe_lidar(state: WorldState, town: Town, image_size: int):
+    """The frame's lidar image alone (:func:`observe`'s ``lidar``), for drives that need no other sensor."""
+    town = jax.tree.map(jnp.asarray, town)
+    return render_lidar(lidar_obstacles(state, town, *_in_ego_frame(state, town)), image_size)[0]
+
+
 def observe(state: WorldState, town: Town, image_size: int):
     """One frame of the contract (:class:`rollout.Frames`) except ``action``, which belongs to the transition t -> t+1
     and is added by ``batch.rollout`` from the next state.
@@ -554,8 +566,7 @@ def observe(state: WorldState, town: Town, image_size: int):
     town = jax.tree.map(jnp.asarray, town)  # NumPy fields cannot be indexed by traced indices
     ego = state.veh_box[EGO]
     ego_xy, ego_yaw = ego[:2], ego[2]
-    boxes = geo.box_to_ego(state.veh_box[1:], ego_xy, ego_yaw)  # [N, 5]
-    buildings = geo.box_to_ego(town.building_box, ego_xy, ego_yaw)
+    boxes, buildings = _in_ego_frame(state, town)
     seen_by_lidar = lidar_obstacles(state, town, buildings, boxes)
     lidar, returned = render_lidar(seen_by_lidar, image_size)
     n = boxes.shape[0]
