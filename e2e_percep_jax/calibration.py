@@ -35,9 +35,10 @@ MIN_SPEED_MPS = 1.0  # slower steps are left out of the fits (curvature is ill-d
 
 
 @functools.partial(jax.jit, static_argnames=("world_cfg", "warmup_steps", "num_worlds", "num_steps", "image_size"))
-def _drive(key, town, world_cfg: WorldConfig, warmup_steps: int, num_worlds: int, num_steps: int, image_size: int = 0):
-    """Per step of ``num_worlds`` drives: the ego's (x, y, yaw), speed, commands and, with ``image_size``,
-    its lidar image."""
+def drives(key, town, world_cfg: WorldConfig, warmup_steps: int, num_worlds: int, num_steps: int, image_size: int = 0):
+    """``num_worlds`` drives of ``num_steps`` steps after ``warmup_steps``, reset from ``key``; per step: the
+    ego's (x m, y m, yaw rad) [W, T, 3], speed [W, T], the commands applied from it to the next [W, T, 2]
+    and, with ``image_size``, its lidar image [W, T, R, R, 3] (else None)."""
 
     def one(k):
         def body(s, _):
@@ -61,8 +62,8 @@ def training_drives(cfg: Config, num_worlds: int = 8, num_steps: int = 1500) -> 
         key = jax.random.PRNGKey(CALIBRATION_SEED)
         town = town_lib.build_town(cfg.world.town_seed)
         # (the world and the warm-up alone are static: runs that differ in anything else share one compilation)
-        drives = _drive(key, town, cfg.world, cfg.data.warmup_steps, num_worlds, num_steps)
-        pose, speed, command, _ = jax.tree.map(np.asarray, drives)
+        driven = drives(key, town, cfg.world, cfg.data.warmup_steps, num_worlds, num_steps)
+        pose, speed, command, _ = jax.tree.map(np.asarray, driven)
     return {
         "pose": pose.astype(np.float64),
         "speed_mps": speed.astype(np.float64),
@@ -74,8 +75,7 @@ def _lagged(command, share):
     """The commands [W, T, 2] through the lag: actuator state after each step, starting at the first command."""
     out, actuator = np.empty_like(command), command[:, 0]
     for t in range(command.shape[1]):
-        actuator = actuator + share * (command[:, t] - actuator)
-        out[:, t] = actuator
+        actuator = out[:, t] = motion.lag_step(share, actuator, command[:, t])
     return out
 
 
@@ -90,18 +90,22 @@ def _rear_axle(pose):
     return pose[..., :2] - 0.5 * WHEELBASE_M * np.stack([np.cos(pose[..., 2]), np.sin(pose[..., 2])], -1)
 
 
+def _steps(pose):
+    """(rear axle [W, T, 2], its distance [W, T-1] and the yaw change [W, T-1] of each step) of poses [W, T, 3]."""
+    rear = _rear_axle(pose)
+    return rear, np.linalg.norm(np.diff(rear, axis=1), axis=-1), wrap_angle(np.diff(pose[..., 2], axis=1))
+
+
 def fit(drives: dict) -> MotionModel:
     """The motion model of drives (:func:`training_drives`' arrays): see the module docstring."""
     pose, v, command = drives["pose"], drives["speed_mps"], drives["command"]
     accel = np.diff(v, axis=1) / DT_S  # [W, T-1]: step t's acceleration
-    rear = _rear_axle(pose)
-    ds = np.linalg.norm(np.diff(rear, axis=1), axis=-1)
-    dyaw = wrap_angle(np.diff(pose[..., 2], axis=1))
+    rear, ds, dyaw = _steps(pose)
     v_mid = 0.5 * (v[:, 1:] + v[:, :-1])
     moving = v_mid > MIN_SPEED_MPS
     best = None
     for lag_s in LAG_GRID_S:
-        share = 1.0 - np.exp(-DT_S / lag_s) if lag_s > 0 else 1.0
+        share = motion.lag_share(lag_s)
         actuator = _lagged(command, share)[:, :-1]  # step t's actuators
         pedal_features = np.stack([actuator[..., 0], np.ones_like(v_mid)], -1)[moving]
         pedal_coef, pedal_mse = _least_squares(pedal_features, accel[moving])
@@ -181,7 +185,7 @@ def scan_errors(cfg: Config, model: MotionModel, town_seed: int, key, num_worlds
     the fewer of each pair's returns [M])."""
     with jax.default_device(jax.local_devices()[0]):
         town = town_lib.build_town(town_seed)
-        pose, speed, command, lidar = _drive(
+        pose, speed, command, lidar = drives(
             key, town, cfg.world, cfg.data.warmup_steps, num_worlds, num_frames, cfg.data.image_size
         )
     k = ego_motion.KEYFRAME_FRAMES
@@ -227,6 +231,10 @@ def ensure_scans(cfg: Config, workdir: str) -> MotionModel:
     model = MotionModel.load(workdir)
     if not ego_motion.uses_scans(model):
         print("fitting the scan matcher's noise on training drives", flush=True)
+        if model.yaw_bias_std_1pm == 0:  # a model fitted before the lidar odometry: its prior too
+            drives = training_drives(cfg)
+            _, ds, dyaw = _steps(drives["pose"])
+            model = _with_yaw_spread(model, drives, ds, dyaw)
         model = fit_scans(cfg, model)
         model.save(workdir)
     return model

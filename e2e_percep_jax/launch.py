@@ -4,9 +4,11 @@ left that their progress lines print.
 :func:`prepare` makes the process-wide settings, then the first checks of the launcher's flags. The settings
 must come before JAX's backend starts (XLA reads ``XLA_FLAGS`` once, then), and they change the whole
 process, so launchers make them and the library never does on import. Launchers that run no model
-(``calibrate``, ``sweep``, ``traffic_soak``, ``warmup_stats``) make the checks alone
-(:func:`e2e_percep_jax.config.check_launch`).
+(``calibrate``, ``odometry_paths``, ``sweep``, ``traffic_soak``, ``warmup_stats``) make the checks alone
+(:func:`e2e_percep_jax.config.check_launch`, or :func:`run_config` for one that reads a run).
 """
+
+import sys
 
 from e2e_percep_jax import allocator, xla_cpu
 from e2e_percep_jax import config as config_lib
@@ -27,6 +29,16 @@ def prepare(argv) -> None:
     its one-line error exit."""
     process_settings()
     config_lib.check_launch(argv)
+
+
+def run_config(argv, workdir: str) -> config_lib.Config:
+    """:func:`e2e_percep_jax.config.check_launch`, then the config of the run in ``workdir``; a bad flag or run
+    ends the launcher with one line naming it (status 1)."""
+    try:
+        config_lib.check_launch(argv)
+        return config_lib.run_config(workdir)
+    except ValueError as e:
+        sys.exit(f"error: {e}")
 
 
 def eta(seconds: float) -> str:

@@ -207,6 +207,17 @@ def map_panel(view, true_xy, pred_xy, place=None):
     return title(img, "town: true path, estimate, belief")
 
 
+def paths_panel(view, paths):
+    """uint8 [S, S, 3]: ``view`` (a :class:`TopDown`) with each path of ``paths``, a list of (town points
+    [P, 2], RGB colour), drawn as a line, its end ringed."""
+    img = view.draw()
+    for xy, colour in paths:
+        px = view._px(np.reshape(xy, (-1, 2)))
+        cv2.polylines(img, [px], False, colour, 2, cv2.LINE_AA, _SHIFT)
+        cv2.circle(img, tuple(px[-1]), 6 << _SHIFT, colour, 2, cv2.LINE_AA, _SHIFT)
+    return img
+
+
 def title(view, text):
     """Writes ``text`` in ``view``'s top-left corner (in place; ``view`` may be a slice of a larger picture):
     white on a black box, the font shrunk until the box fits the view's width."""

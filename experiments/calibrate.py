@@ -15,7 +15,7 @@ import sys
 
 from absl import app, flags
 
-from e2e_percep_jax import calibration
+from e2e_percep_jax import calibration, launch
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax.sim.motion import FILE_NAME
 
@@ -25,11 +25,7 @@ FLAGS = flags.FLAGS
 
 
 def main(argv):
-    try:
-        config_lib.check_launch(argv)
-        cfg = config_lib.run_config(FLAGS.workdir)
-    except ValueError as e:
-        sys.exit(f"error: {e}")
+    cfg = launch.run_config(argv, FLAGS.workdir)
     path = os.path.join(FLAGS.workdir, FILE_NAME)
     if os.path.exists(path) and not FLAGS.refit:
         sys.exit(f"error: {path} exists; --refit fits it again")

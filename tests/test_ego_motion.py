@@ -164,3 +164,19 @@ def test_the_scan_matcher_follows_the_true_motion_on_a_town_it_never_saw():
     assert kept.mean() > 0.5
     assert np.median(np.abs(error[kept])) < 0.01
     assert np.mean(np.abs(error[kept]) > 0.05) < 0.1
+
+
+def test_a_motion_model_from_before_the_lidar_odometry_gains_its_prior_and_scan_noise(tmp_path):
+    """A run whose motion_model.json predates the lidar odometry (no offset prior, no scan noise) gets both
+    fitted and saved the first time the odometry needs them; its own fields stay as they were."""
+    cfg = config_lib.get_config("tiny")
+    old = motion.MotionModel(lag_share=0.5, steer_gain=0.97, heading_noise_rad2pm=3e-4)
+    old.save(str(tmp_path))
+    model = calibration.ensure_scans(cfg, str(tmp_path))
+    assert model.yaw_bias_std_1pm > 0 and model.yaw_gain_std > 0 and model.yaw_noise_rad2pm > 0
+    assert ego_motion.uses_scans(model)
+    assert (
+        dataclasses.replace(model, yaw_bias_std_1pm=0.0, yaw_gain_std=0.0, yaw_noise_rad2pm=0.0, scan_yaw_noise_rad=0.0)
+        == old
+    )
+    assert motion.MotionModel.load(str(tmp_path)) == model

@@ -24,11 +24,13 @@ import json
 import os
 
 import jax.numpy as jnp
+import numpy as np
 
 from e2e_percep_jax.sim.geometry import array_module, pose_yaw
 
 DT_S = 0.1  # the world's time step (s): one frame
 WHEELBASE_M = 2.7  # the kinematic bicycle model's wheelbase
+EGO_ACCEL_LIMIT_MPS2 = 3.0  # the pedal's full scale: a pedal of 1 asks for this acceleration
 FILE_NAME = "motion_model.json"  # in a run directory
 
 
@@ -38,7 +40,7 @@ class MotionModel:
     no lag and no process noise: the world's plant with all its fields at zero."""
 
     lag_share: float = 1.0
-    accel_per_pedal_mps2: float = 3.0  # world.EGO_ACCEL_LIMIT_MPS2: the pedal's full scale
+    accel_per_pedal_mps2: float = EGO_ACCEL_LIMIT_MPS2
     accel_bias_mps2: float = 0.0
     steer_gain: float = 1.0
     steer_bias: float = 0.0  # (WHEELBASE_M x curvature at zero steering)
@@ -73,16 +75,36 @@ class MotionModel:
             raise ValueError(f"{path}: not a motion model ({type(e).__name__}: {e})") from None
 
 
+def lag_share(lag_s: float) -> float:
+    """The share of the gap to its command that a first-order lag of time constant ``lag_s`` closes in a
+    step (1: no lag)."""
+    return float(1.0 - np.exp(-DT_S / lag_s)) if lag_s > 0 else 1.0
+
+
+def lag_step(share, actuator, command):
+    """Actuators [...] one step of a first-order lag closing ``share`` of the gap towards ``command``; at
+    share 1, the command bit for bit (``where``, not the formula, which rounds). The world's plant and the
+    motion model take this one step; NumPy in, NumPy out."""
+    xp = array_module(share, actuator, command)
+    return xp.where(share == 1.0, command, actuator + share * (command - actuator))
+
+
+def speed_step(speed_mps, accel_mps2):
+    """(speed after a step of acceleration ``accel_mps2`` [...], never below 0; the distance driven [...] m
+    at the step's mean speed). The world's plant and the motion model take this one step (in JAX, float32
+    unless x64 is on, whatever the inputs: the calibration's fit reads it so)."""
+    v_new = jnp.maximum(speed_mps + accel_mps2 * DT_S, 0.0)
+    return v_new, 0.5 * (speed_mps + v_new) * DT_S
+
+
 def actuate(model: MotionModel, actuator, command):
     """The actuators' state [..., 2] (pedal, steering rad) after one step towards ``command`` [..., 2]."""
-    return actuator + model.lag_share * (command - actuator)
+    return lag_step(model.lag_share, actuator, command)
 
 
 def speed_and_distance(model: MotionModel, actuator, speed_mps):
     """(speed after the step [...], distance driven [...] m) from the actuators [..., 2] and the speed before."""
-    accel = model.accel_per_pedal_mps2 * actuator[..., 0] + model.accel_bias_mps2
-    v_new = jnp.maximum(speed_mps + accel * DT_S, 0.0)
-    return v_new, 0.5 * (speed_mps + v_new) * DT_S
+    return speed_step(speed_mps, model.accel_per_pedal_mps2 * actuator[..., 0] + model.accel_bias_mps2)
 
 
 def curvature(model: MotionModel, steer_rad, mid_speed_mps):

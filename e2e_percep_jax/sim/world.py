@@ -37,9 +37,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from e2e_percep_jax.config import WorldConfig
+from e2e_percep_jax.sim import motion
 from e2e_percep_jax.sim import town as town_lib
 from e2e_percep_jax.sim.geometry import wrap_angle
-from e2e_percep_jax.sim.motion import DT_S, WHEELBASE_M, centre_after
+from e2e_percep_jax.sim.motion import DT_S, EGO_ACCEL_LIMIT_MPS2, WHEELBASE_M, centre_after
 
 EGO = 0  # index of the ego in every per-vehicle array
 
@@ -47,7 +48,6 @@ ROUTE_LEN = 3
 # Conflict zones are checked on the current lane and the next two: a zone on the lane after those is at least
 # the two lanes' length (> 20 m, tested) away, and it is checked once it becomes the third.
 CONFLICT_LANES = 3
-EGO_ACCEL_LIMIT_MPS2 = 3.0  # the action's acceleration lies in [-this, this]
 EGO_STEER_LIMIT_RAD = 0.3
 EGO_SIZE_M = (4.6, 1.9, 1.5)  # length, width, height
 EGO_COLOR = (200, 30, 40)
@@ -160,7 +160,7 @@ def draw_plant(key, cfg: WorldConfig) -> EgoPlant:
         steer_gain=1.0 + gain * f32(cfg.ego_steer_gain_std),
         distance_scale=1.0 + scale * f32(cfg.ego_distance_scale_std),
         understeer_rad_s2pm=f32(np.deg2rad(cfg.ego_understeer_deg_per_g) / G_MPS2),
-        lag_share=f32(1.0 - np.exp(-DT_S / cfg.ego_lag_s) if cfg.ego_lag_s > 0 else 1.0),
+        lag_share=f32(motion.lag_share(cfg.ego_lag_s)),
         accel_noise_mps2=f32(cfg.ego_accel_noise_mps2),
         curvature_noise_1pm=f32(cfg.ego_curvature_noise_1pm),
     )
@@ -583,15 +583,11 @@ def _drive_ego(state, town, accel, noise_key):
     curvature = ref_curv - STEER_GAIN_LATERAL * lateral_m - STEER_GAIN_HEADING * jnp.sin(wrap_angle(box[2] - ref_yaw))
     steer_command = jnp.clip(jnp.arctan(WHEELBASE_M * curvature), -EGO_STEER_LIMIT_RAD, EGO_STEER_LIMIT_RAD)
     command = jnp.stack([accel, steer_command])
-    # (where, not the lag formula at share 1: the exact plant takes the commands bit for bit)
-    actuator = jnp.where(
-        plant.lag_share == 1.0, command, state.ego_actuator + plant.lag_share * (command - state.ego_actuator)
-    )
+    actuator = motion.lag_step(plant.lag_share, state.ego_actuator, command)
     steer = jnp.clip(plant.steer_gain * actuator[1] + plant.steer_offset_rad, -EGO_STEER_LIMIT_RAD, EGO_STEER_LIMIT_RAD)
     noise = jax.random.normal(noise_key, (2,)) * jnp.stack([plant.accel_noise_mps2, plant.curvature_noise_1pm])
     # accel >= -v / DT_S: without lag or noise only rounding is clipped here
-    v_new = jnp.maximum(v + (plant.distance_scale * actuator[0] + noise[0]) * DT_S, 0.0)
-    ds = 0.5 * (v + v_new) * DT_S
+    v_new, ds = motion.speed_step(v, plant.distance_scale * actuator[0] + noise[0])
     # Understeer: the curvature is tan(steer) / (wheelbase + K v^2), not tan(steer) / wheelbase. (where: XLA
     # divides by a traced value otherwise than by the constant, so K = 0 takes the constant's quotient.)
     dyaw = ds * jnp.tan(steer) / WHEELBASE_M
