@@ -223,7 +223,7 @@ def step(state: OdometryState, model: MotionModel, actuator, command, pose, lida
     estimate, and becomes the keyframe. Rows with ``first`` [B] start at ``start_pose`` [B, 5]. Without the
     matcher's fitted noise (:func:`uses_scans`), or ``lidar`` None, this is dead reckoning on the commands."""
     yaw = geo.pose_yaw(pose)
-    actuator, v_new, ds, _, model_dyaw = motion_lib.step(model, actuator, command, pose[:, 4], yaw[:, None])
+    actuator, v_new, ds, model_dyaw = motion_lib.drive(model, actuator, command, pose[:, 4])
     dyaw = model_dyaw + ds * state.correction[:, 0] + model_dyaw * state.correction[:, 1]
     xy = pose[:, :2] + motion_lib.centre_move(ds, dyaw, yaw[:, None])[:, 0]
     yaw = yaw + dyaw

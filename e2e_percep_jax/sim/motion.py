@@ -132,12 +132,18 @@ def centre_move(ds_m, dyaw_rad, yaw_rad):
     return centre_after(0.0, yaw_rad, ds_m[..., None], yaw_rad + dyaw_rad[..., None])
 
 
+def drive(model: MotionModel, actuator, command, speed_mps):
+    """One step of the motion model without a heading: (actuators after [..., 2], speed after [...], distance
+    [...] m, yaw change [...] rad)."""
+    actuator = actuate(model, actuator, command)
+    v_new, ds = speed_and_distance(model, actuator, speed_mps)
+    return actuator, v_new, ds, ds * curvature(model, actuator[..., 1], 0.5 * (speed_mps + v_new))
+
+
 def step(model: MotionModel, actuator, command, speed_mps, yaw_rad):
     """One step of the motion model for K headings: (actuators after [..., 2], speed after [...], distance
     [...] m, centre displacement [..., K, 2] m, yaw change [...] rad)."""
-    actuator = actuate(model, actuator, command)
-    v_new, ds = speed_and_distance(model, actuator, speed_mps)
-    dyaw = ds * curvature(model, actuator[..., 1], 0.5 * (speed_mps + v_new))
+    actuator, v_new, ds, dyaw = drive(model, actuator, command, speed_mps)
     return actuator, v_new, ds, centre_move(ds, dyaw, yaw_rad), dyaw
 
 
