@@ -137,7 +137,7 @@ class Perceiver:
         self._check_state(state, b)
         latent_state, latent = model_lib.filter_step(params, state, camera, lidar, action, key, self.cfg)
         z = jnp.concatenate([latent["z1"], latent["z2"]], -1)
-        decoded = model_lib.decode(params, z, self.cfg)
+        decoded = model_lib.decode(params, latent, self.cfg)
         common = dict(det_cls=decoded["det_cls"], det_reg=decoded["det_reg"], z=z)
         common.update(
             {k: jnp.clip(decoded[k], 0.0, 1.0) for k in model_lib.reconstructed_images(self.cfg.model.variant)}

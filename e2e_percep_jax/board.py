@@ -104,7 +104,7 @@ def preview(params, camera, lidar, roadmap, action, pose, cfg: Config) -> dict:
     belief head, ``pose_belief``: its place probabilities (uint8 [n, n, 3], the true cell green)."""
     out = model_lib.filter_sequence(params, camera[:1], lidar[:1], action[:1], None, cfg)
     last = jax.tree.map(lambda x: x[:, -1], out)
-    decoded = model_lib.decode(params, jnp.concatenate([last["z1"], last["z2"]], -1), cfg)
+    decoded = model_lib.decode(params, last, cfg)
     inputs = {"camera": camera, "lidar": lidar, "roadmap": roadmap}
     to_uint8 = lambda x: (jnp.clip(x, 0.0, 1.0) * 255.0 + 0.5).astype(jnp.uint8)
     images = {

@@ -53,6 +53,15 @@ def drives(key, town, world_cfg: WorldConfig, warmup_steps: int, num_worlds: int
     return jax.vmap(one)(jax.random.split(key, num_worlds))
 
 
+def start_and_commands(pose, speed, command):
+    """:func:`drives`' pose [W, T, 3], speed [W, T] and commands [W, T, 2] as a perceiver meets them: each
+    drive's first pose [W, 5] (x, y, cos, sin, speed) and frame t's commands, those applied from t-1 to t
+    [W, T, 2] (frame 0's: its own, which only set the actuators)."""
+    yaw = pose[:, 0, 2]
+    start = jnp.stack([pose[:, 0, 0], pose[:, 0, 1], jnp.cos(yaw), jnp.sin(yaw), speed[:, 0]], -1)
+    return start, jnp.concatenate([command[:, :1], command[:, :-1]], 1)
+
+
 def training_drives(cfg: Config, num_worlds: int = 8, num_steps: int = 1500) -> dict:
     """``num_worlds`` drives of ``num_steps`` steps in the training town after the traffic's warm-up, reset
     from ``PRNGKey(CALIBRATION_SEED)``. NumPy arrays [W, T]: ``pose`` [W, T, 3] (x m, y m, yaw rad),

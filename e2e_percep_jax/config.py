@@ -32,6 +32,10 @@ POSE_HEADS = ("belief", "regression", "reference")
 # How the belief head's frames become a pose (api.Perceiver.step): histogram, the Bayes filter through the
 # recorded actions (pose_belief.filter_step); none, each frame's head read alone (the latent's own memory).
 POSE_FILTERS = ("histogram", "none")
+# What the PIXOR decoder reads: latent, the latent sample z = [z1, z2] alone (the paper); latent_and_features,
+# z beside the frame's encoder features [2F], as the belief head reads them (the single-frame detector reads
+# the features alone).
+DETECTION_INPUTS = ("latent", "latent_and_features")
 DEFAULT_TOWN_SEED = 0
 
 
@@ -70,13 +74,14 @@ class DataConfig:
     warmup_steps: int = 200  # world steps from reset before a sequence is recorded (steady traffic)
     # K: each drive of B worlds feeds K batches (warm-up paid once per K), each seen by egos handed over
     # to random NPCs, the stream taking its batches from K drives in turn so successive batches still come
-    # from different worlds; 1 = every batch from fresh worlds (batch.py). The training presets use
-    # _BATCHES_PER_DRIVE; 1 here is what configs saved before the field existed ran with.
-    batches_per_drive: int = 1
+    # from different worlds; 1 = every batch from fresh worlds (batch.py). 10 batches a drive cost 6-9 % of
+    # a `cpu` step against 20-22 % for fresh worlds, and learned as well over three seeds.
+    batches_per_drive: int = 10
     # The place stream: P extra single frames a step, each at a uniformly random point of the town's lanes
     # (batch.place_frames), that train the belief pose head and the encoders through it: many more places
-    # a step than the B sequences' few. 0 = none.
-    place_frames: int = 0
+    # a step than the B sequences' few. 0 = none. 32 cost 7-10 % of a step and halved the `cpu` preset's
+    # location error at 3,000 steps (two seeds; BUILD_NOTES, "Localisation sooner").
+    place_frames: int = 32
     # Carried state (needs K > 1): no hand-over inside a drive, and the latent filter state at the end of
     # one segment starts the drive's next, gradients cut between them (truncated BPTT over K segments).
     carry_state: bool = False
@@ -91,35 +96,41 @@ class ModelConfig:
     hidden_dim: int = 256  # width of every latent / pose MLP
     # Width of the belief head's two hidden layers; 0 = hidden_dim. Its output is a logit per cell (about
     # 2,300) and bin: a wider head names places sooner (BUILD_NOTES, "Localisation sooner").
-    pose_hidden_dim: int = 0
+    pose_hidden_dim: int = 512
     z1_dim: int = 32
     z2_dim: int = 256
     variant: str = "full"  # one of VARIANTS
-    pose_head: str = "regression"  # one of POSE_HEADS; the presets use "belief"
+    pose_head: str = "belief"  # one of POSE_HEADS
     pose_cell_m: float = 10.0  # the belief's cell size (metres)
     pose_heading_bins: int = 36  # the belief's heading bins
     # Std of the belief head's Gaussian soft targets, in cells (place) and bins (heading): label smoothing
     pose_target_std_cells: float = 0.5
     pose_filter: str = "histogram"  # one of POSE_FILTERS; inference only, so evaluation may change it
+    detection_input: str = "latent"  # one of DETECTION_INPUTS
 
 
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
     seed: int = 0
-    num_steps: int = 2000
-    learning_rate: float = 1e-4
+    num_steps: int = 3000
+    # 1e-3, not the reference's 1e-4: reaches 1e-4's 600-step loss in 200 steps
+    learning_rate: float = 1e-3
     # The share of num_steps at the end over which the learning rate falls to zero along a cosine; 0 = a
-    # constant rate (the reference). A fixed budget's last steps then settle instead of wandering.
-    lr_decay_share: float = 0.0
+    # constant rate (the reference). A fixed budget's last steps then settle instead of wandering: AP@0.5
+    # +2.6-4.7 points and the location error 0.2-0.6 m lower at the `cpu` preset's 3,000 steps (two seeds).
+    lr_decay_share: float = 0.3
     # Global gradient-norm clip before Adam; 0 = none (the reference). One step whose KL spikes (a prior
-    # scale at its 1e-5 floor) otherwise fills Adam's second moment for thousands of steps.
-    max_grad_norm: float = 0.0
+    # scale at its 1e-5 floor) otherwise fills Adam's second moment for thousands of steps. 1e6 lies above
+    # the steady norms (3e4-6e5), below a spike's (1e13).
+    max_grad_norm: float = 1e6
     # The reference averages the ELBO over its batch but SUMS the detection and pose losses over it (the
     # paper's B = 32). Per sequence (loss.py's normalisation, whatever B is) that is perception x 32.
     perception_weight: float = 32.0
     # A further factor on the pose term alone (its weight: perception_weight * pose_weight). 1 = the
-    # reference. Larger asks the latent to carry place, which it otherwise barely holds.
-    pose_weight: float = 1.0
+    # reference. Larger asks the latent to carry place, which it otherwise barely holds: with 16 and the
+    # 512-wide belief head both `cpu` seeds were within 5 m and 0.07 rad by 2,000 steps, where pose weight 4
+    # and a 128-wide head were at 10-16 m (BUILD_NOTES, "The `cpu` preset with both levers").
+    pose_weight: float = 16.0
     # beta on the z1 KL (beta-VAE). 1 = the reference's ELBO; < 1 lets the latent hold more of what the
     # heads need (place, above all) at the price of a looser bound.
     kl_weight: float = 1.0
@@ -152,6 +163,17 @@ class EvalConfig:
 
 # (section, old name) -> new name: runs saved before a rename still read back.
 RENAMED_FIELDS = {("eval", "num_steps"): "num_frames"}
+# (section, field) -> the value a run saved before the field existed ran with, where today's default differs:
+# the defaults became the presets' recipe once the fields were there to hold it.
+SAVED_WITHOUT = {
+    ("data", "batches_per_drive"): 1,
+    ("data", "place_frames"): 0,
+    ("model", "pose_hidden_dim"): 0,
+    ("model", "pose_head"): "regression",
+    ("train", "lr_decay_share"): 0.0,
+    ("train", "max_grad_norm"): 0.0,
+    ("train", "pose_weight"): 1.0,
+}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -173,11 +195,14 @@ class Config:
     @classmethod
     def from_dict(cls, saved: dict) -> "Config":
         """A config from its saved sections (as ``metrics.json`` holds them): JSON lists become tuples
-        again, a field missing (added since it was saved) takes its default, a renamed field
-        (``RENAMED_FIELDS``) is read under its new name, unknown fields raise ValueError."""
+        again, a field missing (added since it was saved) takes the value runs then ran with
+        (``SAVED_WITHOUT``, else its default), a renamed field (``RENAMED_FIELDS``) is read under its new name,
+        unknown fields raise ValueError."""
         sections = {}
         for section in dataclasses.fields(cls):
             fields = {RENAMED_FIELDS.get((section.name, k), k): v for k, v in saved.get(section.name, {}).items()}
+            missing = {k: v for (s, k), v in SAVED_WITHOUT.items() if s == section.name and k not in fields}
+            fields = {**missing, **fields}
             known = {f.name for f in dataclasses.fields(section.default)}
             if set(fields) - known:
                 raise ValueError(f"config.json: unknown fields {sorted(set(fields) - known)} in [{section.name}]")
@@ -214,78 +239,50 @@ def replace(cfg: Config, **sections: dict) -> Config:
     )
 
 
-# The training presets' stream: 10 batches per drive cost 6-9 % of a `cpu` step against 20-22 % for fresh worlds,
-# and learned as well over three seeds. `tiny` (the tests) keeps fresh worlds.
-_BATCHES_PER_DRIVE = 10
-# The training presets' place stream: 32 single frames a step at random places cost 7-10 % of a step and
-# halved the `cpu` preset's location error at 3,000 steps (two seeds; BUILD_NOTES, "Localisation sooner").
-_PLACE_FRAMES = 32
-
 _DETECTION_DRIVES = dict(detection_drives=160, detection_frames=200, detection_pool=2048)
 
+# Every preset trains the defaults' recipe (the place stream, the belief head 512 wide, pose weight 16, lr 1e-3
+# decaying over the last 30 % and the clip; the reference's lr 1e-4, constant, with no clip) at its own size.
 PRESETS = {
-    # the paper's network and batch with the `cpu` preset's recipe: the place stream, a belief head 512 wide,
-    # pose weight 16, lr 1e-3 decaying over the last 30 % and the clip (lr 1e-4 and no clip are the reference's;
-    # see the `cpu` preset);
-    # 10 m belief cells, as measured at this size (5 m not yet)
-    "paper": replace(
-        Config(),
-        data=dict(batch_size=32, batches_per_drive=_BATCHES_PER_DRIVE, place_frames=_PLACE_FRAMES),
-        model=dict(pose_head="belief", pose_hidden_dim=512),
-        train=dict(num_steps=3000, learning_rate=1e-3, lr_decay_share=0.3, max_grad_norm=1e6, pose_weight=16.0),
-    ),
+    # the paper's network and batch; 10 m belief cells, as measured at this size (5 m not yet)
+    "paper": replace(Config(), data=dict(batch_size=32)),
     "cpu": replace(
         Config(),
-        data=dict(image_size=64, batch_size=8, batches_per_drive=_BATCHES_PER_DRIVE, place_frames=_PLACE_FRAMES),
-        # a belief head 512 wide and (below) a pose weight of 16: both seeds within 5 m and 0.07 rad by
-        # 2,000 steps, where pose weight 4 and a 128-wide head were at 10-16 m
-        # (BUILD_NOTES, "The `cpu` preset with both levers")
+        data=dict(image_size=64),
         # 5 m belief cells: 2.2 m at 3,000 steps on both seeds, where 10 m cells flatten at 3.4-3.8 m (a point
         # uniform in a 10 m cell lies 3.8 m from its centre); BUILD_NOTES, "Finer belief cells"
-        model=dict(
-            conv_channels=(16, 32, 64, 128, 128),
-            feature_dim=128,
-            hidden_dim=128,
-            pose_hidden_dim=512,
-            pose_head="belief",
-            pose_cell_m=5.0,
-        ),
-        # lr 1e-3, not the paper's 1e-4: reaches 1e-4's 600-step loss in 200 steps
-        # max_grad_norm 1e6: above the steady norms (3e4-6e5), below a spike's (1e13)
-        # the rate decays over the last 30 % of the steps: AP@0.5 +2.6-4.7 points and the location error 0.2-0.6 m
-        # lower at 3,000 steps on both seeds (BUILD_NOTES, "The decaying rate at the `cpu` preset's own 3,000 steps")
-        train=dict(num_steps=3000, learning_rate=1e-3, lr_decay_share=0.3, max_grad_norm=1e6, pose_weight=16.0),
+        model=dict(conv_channels=(16, 32, 64, 128, 128), feature_dim=128, hidden_dim=128, pose_cell_m=5.0),
         # detection's own drives: 160 of 200 frames chosen of 2,048 for their remembered boxes
         # (BUILD_NOTES, "Occluded AP that measures memory")
         eval=dict(num_frames=15000, **_DETECTION_DRIVES),
     ),
     "demo": replace(
         Config(),
-        data=dict(image_size=64, batch_size=8, batches_per_drive=_BATCHES_PER_DRIVE, place_frames=_PLACE_FRAMES),
-        # the `cpu` recipe (at R 64 both use four conv widths) on a shorter budget
-        model=dict(
-            conv_channels=(16, 32, 64, 128), feature_dim=128, hidden_dim=128, pose_hidden_dim=512, pose_head="belief"
-        ),
+        data=dict(image_size=64),
+        # the `cpu` network (at R 64 both use four conv widths) on a shorter budget
+        model=dict(conv_channels=(16, 32, 64, 128), feature_dim=128, hidden_dim=128),
         # 1,200 steps: with the clip the network detects from ~800, and boxes fit tightly from ~1,200; the
         # rate decays over the last 360 (both seeds then inside the paper's 7.1 m; BUILD_NOTES, "A learning
         # rate that decays at the end of the budget")
-        train=dict(
-            num_steps=1200,
-            checkpoint_every=200,
-            learning_rate=1e-3,
-            lr_decay_share=0.3,
-            max_grad_norm=1e6,
-            pose_weight=16.0,
-        ),
+        train=dict(num_steps=1200, checkpoint_every=200),
         # drives of 750 frames: a drive finds its place within its first few hundred frames
         eval=dict(num_frames=3000, num_worlds=4),
     ),
+    # the tests' size: fresh worlds for every batch, no place stream, the reference's optimiser
     "tiny": replace(
         Config(),
         world=dict(num_vehicles=20),
-        data=dict(image_size=32, batch_size=2, seq_len=3, warmup_steps=20),
-        model=dict(conv_channels=(8, 16, 32), feature_dim=32, hidden_dim=32, z1_dim=8, z2_dim=16, pose_head="belief"),
-        train=dict(num_steps=20, checkpoint_every=10, log_every=5),
+        data=dict(image_size=32, batch_size=2, seq_len=3, warmup_steps=20, batches_per_drive=1, place_frames=0),
+        model=dict(conv_channels=(8, 16, 32), feature_dim=32, hidden_dim=32, z1_dim=8, z2_dim=16, pose_hidden_dim=0),
+        train=dict(
+            num_steps=20,
+            checkpoint_every=10,
+            log_every=5,
+            learning_rate=1e-4,
+            lr_decay_share=0.0,
+            max_grad_norm=0.0,
+            pose_weight=1.0,
+        ),
         eval=dict(num_frames=40, num_worlds=2, chunk_steps=10),
     ),
 }
@@ -311,6 +308,8 @@ def validate(cfg: Config) -> Config:
         raise ValueError(f"--model.variant={cfg.model.variant!r}: choose one of {VARIANTS}")
     if cfg.model.pose_head not in POSE_HEADS:
         raise ValueError(f"--model.pose_head={cfg.model.pose_head!r}: choose one of {POSE_HEADS}")
+    if cfg.model.detection_input not in DETECTION_INPUTS:
+        raise ValueError(f"--model.detection_input={cfg.model.detection_input!r}: choose one of {DETECTION_INPUTS}")
     # The filter moves a heading bin's mass by at most one cell a step (pose_belief.predict): 2 m is above
     # the world's fastest step (12 m/s x 0.1 s); above 40 m a cell is as large as a block.
     if not 2.0 <= cfg.model.pose_cell_m <= 40.0:

@@ -261,3 +261,23 @@ def step(state: OdometryState, model: MotionModel, actuator, command, pose, lida
         ),
     )
     return state, actuator, pose
+
+
+def follow(model: MotionModel, start_pose, prev_action, lidar):
+    """The odometry along B recorded drives from their true first poses: :func:`step` frame by frame in one
+    ``lax.scan``. start_pose [B, 5]; prev_action [B, T, 2], frame t's commands (applied from t-1 to t; frame
+    0's only set the actuators); lidar [B, T, R, R, 3], or None for dead reckoning. Returns the poses [B, T, 5]
+    and the drive's estimated correction [B, T, 2] (curvature bias 1/m, gain error) after each frame."""
+    b = start_pose.shape[0]
+
+    def body(carry, x):
+        state, actuator, pose, first = carry
+        action, frame_lidar = x
+        actuator = jnp.where(first[:, None], action, actuator)
+        state, actuator, pose = step(state, model, actuator, action, pose, frame_lidar, first, start_pose)
+        return (state, actuator, pose, jnp.zeros_like(first)), (pose, state.correction)
+
+    time_major = lambda x: None if x is None else jnp.swapaxes(x, 0, 1)
+    init = (init_state(b), jnp.zeros((b, 2)), start_pose, jnp.ones((b,), bool))
+    pose, correction = jax.lax.scan(body, init, (time_major(prev_action), time_major(lidar)))[1]
+    return time_major(pose), time_major(correction)

@@ -58,6 +58,7 @@ import numpy as np
 from e2e_percep_jax import calibration, detection, pose_belief, report, summary
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import metrics as metrics_lib
+from e2e_percep_jax import protocol as protocol_lib
 from e2e_percep_jax.api import Perceiver, run_perceiver
 from e2e_percep_jax.config import Config, EvalConfig, WorldConfig
 from e2e_percep_jax.launch import eta
@@ -440,6 +441,7 @@ def evaluate(
         "workdir": workdir,
         "checkpoint_step": checkpoint_step,
         "config": dataclasses.asdict(cfg),
+        "protocol": protocol_lib.of_run(workdir, cfg).to_dict(),
         "sample": sample,
         "num_frames": num_frames,
         "num_worlds": e,

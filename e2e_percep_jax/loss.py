@@ -45,14 +45,6 @@ BATCH_KEYS = ("camera", "lidar", "roadmap", "det_cls", "det_reg", "pose", "actio
 PLACE_KEYS = ("place_camera", "place_lidar", "place_pose")  # and of the place stream, when a batch has it
 
 
-def focal_loss(logit, target):
-    """Elementwise focal loss; logit, target [...] (target 1 on positives, 0 elsewhere)."""
-    positive = target > 0.5
-    log_pt = jnp.where(positive, jax.nn.log_sigmoid(logit), jax.nn.log_sigmoid(-logit))
-    alpha = jnp.where(positive, FOCAL_ALPHA, 1.0 - FOCAL_ALPHA)
-    return -alpha * (1.0 - jnp.exp(log_pt)) ** FOCAL_GAMMA * log_pt
-
-
 def gaussian_kl(q_loc, q_scale, p_loc, p_scale):
     """KL(N(q) || N(p)) for diagonal Gaussians, summed over the last axis: [..., D] -> [...]."""
     return distrax.MultivariateNormalDiag(q_loc, q_scale).kl_divergence(distrax.MultivariateNormalDiag(p_loc, p_scale))
@@ -67,7 +59,8 @@ def detection_terms(pred: dict, batch: dict, weight: float) -> dict:
     """``det_cls`` and ``det_reg`` of decoded PIXOR maps ``pred["det_logit"]`` [B, T+1, R, R, 1] and
     ``pred["det_reg"]`` [B, T+1, R, R, 6] against the batch's targets, per sequence, times ``weight``."""
     b = batch["det_cls"].shape[0]
-    terms = {"det_cls": weight * per_sequence(focal_loss(pred["det_logit"], batch["det_cls"]), b)}
+    focal = optax.sigmoid_focal_loss(pred["det_logit"], batch["det_cls"], alpha=FOCAL_ALPHA, gamma=FOCAL_GAMMA)
+    terms = {"det_cls": weight * per_sequence(focal, b)}
     # Regression targets are defined at positive pixels only (elsewhere they may be anything, even
     # non-finite): select them with `where` on both sides so no NaN reaches the value or the gradient.
     positive = batch["det_cls"] > 0.5
@@ -144,8 +137,7 @@ def sequence_loss(params, batch, key, cfg: Config, start=None):
     sequences). Returns (total, (metrics, the ``start`` that continues them, ``model.end_state``))."""
     b, t1 = batch["camera"].shape[:2]
     out = model_lib.filter_sequence(params, batch["camera"], batch["lidar"], batch["action"], key, cfg, start)
-    z = jnp.concatenate([out["z1"], out["z2"]], -1).reshape(b * t1, -1)
-    pred = jax.tree.map(lambda x: x.reshape((b, t1) + x.shape[1:]), model_lib.decode(params, z, cfg))
+    pred = model_lib.decode(params, out, cfg)
 
     metrics = {}
     for k in model_lib.reconstructed_images(cfg.model.variant):

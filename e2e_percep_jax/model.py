@@ -5,6 +5,7 @@ One frame t flows as (R = image size, F = ``feature_dim``, Z = ``z1_dim + z2_dim
     camera, lidar uint8 [B, R, R, 3] --encoders--> features float32 [B, 2F]
     posterior step: (z1, z2 of frame t-1, action t-1, features t) -> z1_t ~ q(z1), z2_t ~ p(z2)
     decode: z_t = [z1_t, z2_t] [B, Z] -> images, PIXOR maps, normalised pose
+            (the PIXOR decoder reads [z_t, features t] with ``model.detection_input="latent_and_features"``)
 
 Layers match the eager PyTorch peer that ``experiments/bench.py`` times against, layer for layer, so the
 parameter counts are equal: torch's stride-2 ``Conv2d(k, 2, k // 2)`` is a flax ``Conv`` with explicit padding,
@@ -19,7 +20,7 @@ Public API (``cfg`` is the full :class:`~e2e_percep_jax.config.Config`; params a
 - :func:`init_params` ``(key, cfg) -> params``
 - :func:`init_filter_state` / :func:`filter_step`: streaming posterior filtering, one frame a call, of a
   :class:`FilterState`; :func:`filter_sequence` is the same recursion as one ``lax.scan`` over a batch of sequences.
-- :func:`decode` ``(params, z, cfg)``: every decoder head from latents.
+- :func:`decode` ``(params, filtered, cfg)``: every decoder head from the filter's outputs.
 - :func:`normalise_pose` / :func:`pose_to_metres`: the fixed affine map between the pose head's
   output and the frame contract's pose.
 """
@@ -40,9 +41,11 @@ from e2e_percep_jax.config import Config, ModelConfig
 LEAK = 0.2  # leaky-ReLU slope of the reference (flax's default is 0.01)
 MIN_SCALE = 1e-5  # Gaussian scale = softplus(raw) + MIN_SCALE
 
-# The pose head predicts (pose - POSE_OFFSET) / POSE_SCALE: x, y (m) centred on the ~400 m town and
-# in units of 100 m, heading cos/sin as they are, speed in units of 10 m/s. A fixed affine map, so
-# targets are O(1) for the loss and predictions map back to metres exactly.
+# The regression pose head predicts (pose - POSE_OFFSET) / POSE_SCALE: x, y (m) near the centre of the town's
+# square (sim.extent: 210 m) and in units of 100 m, heading cos/sin as they are, speed in units of 10 m/s. A
+# fixed affine map, so targets are O(1) for the loss and predictions map back to metres exactly; a round
+# figure, not the square's centre, because the trained regression heads are defined by it. (The belief head's
+# grid is the square itself: pose_belief.AREA_*.)
 POSE_OFFSET = np.array([200.0, 200.0, 0.0, 0.0, 0.0], np.float32)
 POSE_SCALE = np.array([100.0, 100.0, 1.0, 1.0, 10.0], np.float32)
 
@@ -298,12 +301,14 @@ class PerceptionModel(nn.Module):
         }
         return new_state, outputs
 
-    def decode(self, z):
-        """Latent [N, Z] -> dict: built image means [N, R, R, 3], det_logit / det_cls [N, R, R, 1]
-        (logit / probability), det_reg [N, R, R, 6], and with a regression pose head pose_normalised
-        [N, 5] (:func:`normalise_pose` units)."""
+    def decode(self, z, features=None):
+        """Latent [N, Z] (and the frame's features [N, 2F], read by the PIXOR decoder with
+        ``detection_input="latent_and_features"``) -> dict: built image means [N, R, R, 3], det_logit / det_cls
+        [N, R, R, 1] (logit / probability), det_reg [N, R, R, 6], and with a regression pose head
+        pose_normalised [N, 5] (:func:`normalise_pose` units)."""
         out = {k: dec(z) for k, dec in self.image_decoders.items()}
-        logit, out["det_reg"] = self.pixor_decoder(z)
+        detection_input = z if self.cfg.detection_input == "latent" else jnp.concatenate([z, features], -1)
+        logit, out["det_reg"] = self.pixor_decoder(detection_input)
         out["det_logit"], out["det_cls"] = logit, jax.nn.sigmoid(logit)
         if self.cfg.pose_head != "belief":
             out["pose_normalised"] = self.pose_head(z)
@@ -318,7 +323,7 @@ class PerceptionModel(nn.Module):
         """Every network once (used by ``init``): one posterior-mean step, then decode."""
         features = self.encode(camera, lidar)
         state, out = self.posterior_step(state, features, prev_action, None)
-        decoded = self.decode(jnp.concatenate([out["z1"], out["z2"]], -1))
+        decoded = self.decode(jnp.concatenate([out["z1"], out["z2"]], -1), features)
         if self.cfg.pose_head == "belief":
             decoded["pose_belief"] = self.pose_belief(features, out["q_z1_loc"], out["z2_loc"])
         return decoded
@@ -439,9 +444,15 @@ def end_state(outputs: dict, action):
     return FilterState(z1=outputs["z1"][:, -1], z2=outputs["z2"][:, -1], first=first), action[:, -1]
 
 
-def decode(params, z, cfg: Config) -> dict:
-    """Latents [N, z1 + z2] -> :meth:`PerceptionModel.decode`'s dict."""
-    return build_model(cfg).apply(params, z, method=PerceptionModel.decode)
+def decode(params, filtered: dict, cfg: Config) -> dict:
+    """:meth:`PerceptionModel.decode`'s dict for :func:`filter_step`'s or :func:`filter_sequence`'s outputs
+    ``filtered`` (any leading axes, kept): the decoders read the sample z = [z1, z2], and the PIXOR decoder
+    the frame's ``features`` beside it when ``cfg.model.detection_input`` asks."""
+    z = jnp.concatenate([filtered["z1"], filtered["z2"]], -1)
+    lead = z.shape[:-1]
+    flat = lambda x: x.reshape((-1, x.shape[-1]))
+    out = build_model(cfg).apply(params, flat(z), flat(filtered["features"]), method=PerceptionModel.decode)
+    return jax.tree.map(lambda x: x.reshape(lead + x.shape[1:]), out)
 
 
 def pose_belief_head(params, filtered: dict, cfg: Config) -> dict:

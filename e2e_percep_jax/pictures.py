@@ -14,8 +14,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from e2e_percep_jax import metrics as metrics_lib
+from e2e_percep_jax.sim import extent, motion
 from e2e_percep_jax.sim import geometry as geo
-from e2e_percep_jax.sim import motion
 from e2e_percep_jax.sim import town as town_lib
 
 VISIBLE_RGB = (60, 230, 60)
@@ -47,7 +47,7 @@ class TopDown:
         res, origin = float(town.map_res_m), np.asarray(town.map_origin_m, np.float64)
         if window_m is None:  # the road network and its building belt, without the empty margin
             node_xy = np.asarray(town.node_xy_m)
-            pad = town_lib.BUILDING_BELT_M + 5.0
+            pad = extent.BUILDING_BELT_M + 5.0
             window_m = (*(node_xy.min(0) - pad), *(node_xy.max(0) + pad))
         self.x0, self.y0, x1, self.y1 = map(float, window_m)
         self.ppm = px_per_m

@@ -40,14 +40,14 @@ import optax
 
 from e2e_percep_jax import ego_motion
 from e2e_percep_jax.config import ModelConfig
+from e2e_percep_jax.sim import extent
 from e2e_percep_jax.sim import motion as motion_lib
 from e2e_percep_jax.sim.geometry import pose_yaw, wrap_angle
 from e2e_percep_jax.sim.motion import MotionModel
 
-# Every town's lanes lie in [-7, 427] m; the margin keeps a vehicle's belief off the grid's edge, where the
-# filter's motion would push mass off the grid.
-AREA_ORIGIN_M = -30.0
-AREA_SIZE_M = 480.0
+# The grid covers the town's square (its lanes lie within about [-10, 435] m): the margin keeps a vehicle's
+# belief off the grid's edge, where the filter's motion would push mass off the grid.
+AREA_ORIGIN_M, AREA_SIZE_M = extent.AREA_ORIGIN_M, extent.AREA_SIZE_M
 SPEED_SCALE_MPS = 10.0
 # Filter defaults: the head's probabilities are mixed with this share of uniform mass (a frame that names
 # the wrong place cannot erase the right one), raised to MEASUREMENT_POWER (< 1: consecutive frames'

@@ -14,7 +14,7 @@ import os
 import cv2
 import numpy as np
 
-from e2e_percep_jax import pictures, pose_belief
+from e2e_percep_jax import pictures, pose_belief, protocol
 from e2e_percep_jax.config import Config
 from e2e_percep_jax.summary import markdown_table
 
@@ -45,15 +45,12 @@ GROUP_TEXT = {  # metrics.GROUPS: a row's name and what the group holds
 
 
 def eval_dir(run: str, cfg: Config) -> str:
-    """Where a run's evaluation goes: ``<run>/eval`` on the training town, ``<run>/eval_town<seed>`` on a
-    held-out one (so a held-out evaluation never overwrites, nor is mistaken for, the training town's), with
-    ``_known_start`` appended under the known-start pose protocol and ``_no_pose_filter`` for the belief head
-    read without its filter."""
-    seed = cfg.eval.town_seed
-    name = "eval" if seed == cfg.world.town_seed else f"eval_town{seed}"
-    name += "_known_start" if cfg.eval.known_start else ""
-    name += "_no_pose_filter" if cfg.model.pose_head == "belief" and cfg.model.pose_filter == "none" else ""
-    return os.path.join(run, name)
+    """Where the evaluation of run ``run`` under ``cfg`` goes: ``<run>/<its protocol's name>``
+    (:func:`protocol.of_run`): ``eval`` on the training town as trained, ``eval_town<seed>`` on a held-out
+    one, ``_known_start`` under the known-start pose protocol, and a suffix for every other change (another
+    car, other drives, the belief read without its filter), so that no evaluation overwrites, nor is
+    mistaken for, another protocol's."""
+    return os.path.join(run, protocol.of_run(run, cfg).name)
 
 
 def finished_evaluation(out_dir: str, label: str, checkpoint_step: int | None, cfg: Config) -> dict | None:

@@ -1,6 +1,7 @@
-"""Evaluates a trained run online and writes RUN/eval/ (RUN/eval_town<seed>/ on a held-out
-``--eval.town_seed``, with ``_known_start`` under ``--eval.known_start``): metrics.json, report.md,
-pr_curves.png, examples.png, drive.mp4.
+"""Evaluates a trained run online and writes RUN/<the protocol's name>/ (``eval`` as the run was configured,
+``eval_town<seed>`` on a held-out ``--eval.town_seed``, ``_known_start`` under ``--eval.known_start``, a
+suffix for every other field changed: ``e2e_percep_jax.protocol``): metrics.json, report.md, pr_curves.png,
+examples.png, drive.mp4.
 
     python experiments/evaluate.py --workdir=runs/demo [--eval.num_frames=2000 --sample --video_frames=300]
 
@@ -24,9 +25,8 @@ flags.DEFINE_string("workdir", None, "run directory holding config.json and chec
 flags.DEFINE_string(
     "out_dir",
     None,
-    "where the report goes (default: WORKDIR/eval, or WORKDIR/eval_town<seed> "
-    "with a held-out --eval.town_seed; _known_start appended under --eval.known_start, "
-    "_no_pose_filter under --model.pose_filter=none)",
+    "where the report goes (default: WORKDIR/<the protocol's name>: eval, or eval_town<seed> with a "
+    "held-out --eval.town_seed, then _known_start, _no_pose_filter and a suffix per other changed field)",
 )
 flags.DEFINE_integer("step", None, "checkpoint step to evaluate (default: the latest)")
 flags.DEFINE_boolean("sample", False, "filter with posterior samples instead of the posterior mean")

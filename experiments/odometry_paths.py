@@ -12,7 +12,6 @@ with the lidar's scans (``e2e_percep_jax.ego_motion``). Writes the town from abo
 
 import cv2
 import jax
-import jax.numpy as jnp
 import numpy as np
 from absl import app, flags
 
@@ -30,40 +29,21 @@ FLAGS = flags.FLAGS
 DEAD_RECKONING_RGB = (70, 120, 255)
 
 
-def follow(model, pose, speed, command, lidar, scans: bool):
-    """The odometry's poses [T, 5] along one drive from its true first pose (:func:`ego_motion.step`)."""
-    start = jnp.concatenate([pose[0, :2], jnp.stack([jnp.cos(pose[0, 2]), jnp.sin(pose[0, 2]), speed[0]])])[None]
-    previous = jnp.concatenate([command[:1], command[:-1]])  # frame t's: the commands from t-1 to t
-
-    def body(carry, x):
-        state, actuator, estimate, first = carry
-        frame_lidar, action = x
-        actuator = jnp.where(first[:, None], action[None], actuator)
-        state, actuator, estimate = ego_motion.step(
-            state, model, actuator, action[None], estimate, frame_lidar[None] if scans else None, first, start
-        )
-        return (state, actuator, estimate, jnp.zeros_like(first)), estimate[0]
-
-    init = (ego_motion.init_state(1), jnp.zeros((1, 2)), start, jnp.ones((1,), bool))
-    return jax.lax.scan(body, init, (lidar, previous))[1]
-
-
 def main(argv):
     cfg = launch.run_config(argv, FLAGS.workdir)
     model = calibration.ensure_scans(cfg, FLAGS.workdir)
     town = town_lib.build_town(FLAGS.town_seed)
-    pose, speed, command, lidar = (
-        x[0]
-        for x in calibration.drives(
-            jax.random.PRNGKey(FLAGS.seed), town, cfg.world, cfg.data.warmup_steps, 1, FLAGS.frames, cfg.data.image_size
-        )
+    pose, speed, command, lidar = calibration.drives(
+        jax.random.PRNGKey(FLAGS.seed), town, cfg.world, cfg.data.warmup_steps, 1, FLAGS.frames, cfg.data.image_size
     )
+    start, prev_action = calibration.start_and_commands(pose, speed, command)
+    pose = pose[0]
     paths = [(np.asarray(pose[:, :2]), pictures.VISIBLE_RGB)]
     for name, scans, colour in (
-        ("dead reckoning", False, DEAD_RECKONING_RGB),
-        ("lidar odometry", True, pictures.ESTIMATE_RGB),
+        ("dead reckoning", None, DEAD_RECKONING_RGB),
+        ("lidar odometry", lidar, pictures.ESTIMATE_RGB),
     ):
-        estimate = np.asarray(jax.jit(follow, static_argnums=(0, 5))(model, pose, speed, command, lidar, scans))
+        estimate = np.asarray(jax.jit(ego_motion.follow, static_argnums=0)(model, start, prev_action, scans)[0][0])
         paths.append((estimate[:, :2], colour))
         error = np.linalg.norm(estimate[:, :2] - np.asarray(pose[:, :2]), axis=-1)
         print(f"{name}: {error.mean():.1f} m mean, {error[-1]:.1f} m at the end")

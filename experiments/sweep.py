@@ -150,6 +150,7 @@ def main(argv):
         sys.exit(f"error: {e}")
     # Imported once the flags are valid: a bad flag exits in ~0.2 s instead of ~3.5 s (flax, orbax, distrax).
     from e2e_percep_jax import baselines as baselines_lib
+    from e2e_percep_jax import protocol as protocol_lib
     from e2e_percep_jax import report
     from e2e_percep_jax.summary import mean_std, summary_metrics
 
@@ -237,10 +238,12 @@ def main(argv):
             else:
                 print(f"sweep: finished {name}", flush=True)
 
-    by_protocol = {}  # evaluation directory name -> method -> [metrics per seed]
+    by_protocol = {}  # the protocol's name (the metrics record it) -> method -> [metrics per seed]
     for method, out_dir in evaluations:
         with open(os.path.join(out_dir, "metrics.json")) as f:
-            by_protocol.setdefault(os.path.basename(out_dir), {}).setdefault(method, []).append(json.load(f))
+            metrics = json.load(f)
+        name = protocol_lib.from_metrics(metrics, os.path.basename(out_dir)).name
+        by_protocol.setdefault(name, {}).setdefault(method, []).append(metrics)
     for protocol, methods in by_protocol.items():
         summary = {m: mean_std([summary_metrics(x) for x in runs]) for m, runs in methods.items()}
         name = "summary" + protocol[len("eval") :]

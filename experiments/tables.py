@@ -11,8 +11,9 @@
 
 The kept evaluations live in ``--results`` (default ``experiments/results/``) as
 ``<method>/<run>/<evaluation>.json``: a method is a recipe (a row), a run one seed of it, an evaluation one
-of the run's ``eval*`` directories (``eval``: the training town's global protocol; ``eval_town7``:
-a held-out town; ``_known_start``: the belief starts at the true pose). Each cell is the mean ± std over a
+of the run's ``eval*`` directories, read by the protocol its metrics record (:mod:`e2e_percep_jax.protocol`:
+``eval``, the training town's global protocol; ``eval_town7``, a held-out town; ``_known_start``, the belief
+starts at the true pose); the held-out towns are those the kept evaluations drove. Each cell is the mean ± std over a
 method's runs; each method's row names the command that trained it. Beside them, ``training.jsonl``
 keeps every 100th record of the run's ``metrics.jsonl`` for the learning curves' figure.
 """
@@ -27,13 +28,12 @@ import cv2
 import numpy as np
 from absl import app, flags
 
-from e2e_percep_jax import checkpoint, pictures, pose_belief, report
+from e2e_percep_jax import checkpoint, pictures, pose_belief, protocol, report
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax.summary import markdown_table, mean_std, summary_metrics
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 DROPPED = {"detection": ("pr_curves", "at_threshold"), "": ("examples", "sample")}  # large, no table reads them
-HELD_OUT_TOWNS = (7, 8)
 EARLIER_FILTER = " †"  # after a method whose pose figures another filter made (_earlier_filter)
 EARLIER_FILTER_NOTE = (
     "- † Pose figures from the filter's settings before 2026-11-27 (every frame measured in full, the car "
@@ -136,17 +136,33 @@ def load_training(results_dir: str) -> dict:
 
 
 def load(results_dir: str) -> dict:
-    """{method: {evaluation: [metrics per run]}}, runs in name order; each metrics dict gains ``run``, its
-    run directory's name (a baseline's is the baseline's name)."""
+    """{method: {evaluation: [metrics per run]}}, runs in name order, an evaluation named by its protocol
+    (``protocol.Protocol.name``); each metrics dict gains ``run``, its run directory's name (a baseline's is
+    the baseline's name), and ``protocol`` where it was written before evaluations recorded theirs."""
     found = {}
     for path in sorted(glob.glob(os.path.join(results_dir, "*", "*", "*.json"))):
         run_dir = os.path.dirname(path)
         with open(path) as f:
             metrics = dict(json.load(f), run=os.path.basename(run_dir))
-        found.setdefault(os.path.basename(os.path.dirname(run_dir)), {}).setdefault(
-            os.path.basename(path)[:-5], []
-        ).append(metrics)
+        evaluation = protocol.from_metrics(metrics, os.path.basename(path)[:-5])
+        metrics["protocol"] = evaluation.to_dict()
+        found.setdefault(os.path.basename(os.path.dirname(run_dir)), {}).setdefault(evaluation.name, []).append(metrics)
     return found
+
+
+def held_out_towns(found: dict) -> tuple:
+    """The towns, other than the training town, that some kept evaluation drove."""
+    return tuple(
+        sorted(
+            {
+                m["protocol"]["town_seed"]
+                for evaluations in found.values()
+                for runs in evaluations.values()
+                for m in runs
+                if m["protocol"]["held_out"]
+            }
+        )
+    )
 
 
 def _trained_steps(metrics: dict) -> int:
@@ -298,6 +314,7 @@ def localisation(found: dict) -> str:
     """The paper's Table II: town 0 under the global protocol, each variant beside the paper's row, then the
     modular pipeline; with what the paper lacks: the frames within 5 and 10 m, the belief's coverage, and
     the known-start protocol's error and drift on towns 0, 7 and 8 beside dead reckoning's."""
+    towns = held_out_towns(found)
     header = [
         "method",
         "location mean / p90 (m)",
@@ -305,7 +322,7 @@ def localisation(found: dict) -> str:
         "within 5 / 10 m (%)",
         "truth in 95 % region: place / + heading (%)",
         "known start: error at frames 100-999 / 1,000+ (m)",
-        "known-start drift per 100 m: town 0 / " + " / ".join(map(str, HELD_OUT_TOWNS)) + " (m)",
+        "known-start drift per 100 m: town 0 / " + " / ".join(map(str, towns)) + " (m)",
         "against the paper's row: location / heading",
     ]
     rows, shown, constant, paper, marked = [], [], None, _paper_figures("pose"), False
@@ -318,7 +335,7 @@ def localisation(found: dict) -> str:
             continue
         ev = found[method]
         known = ev.get("eval_known_start")
-        held_out = [ev.get(f"eval_town{t}_known_start") for t in HELD_OUT_TOWNS]
+        held_out = [ev.get(f"eval_town{t}_known_start") for t in towns]
         drift = [_cell(ev.get("eval_known_start"), "drift per 100 m (m)", digits=2)] + [
             _cell(e, "drift per 100 m (m)", digits=2) + (COMMANDS_ONLY if _commands_only(e) else "") for e in held_out
         ]
@@ -373,13 +390,13 @@ def localisation(found: dict) -> str:
 def detection(found: dict) -> str:
     """The paper's Table I: AP on town 0 at every IoU, each variant beside the paper's row, then the modular
     pipeline; with what the paper lacks: visible and occluded AP, and AP@0.5 on the held-out towns."""
-    ious = ("0.1", "0.3", "0.5", "0.7")
+    ious, towns = ("0.1", "0.3", "0.5", "0.7"), held_out_towns(found)
     header = [
         "method",
         *(f"AP@{iou} (%)" for iou in ious),
         "visible AP@0.5 (%)",
         "occluded AP@0.1 / 0.5 (%)",
-        "AP@0.5 town " + " / ".join(map(str, HELD_OUT_TOWNS)) + " (%)",
+        "AP@0.5 town " + " / ".join(map(str, towns)) + " (%)",
         "against the paper's row",
     ]
     methods, rows, paper = [], [], _paper_figures("ap_percent")
@@ -396,10 +413,10 @@ def detection(found: dict) -> str:
             continue  # a method without boxes (an odometry, the pose regressor)
         # detection is the same under either protocol: a run's held-out town counts under whichever it has
         held_out_ap = {}  # {town: (mean, std, runs)} of AP@0.5, for the towns the method was evaluated on
-        for t in HELD_OUT_TOWNS:
+        for t in towns:
             if runs := ev.get(f"eval_town{t}", []) + ev.get(f"eval_town{t}_known_start", []):
                 held_out_ap[t] = mean_std([summary_metrics(m) for m in runs]).get("AP@0.5 all (%)", (None, None, 0))
-        held_out = [_format(*held_out_ap.get(t, (None, None, 0))) for t in HELD_OUT_TOWNS]
+        held_out = [_format(*held_out_ap.get(t, (None, None, 0))) for t in towns]
         against = ""
         if variant in paper:
             mean = mean_std([summary_metrics(m) for m in town0])
@@ -447,12 +464,12 @@ def groups(found: dict) -> str:
     """Detection by who saw each box: per method and town, AP at every IoU over all boxes and per group
     (``metrics.GROUPS``), with the boxes each holds and the intervals over drives; the evaluations of the
     protocol with detection's own drives only."""
-    ious = ("0.1", "0.3", "0.5", "0.7")
+    ious, towns = ("0.1", "0.3", "0.5", "0.7"), held_out_towns(found)
     header = ["method", "town", "boxes (drives)", *(f"AP@{iou} (%)" for iou in ious)]
     rows, methods = [], []
     for method in _order(found):
         ev = found[method]
-        for town in (0, *HELD_OUT_TOWNS):
+        for town in (0, *towns):
             names = ("eval", "eval_known_start") if town == 0 else (f"eval_town{town}", f"eval_town{town}_known_start")
             # detection is the same under either pose protocol
             runs = next((r for r in (ev.get(n, []) for n in names) if r and all(map(_by_group, r))), None)

@@ -137,18 +137,12 @@ def test_a_planted_steering_offset_is_learnt_from_the_scans_of_a_street():
     lidar = jax.vmap(lambda p: _render(box, p))(jnp.asarray(np.column_stack([xy, yaw]), jnp.float32))
     start = jnp.asarray([[0.0, 0.0, 1.0, 0.0, speed_mps]], jnp.float32)
 
-    def run(m):
-        def body(carry, x):
-            state, pose, first = carry
-            state, _, pose = ego_motion.step(state, m, x[1][None], x[1][None], pose, x[0][None], first, start)
-            return (state, pose, jnp.zeros_like(first)), (pose[0], state.correction[0])
-
-        init = (ego_motion.init_state(1), start, jnp.ones((1,), bool))
-        previous = jnp.asarray(np.concatenate([command[:1], command]))  # frame t's: the commands t-1 -> t
-        return jax.lax.scan(body, init, (lidar, previous))[1]
-
-    poses, corrections = jax.jit(run, static_argnums=0)(model)
-    reckoned, _ = jax.jit(run, static_argnums=0)(dataclasses.replace(model, scan_yaw_noise_rad=0.0))
+    previous = jnp.asarray(np.concatenate([command[:1], command]))[None]  # frame t's: the commands t-1 -> t
+    run = lambda m: jax.tree.map(
+        lambda x: x[0], jax.jit(ego_motion.follow, static_argnums=0)(m, start, previous, lidar[None])
+    )
+    poses, corrections = run(model)
+    reckoned, _ = run(dataclasses.replace(model, scan_yaw_noise_rad=0.0))
     assert abs(float(corrections[-1, 0]) - bias_1pm) < 0.1 * bias_1pm
     heading_error = lambda p: abs(float(geo.wrap_angle(geo.pose_yaw(p[-1]) - yaw[-1])))
     assert heading_error(reckoned) > 0.9 * bias_1pm * ds * frames  # dead reckoning misses all of it

@@ -20,7 +20,7 @@ import pytest
 from helpers import EXACT_PLANT, ROOT, default_optimisation_env
 
 from e2e_percep_jax import config as config_lib
-from e2e_percep_jax import detection, pose_belief, report
+from e2e_percep_jax import detection, pose_belief, protocol, report
 from e2e_percep_jax import evaluate as eval_lib
 from e2e_percep_jax import metrics as metrics_lib
 from e2e_percep_jax import model as model_lib
@@ -319,12 +319,35 @@ def test_host_detections_follow_floor_view_and_nms():
     np.testing.assert_allclose(boxes, cand[[1, 2]])
 
 
-def test_eval_dir_keeps_protocols_and_the_filterless_reading_apart():
+def test_eval_dir_keeps_protocols_and_the_filterless_reading_apart(tmp_path):
     cfg = config_lib.get_config("tiny")
-    other = lambda **sections: report.eval_dir("run", config_lib.replace(cfg, **sections))
-    assert report.eval_dir("run", cfg) == os.path.join("run", "eval")
-    assert other(eval=dict(town_seed=7, known_start=True)) == os.path.join("run", "eval_town7_known_start")
-    assert other(model=dict(pose_filter="none")) == os.path.join("run", "eval_no_pose_filter")
+    run = str(tmp_path / "run")
+    other = lambda **sections: report.eval_dir(run, config_lib.replace(cfg, **sections))
+    assert report.eval_dir(run, cfg) == os.path.join(run, "eval")
+    assert other(eval=dict(town_seed=7, known_start=True)) == os.path.join(run, "eval_town7_known_start")
+    assert other(model=dict(pose_filter="none")) == os.path.join(run, "eval_no_pose_filter")
+    # against the run's own config.json: another car, other drives
+    os.makedirs(run)
+    with open(os.path.join(run, "config.json"), "w") as f:
+        f.write(config_lib.replace(cfg, world=dict(ego_steer_offset_deg=0.5)).to_json())
+    assert other(world=dict(ego_steer_offset_deg=0.5)) == os.path.join(run, "eval")
+    assert report.eval_dir(run, cfg) == os.path.join(run, "eval_ego_steer_offset_deg0.25")
+    both = other(world=dict(ego_steer_offset_deg=1.0), eval=dict(town_seed=7, known_start=True, seed=2000))
+    assert both == os.path.join(run, "eval_town7_known_start_ego_steer_offset_deg1_seed2000")
+
+
+def test_a_protocol_reads_back_from_the_metrics_that_record_it():
+    cfg = config_lib.replace(
+        config_lib.get_config("tiny"), eval=dict(town_seed=8, known_start=True, detection_drives=4)
+    )
+    made = protocol.of(cfg, config_lib.get_config("tiny"))
+    assert made.name == "eval_town8_known_start_detection_drives4" and made.held_out
+    saved = json.loads(json.dumps({"protocol": made.to_dict()}))
+    assert protocol.from_metrics(saved, "anything") == made
+    # written before evaluations recorded it: the town and start from the config, the rest from the name
+    old = {"config": json.loads(cfg.to_json())}
+    assert protocol.from_metrics(old, "eval_town8_known_start").name == "eval_town8_known_start"
+    assert protocol.from_metrics(old, "eval_town8_known_start_step1000").name == "eval_town8_known_start_step1000"
 
 
 @pytest.mark.slow

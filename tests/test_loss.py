@@ -5,6 +5,7 @@ import distrax
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 from helpers import TINY, loss_and_grads, np_focal, np_smooth_l1, synthetic_batch
 
@@ -25,12 +26,14 @@ def test_distrax_gaussian_kl_and_log_prob_match_closed_form():
     np.testing.assert_allclose(kl, 0.363147 + 3.646023 + 3.443147, rtol=1e-6)
 
 
-def test_focal_loss_matches_torch_form():
+def test_optax_focal_loss_at_the_losss_alpha_and_gamma_matches_the_torch_form():
+    """The detection term is optax's sigmoid focal loss: on 0 / 1 targets, the torch peer's alpha-weighted form."""
     logit = np.linspace(-8, 8, 33)
     for y in (0.0, 1.0):
-        np.testing.assert_allclose(
-            loss.focal_loss(jnp.asarray(logit), jnp.full(33, y)), np_focal(logit, y), rtol=1e-4, atol=1e-7
+        got = optax.sigmoid_focal_loss(
+            jnp.asarray(logit), jnp.full(33, y), alpha=loss.FOCAL_ALPHA, gamma=loss.FOCAL_GAMMA
         )
+        np.testing.assert_allclose(got, np_focal(logit, y), rtol=1e-4, atol=1e-7)
 
 
 @pytest.fixture(scope="module")
@@ -85,8 +88,7 @@ def test_every_term_matches_numpy_per_sequence(setup, pose_head):
         np.asarray, model.filter_sequence(params, batch["camera"], batch["lidar"], batch["action"], None, cfg)
     )
     b, t1 = batch["camera"].shape[:2]
-    pred = model.decode(params, np.concatenate([out["z1"], out["z2"]], -1).reshape(b * t1, -1), cfg)
-    pred = {k: np.asarray(v, np.float64).reshape((b, t1) + v.shape[1:]) for k, v in pred.items()}
+    pred = {k: np.asarray(v, np.float64) for k, v in model.decode(params, out, cfg).items()}
     want = {
         f"recon_{k}": np.sum((pred[k] - batch[k] / 255.0) ** 2 / (2 * 0.1)) / b for k in ("camera", "lidar", "roadmap")
     }

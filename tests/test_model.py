@@ -285,6 +285,32 @@ def test_layers_match_numpy_torch_semantics():
     np.testing.assert_allclose(scale[0], np.log1p(np.exp(out[cfg.model.z2_dim :])) + 1e-5, rtol=1e-4, atol=1e-6)
 
 
+def test_the_pixor_decoder_reads_the_frames_features_beside_the_latent_when_asked():
+    """detection_input="latent_and_features": the PIXOR maps are the NumPy trunk's of [z, features]; the images
+    still read z alone, and the paper's latent-only decoder ignores the features."""
+    cfg = with_sizes(TINY, detection_input="latent_and_features")
+    params = model.init_params(jax.random.PRNGKey(3), cfg)["params"]
+    m, n = cfg.model, 2
+    rng = np.random.default_rng(0)
+    z1, z2, features = (rng.normal(size=(n, d)).astype(np.float32) for d in (m.z1_dim, m.z2_dim, 2 * m.feature_dim))
+    got = model.decode({"params": params}, {"z1": z1, "z2": z2, "features": features}, cfg)
+    p = params["pixor_decoder"]
+    for i in range(n):
+        h = np_trunk(p["Trunk_0"], np.concatenate([z1[i], z2[i], features[i]]))
+        logit = np_transposed(p["Deconv2x_0"], 2, 2, 1)(h)
+        np.testing.assert_allclose(got["det_logit"][i], logit, rtol=1e-4, atol=1e-5)
+    other = model.decode({"params": params}, {"z1": z1, "z2": z2, "features": -features}, cfg)
+    assert not np.allclose(other["det_logit"], got["det_logit"], atol=1e-3)
+    np.testing.assert_array_equal(other["camera"], got["camera"])
+
+    latent_only = model.init_params(jax.random.PRNGKey(3), TINY)
+    a = model.decode(latent_only, {"z1": z1, "z2": z2, "features": features}, TINY)
+    b = model.decode(latent_only, {"z1": z1, "z2": z2, "features": -features}, TINY)
+    np.testing.assert_array_equal(a["det_logit"], b["det_logit"])
+    with pytest.raises(ValueError, match="--model.detection_input"):
+        config.validate(with_sizes(TINY, detection_input="features"))
+
+
 # ----------------------------------------------------------------------------- filtering
 
 

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from e2e_percep_jax.config import DEFAULT_TOWN_SEED
+from e2e_percep_jax.sim import extent
 from e2e_percep_jax.sim import town as town_lib
 
 HELD_OUT_SEED = 1
@@ -91,6 +92,17 @@ def test_buildings_stand_off_the_road_and_sidewalk(town):
     assert np.ptp(town.building_box[:, 3] * town.building_box[:, 4]) > 100.0
     assert np.ptp(town.building_height_m) > 20.0
     assert len(np.unique(town.building_color, axis=0)) > 50
+
+
+def test_every_lane_lies_inside_the_towns_square_with_room_to_spare(town):
+    """The square the pose belief's grid covers (extent.AREA_*), derived from the node grid: every lane sample
+    (extended past a lane's end as stored) lies 10 m or more inside it, and the square is no more than the
+    lanes' extent and the building belt."""
+    xy = town.lane_xy_m.reshape(-1, 2)
+    lo, hi = extent.AREA_ORIGIN_M, extent.AREA_ORIGIN_M + extent.AREA_SIZE_M
+    assert (xy.min(0) >= lo + 10.0).all() and (xy.max(0) <= hi - 10.0).all(), (xy.min(0), xy.max(0))
+    assert (xy.min(0) <= lo + extent.BUILDING_BELT_M + 10.0).all()
+    assert (xy.max(0) >= hi - extent.BUILDING_BELT_M - 10.0).any()
 
 
 def test_size_and_road_length_are_like_town03(town):

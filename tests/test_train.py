@@ -470,6 +470,27 @@ def test_sigterm_saves_the_step_it_was_on_and_resume_equals_an_uninterrupted_run
 
 
 @pytest.mark.slow
+def test_a_run_with_the_place_stream_resumes_bit_identically(tmp_path):
+    """The presets' stream (drives of several batches, place frames beside them) and the PIXOR decoder reading
+    the frame's features: a run stopped at step 2 and resumed equals the uninterrupted one."""
+    cfg = config.replace(
+        tiny(num_steps=4, checkpoint_every=2, log_every=2),
+        data=dict(batches_per_drive=2, place_frames=2),
+        model=dict(detection_input="latent_and_features"),
+    )
+    batches = train.world_batches(cfg)
+    whole = train.train(cfg, str(tmp_path / "whole"), batches)
+    train.train(config.replace(cfg, train=dict(num_steps=2)), str(tmp_path / "stopped"), batches)
+    resumed = train.train(cfg, str(tmp_path / "stopped"), batches)
+    assert_trees_equal(jax.device_get(resumed.params), jax.device_get(whole.params))
+    last = lambda run: read_jsonl(tmp_path / run / "metrics.jsonl")[-1]
+    assert (last("stopped")["step"], last("stopped")["pose_place"]) == (
+        last("whole")["step"],
+        last("whole")["pose_place"],
+    )
+
+
+@pytest.mark.slow
 def test_carried_state_chains_segments_and_resumes_bit_identically(tmp_path):
     """With --data.carry_state the step starts each drive's first segment afresh (its loss is the plain
     loss's) and continues later ones from the carry its slot left; a run stopped and resumed equals the

@@ -36,6 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from e2e_percep_jax.sim.extent import BUILDING_BELT_M, GRID_NODES, GRID_SPACING_M
 from e2e_percep_jax.sim.geometry import wrap_angle
 
 # Semantic classes of ``Town.sem_map`` (and of the roadmap image before colouring).
@@ -101,11 +102,8 @@ SPAWN_SPACING_M = 12.0  # reset slots on road lanes; > the longest vehicle plus 
 STOP_BAR_M = 0.5  # depth of a painted stop line
 MAP_RES_M = 0.2
 MAP_MARGIN_M = 50.0  # offroad beyond the outermost building belt, so sensors at the edge read valid cells
-BUILDING_BELT_M = 30.0  # buildings also stand this far outside the perimeter road
 BUILDING_CLEARANCE_M = 1.5  # from any road or sidewalk cell
 
-_GRID_NODES = (8, 7)
-_GRID_SPACING_M = (60.0, 70.0)
 _NODE_JITTER_M = 5.0
 _NUM_REMOVED_ROADS = 5
 _DENSE_DS_M = 0.25  # sampling of lane polylines while building
@@ -370,9 +368,9 @@ def _road_network(rng):
 
     Returns (node_xy [NN, 2], roads [NR, 2] int node pairs, lanes_per_dir [NR], ring_node, interior [NN]).
     """
-    nx, ny = _GRID_NODES
+    nx, ny = GRID_NODES
     ii, jj = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
-    node_xy = np.stack([ii * _GRID_SPACING_M[0], jj * _GRID_SPACING_M[1]], -1).reshape(-1, 2).astype(float)
+    node_xy = np.stack([ii * GRID_SPACING_M[0], jj * GRID_SPACING_M[1]], -1).reshape(-1, 2).astype(float)
     node_xy += rng.uniform(-_NODE_JITTER_M, _NODE_JITTER_M, node_xy.shape)
     node = lambda i, j: i * ny + j
     arterial_col, arterial_row = rng.integers(2, nx - 2), rng.integers(2, ny - 2)

@@ -26,7 +26,7 @@ def bench_infer(town, repeats):
     @jax.jit
     def infer(params, state, camera, lidar, prev_action):
         state, out = model_lib.filter_step(params, state, camera, lidar, prev_action, None, cfg)
-        return state, model_lib.decode(params, jnp.concatenate([out["z1"], out["z2"]], -1), cfg)
+        return state, model_lib.decode(params, out, cfg)
 
     figure = {"image_size": 128}
     for n in (1, FLAGS.infer_batch):

@@ -144,13 +144,18 @@ def bench_train_parts(town, repeats):
     batch = batch_lib.make_batch(jax.random.PRNGKey(0), town, cfg)
     key = jax.random.PRNGKey(1)
     total = lambda tree: sum(jnp.sum(x) for x in jax.tree.leaves(tree))
-    z = jnp.zeros((b * (t + 1), cfg.model.z1_dim + cfg.model.z2_dim))
+    m, n = cfg.model, b * (t + 1)
+    filtered = {
+        "z1": jnp.zeros((n, m.z1_dim)),
+        "z2": jnp.zeros((n, m.z2_dim)),
+        "features": jnp.zeros((n, 2 * m.feature_dim)),
+    }
     parts = {
         "loss": lambda p: train_lib.loss_lib.loss_fn(p, batch, key, cfg)[0],
         "encoders_and_scan": lambda p: total(
             model_lib.filter_sequence(p, batch["camera"], batch["lidar"], batch["action"], key, cfg)
         ),
-        "decoders": lambda p: total(model_lib.decode(p, z, cfg)),
+        "decoders": lambda p: total(model_lib.decode(p, filtered, cfg)),
     }
     figure = {"batch": b, "seq_len": t, "image_size": r}
     for name, fn in parts.items():
