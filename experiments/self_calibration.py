@@ -11,7 +11,8 @@ the plant's: the curvature its steering offset gives, tan(offset) / (wheelbase +
 drive's distance-weighted mean v^2, less the model's mean (steer_bias / wheelbase). The distance scale is not
 estimated: the scans do not measure it. Prints, as JSON, the share of drives within 20 % at each of
 ``--at_frames``, each drive's first frame from which it stays within 20 %, and the errors in degrees of
-steering offset. A ``--world.*`` flag changes the car driven (the model stays the run's).
+steering offset, each drive's true offset and estimates (as the road-wheel angle in degrees that the
+curvature bias amounts to). A ``--world.*`` flag changes the car driven (the model stays the run's).
 """
 
 import json
@@ -69,6 +70,7 @@ def main(argv):
         "share_within_20pct": {str(f): float(within[:, f - 1].mean()) for f in at_frames},
         "settled_frame": settled,
         "true_offset_deg": [round(float(v), 4) for v in to_deg(truth)],
+        "estimate_deg": {str(f): [round(float(v), 4) for v in to_deg(estimate[:, f - 1])] for f in at_frames},
         "error_deg_abs_median": {
             str(f): float(np.median(np.abs(to_deg(estimate[:, f - 1]) - to_deg(truth)))) for f in at_frames
         },
