@@ -18,7 +18,7 @@ import sys
 from absl import app, flags
 
 from e2e_percep_jax import config as config_lib
-from e2e_percep_jax import launch
+from e2e_percep_jax import launch, protocol
 
 config_lib.define_flags()
 flags.DEFINE_string("workdir", None, "run directory holding config.json and checkpoints/")
@@ -36,8 +36,9 @@ flags.DEFINE_integer("top_k", None, "detection candidates per frame kept on the 
 flags.DEFINE_float("score_floor", None, "lowest detection score accumulated into the PR curves")
 flags.DEFINE_float("nms_iou", None, "rotated-IoU threshold of the greedy NMS")
 FLAGS = flags.FLAGS
-# Fields that change no parameter: the pose filter, and the world's plant (the same network in another car)
-INFERENCE_FIELDS = ("model.pose_filter",) + tuple(f"world.{name}" for name in config_lib.PLANT_FIELDS)
+# Fields outside --eval.* that change no parameter (the protocol's: the world's plant, the same network in
+# another car, and the pose filter)
+INFERENCE_FIELDS = tuple(f"{section}.{name}" for section, name in protocol.EVALUATION_FIELDS if section != "eval")
 
 
 def main(argv):
