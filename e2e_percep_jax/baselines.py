@@ -84,7 +84,7 @@ class SingleFrameModel(nn.Module):
             self.pose_head = model_lib.MLP(m.hidden_dim, 5)
 
     def __call__(self, camera, lidar):
-        features = jnp.concatenate([self.camera_encoder(camera), self.lidar_encoder(lidar)], -1)
+        features = jnp.concatenate([self.camera_encoder(camera)[0], self.lidar_encoder(lidar)[0]], -1)
         if self.head == "pose":
             return {"pose_normalised": self.pose_head(features)}
         logit, reg = self.pixor_decoder(features)
@@ -104,7 +104,8 @@ def init_params(key, cfg: Config, head: str):
     networks ``head`` uses."""
     build_model(cfg, head)  # checks the head
     wide = config_lib.replace(
-        cfg, model=dict(z1_dim=cfg.model.feature_dim, z2_dim=cfg.model.feature_dim, pose_head="regression")
+        cfg,
+        model=dict(z1_dim=cfg.model.feature_dim, z2_dim=cfg.model.feature_dim, pose_head="regression", latent="vector"),
     )
     params = model_lib.init_params(key, wide)["params"]
     used = ("camera_encoder", "lidar_encoder", "pixor_decoder" if head == "detection" else "pose_head")

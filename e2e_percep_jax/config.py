@@ -36,6 +36,9 @@ POSE_FILTERS = ("histogram", "none")
 # z beside the frame's encoder features [2F], as the belief head reads them (the single-frame detector reads
 # the features alone).
 DETECTION_INPUTS = ("latent", "latent_and_features")
+# The latent: vector, the paper's z1 and z2; bev, the vector beside a stochastic bird-eye grid carried from frame
+# to frame, warped by the ego's motion (bev_latent.py), which the PIXOR, lidar and roadmap decoders read.
+LATENTS = ("vector", "bev")
 DEFAULT_TOWN_SEED = 0
 
 
@@ -107,6 +110,11 @@ class ModelConfig:
     pose_target_std_cells: float = 0.5
     pose_filter: str = "histogram"  # one of POSE_FILTERS; inference only, so evaluation may change it
     detection_input: str = "latent"  # one of DETECTION_INPUTS
+    latent: str = "vector"  # one of LATENTS
+    # The bird-eye grid (latent "bev"): G cells a side over the BEV view (at R 64, 16 cells are 2 m), C channels
+    # per cell, each a Gaussian; G is a size the decoders' trunk passes through: a power of two in [4, R / 2].
+    grid_cells: int = 16
+    grid_channels: int = 8
 
 
 @dataclasses.dataclass(frozen=True)
@@ -134,6 +142,10 @@ class TrainConfig:
     # beta on the z1 KL (beta-VAE). 1 = the reference's ELBO; < 1 lets the latent hold more of what the
     # heads need (place, above all) at the price of a looser bound.
     kl_weight: float = 1.0
+    # A memory lever: the share of frames (never a sequence's first) whose observation the latent filter does
+    # not see in training: there the posterior is the prior (z1, and the bird-eye grid), so the latent must
+    # carry the scene through them, while every decoder is still scored on them. 0 = the paper.
+    observation_drop_share: float = 0.0
     checkpoint_every: int = 500  # steps; a checkpoint is also written at exit
     log_every: int = 10
     max_nonfinite_in_a_row: int = 10  # stop after this many skipped (non-finite) updates in a row
@@ -310,6 +322,13 @@ def validate(cfg: Config) -> Config:
         raise ValueError(f"--model.pose_head={cfg.model.pose_head!r}: choose one of {POSE_HEADS}")
     if cfg.model.detection_input not in DETECTION_INPUTS:
         raise ValueError(f"--model.detection_input={cfg.model.detection_input!r}: choose one of {DETECTION_INPUTS}")
+    if cfg.model.latent not in LATENTS:
+        raise ValueError(f"--model.latent={cfg.model.latent!r}: choose one of {LATENTS}")
+    g = cfg.model.grid_cells
+    if cfg.model.latent == "bev" and (g < 4 or g > r // 2 or g & (g - 1)):
+        raise ValueError(f"--model.grid_cells={g}: must be a power of two in [4, data.image_size / 2 = {r // 2}]")
+    if cfg.model.latent == "bev" and cfg.model.grid_channels < 1:
+        raise ValueError(f"--model.grid_channels={cfg.model.grid_channels}: must be >= 1")
     # The filter moves a heading bin's mass by at most one cell a step (pose_belief.predict): 2 m is above
     # the world's fastest step (12 m/s x 0.1 s); above 40 m a cell is as large as a block.
     if not 2.0 <= cfg.model.pose_cell_m <= 40.0:
@@ -344,6 +363,8 @@ def validate(cfg: Config) -> Config:
     for name, value in positive.items():
         if not value > 0:
             raise ValueError(f"--{name}={value}: must be positive")
+    if not 0.0 <= cfg.train.observation_drop_share < 1.0:
+        raise ValueError(f"--train.observation_drop_share={cfg.train.observation_drop_share}: must lie in [0, 1)")
     seeds = {
         "world.town_seed": cfg.world.town_seed,
         "train.seed": cfg.train.seed,

@@ -167,8 +167,8 @@ def make_chunk_fn(cfg: Config, town, perceiver, sample: bool, detect: detection.
     saturated, the true boxes / boxes_valid, boxes_group (each box's index into ``metrics.GROUPS``) and
     pose, pose_pred (metres) and pose_nll
     (the perceiver's negative log-likelihood of the true pose, NaN if it has none); ``pictured`` int32
-    [C, 2]: world 0 (the video's drive) and the world with the most vehicles in view (the examples'
-    candidate), with those two worlds' images [C, 2, R, R, 3] uint8: camera, lidar, roadmap, the perceiver's reconstructions
+    [C, 2]: world 0 (the video's drive) and the world with the most remembered vehicles in view, then the
+    most vehicles (the examples' candidate), with those two worlds' images [C, 2, R, R, 3] uint8: camera, lidar, roadmap, the perceiver's reconstructions
     ``recon_<name>`` and its pose belief ``pose_place`` [C, 2, n, n] where it has them.
 
     ``heads(outputs, frame) -> outputs``, traced inside the program, may replace the det_cls / det_reg /
@@ -200,17 +200,22 @@ def make_chunk_fn(cfg: Config, town, perceiver, sample: bool, detect: detection.
             if pose_coverage is None
             else pose_coverage(pstate, frame["pose"])
         )
-        # World 0 for the video; the most crowded world (first on ties) for the examples.
-        pictured = jnp.stack([0, jnp.argmax(jnp.sum(frame["boxes_valid"], -1))]).astype(jnp.int32)
+        group = metrics_lib.box_groups(
+            frame["boxes_lidar_visible"], frame["boxes_camera_visible"], frame["boxes_frames_since_seen"]
+        )
+        # World 0 for the video; for the examples the world with the most remembered vehicles in view, then the
+        # most vehicles (first on ties): where memory shows, or its absence.
+        valid = frame["boxes_valid"]
+        remembered = jnp.sum(valid & (group == metrics_lib.GROUPS.index("remembered")), -1)
+        crowd = remembered * (valid.shape[-1] + 1) + jnp.sum(valid, -1)
+        pictured = jnp.stack([0, jnp.argmax(crowd)]).astype(jnp.int32)
         out = {
             "cand_boxes": cand_boxes,
             "cand_scores": cand_scores,
             "saturated": saturated,
             "boxes": frame["boxes"],
-            "boxes_valid": frame["boxes_valid"],
-            "boxes_group": metrics_lib.box_groups(
-                frame["boxes_lidar_visible"], frame["boxes_camera_visible"], frame["boxes_frames_since_seen"]
-            ),
+            "boxes_valid": valid,
+            "boxes_group": group,
             "pose": frame["pose"],
             "pose_pred": outputs.pose,
             "pose_nll": nll,

@@ -7,7 +7,12 @@
 - recon_k (k in the variant's images: camera, lidar, roadmap): Gaussian negative log-likelihood of
   the image in [0, 1] units under the decoder's mean and std sqrt(0.1), i.e. (x - mean)^2 / 0.2 per
   pixel and channel, without the constant 0.5 * log(2 pi 0.1) per value (as the torch peer).
-- kl: KL(q(z1_t) || p(z1_t)) (prior N(0, I) at t = 1); the z2 KL is zero because q(z2) = p(z2).
+- kl: KL(q(z1_t) || p(z1_t)) (prior N(0, I) at t = 1); the z2 KL is zero because q(z2) = p(z2). With
+  ``train.observation_drop_share`` a share of frames (drawn from the key; none when it is None) are not shown
+  to the filter: q = p there, so their KL is zero, and every decoder is still scored on them.
+- with the bird-eye latent (``model.latent="bev"``), two more: kl_grid, the grid's KL summed over its cells
+  (weighted as kl); motion, the ego-motion head's squared error / 2 in ``bev_latent.MOTION_UNIT`` units against
+  the true motion between the batch's consecutive frames (frames 1..T; weighted as detection).
 - det_cls: focal loss (alpha 0.25 on positives, gamma 2) on the class map.
 - det_reg: 0.1 x smooth-L1 (beta 1) between predicted and target regression maps at positive pixels
   (``det_cls`` > 0.5); targets elsewhere are ignored, whatever their value.
@@ -33,8 +38,8 @@ import jax
 import jax.numpy as jnp
 import optax
 
+from e2e_percep_jax import bev_latent, pose_belief
 from e2e_percep_jax import model as model_lib
-from e2e_percep_jax import pose_belief
 from e2e_percep_jax.config import Config
 
 RECON_VAR = 0.1  # fixed decoder variance: std sqrt(0.1)
@@ -43,6 +48,7 @@ DET_REG_WEIGHT = 0.1
 REFERENCE_POSE_WEIGHT = 10.0
 BATCH_KEYS = ("camera", "lidar", "roadmap", "det_cls", "det_reg", "pose", "action")  # what the loss reads
 PLACE_KEYS = ("place_camera", "place_lidar", "place_pose")  # and of the place stream, when a batch has it
+OBSERVATION_DROP_STREAM = 7  # fold_in data of the dropped frames' draw (the latents' draws split the key itself)
 
 
 def gaussian_kl(q_loc, q_scale, p_loc, p_scale):
@@ -136,7 +142,13 @@ def sequence_loss(params, batch, key, cfg: Config, start=None):
     """:func:`loss_fn` of sequences that continue from ``start`` (``model.filter_sequence``'s; None: fresh
     sequences). Returns (total, (metrics, the ``start`` that continues them, ``model.end_state``))."""
     b, t1 = batch["camera"].shape[:2]
-    out = model_lib.filter_sequence(params, batch["camera"], batch["lidar"], batch["action"], key, cfg, start)
+    observed = None
+    if cfg.train.observation_drop_share > 0 and key is not None:
+        observed = (
+            jax.random.uniform(jax.random.fold_in(key, OBSERVATION_DROP_STREAM), (b, t1))
+            >= cfg.train.observation_drop_share
+        )
+    out = model_lib.filter_sequence(params, batch["camera"], batch["lidar"], batch["action"], key, cfg, start, observed)
     pred = model_lib.decode(params, out, cfg)
 
     metrics = {}
@@ -145,6 +157,12 @@ def sequence_loss(params, batch, key, cfg: Config, start=None):
         metrics[f"recon_{k}"] = per_sequence((pred[k] - target) ** 2, b) / (2.0 * RECON_VAR)
     kl = gaussian_kl(out["q_z1_loc"], out["q_z1_scale"], out["p_z1_loc"], out["p_z1_scale"])
     metrics["kl"] = cfg.train.kl_weight * per_sequence(kl, b)
+    if cfg.model.latent == "bev":
+        kl_grid = gaussian_kl(out["q_grid_loc"], out["q_grid_scale"], out["p_grid_loc"], out["p_grid_scale"])
+        metrics["kl_grid"] = cfg.train.kl_weight * per_sequence(kl_grid, b)
+        truth = bev_latent.relative_motion(batch["pose"][:, :-1], batch["pose"][:, 1:])
+        error = (out["motion"][:, 1:] - truth) / bev_latent.MOTION_UNIT
+        metrics["motion"] = cfg.train.perception_weight * per_sequence(0.5 * error**2, b)
     metrics.update(detection_terms(pred, batch, cfg.train.perception_weight))
     metrics.update(pose_terms(params, out, pred, batch["pose"], cfg))
     metrics.update(place_terms(params, batch, cfg))

@@ -7,6 +7,11 @@ One frame t flows as (R = image size, F = ``feature_dim``, Z = ``z1_dim + z2_dim
     decode: z_t = [z1_t, z2_t] [B, Z] -> images, PIXOR maps, normalised pose
             (the PIXOR decoder reads [z_t, features t] with ``model.detection_input="latent_and_features"``)
 
+With ``model.latent="bev"`` a bird-eye grid s_t [B, G, G, C] (C Gaussians per cell) joins the vector:
+    motion t-1 -> t predicted from (features t, z t-1, action t-1); s_t-1 warped by it (bev_latent.warp)
+    prior p(s_t | warped s_t-1, action t-1) and posterior q(s_t | warped s_t-1, lidar map t, features t), per cell
+    the PIXOR, lidar and roadmap decoders read s_t where their trunks reach G x G
+
 Layers match the eager PyTorch peer that ``experiments/bench.py`` times against, layer for layer, so the
 parameter counts are equal: torch's stride-2 ``Conv2d(k, 2, k // 2)`` is a flax ``Conv`` with explicit padding,
 its ``ConvTranspose2d(k, 2, k // 2, output_padding=1)`` is :class:`Deconv2x` (a stride-2 layer halves /
@@ -35,7 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from e2e_percep_jax import pose_belief
+from e2e_percep_jax import bev_latent, pose_belief
 from e2e_percep_jax.config import Config, ModelConfig
 
 LEAK = 0.2  # leaky-ReLU slope of the reference (flax's default is 0.01)
@@ -152,53 +157,58 @@ class WholeMapConvTranspose(nn.Module):
 
 
 class Encoder(nn.Module):
-    """uint8 image [N, R, R, 3] -> feature [N, feature_dim]."""
+    """uint8 image [N, R, R, 3] -> (feature [N, feature_dim], {map size: the conv map [N, size, size, width]
+    after each stride-2 conv}); the bird-eye grid's posterior reads the lidar's map at the grid's size."""
 
     widths: tuple
     feature_dim: int
 
     @nn.compact
     def __call__(self, image):
-        x = image.astype(jnp.float32) / 255.0
+        x, maps = image.astype(jnp.float32) / 255.0, {}
         for i, width in enumerate(self.widths):
             x = _act(_conv_s2(width, 5 if i == 0 else 3)(x))
-        return _act(WholeMapConv(self.feature_dim, name=f"Conv_{len(self.widths)}")(x))  # 4 x 4 -> 1 x 1
+            maps[x.shape[1]] = x
+        return _act(WholeMapConv(self.feature_dim, name=f"Conv_{len(self.widths)}")(x)), maps  # 4 x 4 -> 1 x 1
 
 
 class Trunk(nn.Module):
-    """Latent [N, Z] -> feature map [N, R/2, R/2, widths[0]], the encoder mirrored."""
+    """Latent [N, Z] -> feature map [N, R/2, R/2, widths[0]], the encoder mirrored. A bird-eye ``grid``
+    [N, G, G, C] joins the map (concatenated on channels) where the map is G x G."""
 
     widths: tuple
     feature_dim: int
 
     @nn.compact
-    def __call__(self, z):
-        x = _act(WholeMapConvTranspose(self.feature_dim, 4, name="ConvTranspose_0")(z))  # 1 x 1 -> 4 x 4
+    def __call__(self, z, grid=None):
+        join = lambda x: x if grid is None or grid.shape[1] != x.shape[1] else jnp.concatenate([x, grid], -1)
+        x = join(_act(WholeMapConvTranspose(self.feature_dim, 4, name="ConvTranspose_0")(z)))  # 1 x 1 -> 4 x 4
         for width in reversed(self.widths[:-1]):
-            x = _act(Deconv2x(width, 3)(x))
+            x = join(_act(Deconv2x(width, 3)(x)))
         return x
 
 
 class ImageDecoder(nn.Module):
-    """Latent [N, Z] -> Gaussian mean image [N, R, R, 3] (in [0, 1] units; not clipped)."""
+    """Latent [N, Z] (and a bird-eye grid, see :class:`Trunk`) -> Gaussian mean image [N, R, R, 3] (in [0, 1]
+    units; not clipped)."""
 
     widths: tuple
     feature_dim: int
 
     @nn.compact
-    def __call__(self, z):
-        return _act(Deconv2x(3, 5)(Trunk(self.widths, self.feature_dim)(z)))
+    def __call__(self, z, grid=None):
+        return _act(Deconv2x(3, 5)(Trunk(self.widths, self.feature_dim)(z, grid)))
 
 
 class PixorDecoder(nn.Module):
-    """Latent [N, Z] -> (class logit [N, R, R, 1], regression [N, R, R, 6]); own trunk."""
+    """Latent [N, Z] (and a bird-eye grid) -> (class logit [N, R, R, 1], regression [N, R, R, 6]); own trunk."""
 
     widths: tuple
     feature_dim: int
 
     @nn.compact
-    def __call__(self, z):
-        h = Trunk(self.widths, self.feature_dim)(z)
+    def __call__(self, z, grid=None):
+        h = Trunk(self.widths, self.feature_dim)(z, grid)
         return Deconv2x(1, 5)(h), _act(Deconv2x(6, 5)(h))
 
 
@@ -227,6 +237,44 @@ class GaussianMLP(nn.Module):
         return loc, jax.nn.softplus(raw) + MIN_SCALE
 
 
+class Conv3x3(nn.Module):
+    """flax ``Conv(features, (3, 3))`` (stride 1, SAME padding; the same ``kernel`` [3, 3, C, features] and
+    ``bias``) as one matmul of the nine shifted copies of the map: inside the filter's ``lax.scan`` XLA:CPU
+    runs a small conv and its gradient several times slower than this."""
+
+    features: int
+
+    @nn.compact
+    def __call__(self, x):
+        n, h, w, c = x.shape
+        kernel = self.param("kernel", nn.initializers.lecun_normal(), (3, 3, c, self.features))
+        bias = self.param("bias", nn.initializers.zeros, (self.features,))
+        padded = jnp.pad(x, ((0, 0), (1, 1), (1, 1), (0, 0)))
+        taps = jnp.concatenate([padded[:, dy : dy + h, dx : dx + w] for dy in range(3) for dx in range(3)], -1)
+        return taps @ kernel.reshape(9 * c, self.features) + bias
+
+
+class GaussianConv(nn.Module):
+    """Maps [N, G, G, in] (concatenated on channels) -> (loc, scale) [N, G, G, out] per cell: two leaky 3 x 3
+    convs of ``hidden`` channels, then a 3 x 3 conv; scale = softplus + 1e-5."""
+
+    hidden: int
+    out: int
+
+    @nn.compact
+    def __call__(self, *maps):
+        x = jnp.concatenate(maps, -1)
+        for i in range(2):
+            x = _act(Conv3x3(self.hidden, name=f"Conv_{i}")(x))
+        loc, raw = jnp.split(Conv3x3(2 * self.out, name="Conv_2")(x), 2, -1)
+        return loc, jax.nn.softplus(raw) + MIN_SCALE
+
+
+def _unless_seen(seen, posterior, prior):
+    """The posterior's (loc, scale) where ``seen`` (broadcast), the prior's elsewhere (a frame not observed)."""
+    return tuple(jnp.where(seen, q, p) for q, p in zip(posterior, prior))
+
+
 def _sample(loc, scale, key):
     """A draw from N(loc, diag(scale^2)), or its mean when ``key`` is None."""
     return loc if key is None else distrax.MultivariateNormalDiag(loc, scale).sample(seed=key)
@@ -253,10 +301,22 @@ class PerceptionModel(nn.Module):
             self.pose_belief_head = MLP(m.pose_hidden_dim or m.hidden_dim, pose_belief.grid_of(m).head_size)
         else:
             self.pose_head = MLP(m.hidden_dim, 5)
+        if m.latent == "bev":
+            g, c = m.grid_cells, m.grid_channels
+            self.motion_head = MLP(m.hidden_dim, 3)  # (features t, z t-1, a t-1) -> motion t-1 -> t / MOTION_UNIT
+            self.camera_lift = nn.Dense(g * g * c)  # the frame's features -> a map over the grid
+            self.p_grid = GaussianConv(4 * c, c)  # p(s_t | warp(s_t-1), inside, a_t-1)
+            self.q_grid = GaussianConv(4 * c, c)  # q(s_t | warp(s_t-1), inside, lidar map t, lifted features t)
 
     def encode(self, camera, lidar):
-        """uint8 [N, R, R, 3] x 2 -> concatenated features [N, 2 * feature_dim]."""
-        return jnp.concatenate([self.camera_encoder(camera), self.lidar_encoder(lidar)], -1)
+        """uint8 [N, R, R, 3] x 2 -> {features: concatenated features [N, 2 * feature_dim]}, and with the
+        bird-eye latent the lidar encoder's map at the grid's size (``lidar_map`` [N, G, G, width])."""
+        camera_features, _ = self.camera_encoder(camera)
+        lidar_features, lidar_maps = self.lidar_encoder(lidar)
+        encoded = {"features": jnp.concatenate([camera_features, lidar_features], -1)}
+        if self.cfg.latent == "bev":
+            encoded["lidar_map"] = lidar_maps[self.cfg.grid_cells]
+        return encoded
 
     def z1_prior(self, z2_prev, prev_action, first):
         """p(z1_t): N(0, I) on first frames, else p(z1_t | z2_t-1, a_t-1). -> (loc, scale) [N, z1]."""
@@ -278,17 +338,46 @@ class PerceptionModel(nn.Module):
         f = first[:, None]
         return jnp.where(f, loc1, loc), jnp.where(f, scale1, scale)
 
-    def posterior_step(self, state, features, prev_action, key):
-        """One filtering step from encoded features; see :func:`filter_step` for the arguments."""
-        z2_prev, first = state.z2, state.first
+    def grid_step(self, state, encoded, prev_action, key, seen):
+        """The bird-eye grid's filtering step: the earlier sample warped by the motion the ego-motion head
+        predicts (its gradient stopped: the head learns from the true motion alone), then the prior and the
+        posterior per cell (the prior where ``seen`` [N], if given, is False). Returns (grid sample [N, G, G, C], outputs)."""
+        first = state.first[:, None, None, None]
+        inputs = [encoded["features"], state.z1, state.z2, prev_action]
+        motion = self.motion_head(jnp.concatenate(inputs, -1)) * bev_latent.MOTION_UNIT
+        warped, inside = bev_latent.warp(state.grid, jax.lax.stop_gradient(motion))
+        warped, inside = jnp.where(first, 0.0, warped), jnp.where(first, 0.0, inside)
+        action_map = jnp.broadcast_to(prev_action[:, None, None], inside.shape[:3] + (2,))
+        p_loc, p_scale = self.p_grid(warped, inside, action_map)
+        p_loc, p_scale = jnp.where(first, 0.0, p_loc), jnp.where(first, 1.0, p_scale)  # N(0, I) on first frames
+        lifted = self.camera_lift(encoded["features"]).reshape(warped.shape)
+        q_loc, q_scale = self.q_grid(warped, inside, encoded["lidar_map"], lifted)
+        if seen is not None:
+            q_loc, q_scale = _unless_seen(seen[:, None, None, None], (q_loc, q_scale), (p_loc, p_scale))
+        grid = _sample(q_loc, q_scale, key)
+        outputs = {"grid": grid, "motion": motion, "q_grid_loc": q_loc, "q_grid_scale": q_scale}
+        return grid, dict(outputs, p_grid_loc=p_loc, p_grid_scale=p_scale)
+
+    def posterior_step(self, state, encoded, prev_action, key, observed=None):
+        """One filtering step from :meth:`encode`'s dict; see :func:`filter_step` for the arguments, and
+        :func:`filter_sequence` for ``observed``."""
+        z2_prev, first, features = state.z2, state.first, encoded["features"]
+        seen = None if observed is None else observed | first  # None: every frame seen
         k1, k2 = (None, None) if key is None else jax.random.split(key)
         p1_loc, p1_scale = self.z1_prior(z2_prev, prev_action, first)
         q1_loc, q1_scale = self.z1_posterior(features, z2_prev, prev_action, first)
+        if seen is not None:
+            q1_loc, q1_scale = _unless_seen(seen[:, None], (q1_loc, q1_scale), (p1_loc, p1_scale))
         z1 = _sample(q1_loc, q1_scale, k1)
         # q(z2) is p(z2) itself (SLAC), so the z2 KL is zero and is not part of the loss.
         z2_loc, z2_scale = self.z2_prior(z1, z2_prev, prev_action, first)
         z2 = _sample(z2_loc, z2_scale, k2)
         new_state = FilterState(z1=z1, z2=z2, first=jnp.zeros_like(first))
+        grid_outputs = {}
+        if self.cfg.latent == "bev":  # a key of its own, so that the vector latent's draws stay the same
+            grid_key = None if key is None else jax.random.fold_in(key, 2)
+            grid, grid_outputs = self.grid_step(state, encoded, prev_action, grid_key, seen)
+            new_state = new_state.replace(grid=grid)
         outputs = {
             "z1": z1,
             "z2": z2,
@@ -298,17 +387,19 @@ class PerceptionModel(nn.Module):
             "p_z1_scale": p1_scale,
             "z2_loc": z2_loc,
             "z2_scale": z2_scale,
+            **grid_outputs,
         }
         return new_state, outputs
 
-    def decode(self, z, features=None):
+    def decode(self, z, features=None, grid=None):
         """Latent [N, Z] (and the frame's features [N, 2F], read by the PIXOR decoder with
-        ``detection_input="latent_and_features"``) -> dict: built image means [N, R, R, 3], det_logit / det_cls
+        ``detection_input="latent_and_features"``; the bird-eye grid [N, G, G, C], read by the bird-eye
+        decoders: PIXOR, lidar and roadmap) -> dict: built image means [N, R, R, 3], det_logit / det_cls
         [N, R, R, 1] (logit / probability), det_reg [N, R, R, 6], and with a regression pose head
         pose_normalised [N, 5] (:func:`normalise_pose` units)."""
-        out = {k: dec(z) for k, dec in self.image_decoders.items()}
+        out = {k: dec(z, None if k == "camera" else grid) for k, dec in self.image_decoders.items()}
         detection_input = z if self.cfg.detection_input == "latent" else jnp.concatenate([z, features], -1)
-        logit, out["det_reg"] = self.pixor_decoder(detection_input)
+        logit, out["det_reg"] = self.pixor_decoder(detection_input, grid)
         out["det_logit"], out["det_cls"] = logit, jax.nn.sigmoid(logit)
         if self.cfg.pose_head != "belief":
             out["pose_normalised"] = self.pose_head(z)
@@ -321,9 +412,10 @@ class PerceptionModel(nn.Module):
 
     def __call__(self, camera, lidar, prev_action, state):
         """Every network once (used by ``init``): one posterior-mean step, then decode."""
-        features = self.encode(camera, lidar)
-        state, out = self.posterior_step(state, features, prev_action, None)
-        decoded = self.decode(jnp.concatenate([out["z1"], out["z2"]], -1), features)
+        encoded = self.encode(camera, lidar)
+        state, out = self.posterior_step(state, encoded, prev_action, None)
+        features = encoded["features"]
+        decoded = self.decode(jnp.concatenate([out["z1"], out["z2"]], -1), features, out.get("grid"))
         if self.cfg.pose_head == "belief":
             decoded["pose_belief"] = self.pose_belief(features, out["q_z1_loc"], out["z2_loc"])
         return decoded
@@ -341,6 +433,9 @@ class FilterState:
         before its first).
     first: bool [B], the next frame starts the stream: its filter restarts, the pose belief's included
         (``state.replace(first=state.first.at[i].set(True))`` restarts stream i, e.g. at a new drive).
+    grid: with ``--model.latent=bev``, float32 [B, G, G, C]: the bird-eye grid's sample of each stream's last
+        frame, in that frame's ego axes (:mod:`e2e_percep_jax.bev_latent`; zeros before the first); None with
+        the vector latent.
     pose: the pose belief's histogram filter (:class:`pose_belief.PoseBeliefState`), which the inference
         API (``api.Perceiver``) keeps with the belief pose head; None otherwise, and in the latent filter
         of this module (:func:`filter_step`, :func:`filter_sequence`).
@@ -349,16 +444,19 @@ class FilterState:
     z1: jax.Array
     z2: jax.Array
     first: jax.Array
+    grid: jax.Array | None = None
     pose: pose_belief.PoseBeliefState | None = None
 
 
 def init_filter_state(batch_size: int, cfg: Config) -> FilterState:
     """The latent filter's state before a sequence's first frame: zero latents, ``first`` True, no pose."""
     m = cfg.model
+    grid = jnp.zeros((batch_size, m.grid_cells, m.grid_cells, m.grid_channels)) if m.latent == "bev" else None
     return FilterState(
         z1=jnp.zeros((batch_size, m.z1_dim)),
         z2=jnp.zeros((batch_size, m.z2_dim)),
         first=jnp.ones((batch_size,), bool),
+        grid=grid,
     )
 
 
@@ -399,15 +497,18 @@ def filter_step(params, state: FilterState, camera, lidar, prev_action, key, cfg
     the means. ``state.pose`` is not read, and the state returned has none. Returns (state, outputs)
     with outputs z1 [B, z1], z2 [B, z2], the z1 posterior and prior
     (``q_z1_loc``/``q_z1_scale``, ``p_z1_loc``/``p_z1_scale``), z2's (``z2_loc``/``z2_scale``) and the
-    frame's ``features`` [B, 2 feature_dim].
+    frame's ``features`` [B, 2 feature_dim]; with the bird-eye latent also the grid's sample ``grid``
+    [B, G, G, C], its posterior and prior per cell (``q_grid_loc``/``q_grid_scale``,
+    ``p_grid_loc``/``p_grid_scale``) and the ego-motion head's ``motion`` [B, 3] (dx m, dy m, dyaw rad from
+    frame t-1 to t, in frame t-1's axes; :func:`bev_latent.relative_motion` is its truth).
     """
     model = build_model(cfg)
-    features = model.apply(params, camera, lidar, method=PerceptionModel.encode)
-    state, outputs = model.apply(params, state, features, prev_action, key, method=PerceptionModel.posterior_step)
-    return state, dict(outputs, features=features)
+    encoded = model.apply(params, camera, lidar, method=PerceptionModel.encode)
+    state, outputs = model.apply(params, state, encoded, prev_action, key, method=PerceptionModel.posterior_step)
+    return state, dict(outputs, features=encoded["features"])
 
 
-def filter_sequence(params, camera, lidar, action, key, cfg: Config, start=None):
+def filter_sequence(params, camera, lidar, action, key, cfg: Config, start=None, observed=None):
     """Posterior filtering over B sequences: encoders on all frames at once, then ONE ``lax.scan``
     of the same posterior step as :func:`filter_step` over time.
 
@@ -416,32 +517,41 @@ def filter_sequence(params, camera, lidar, action, key, cfg: Config, start=None)
     ``jax.random.split(key, T+1)[t]``, so streaming :func:`filter_step` with those keys gives the same
     result. ``start`` (default: a fresh :func:`init_filter_state`): (:class:`FilterState` before frame 0,
     without ``pose``; action [B, 2] from that state's frame to frame 0), to continue a sequence;
-    :func:`end_state` of the outputs continues this one. Returns :func:`filter_step`'s outputs stacked to
-    [B, T+1, ...].
+    :func:`end_state` of the outputs continues this one. ``observed`` (training's
+    ``--train.observation_drop_share``): bool [B, T+1], False where the filter does not see the frame (its
+    posterior is then its prior; a sequence's first frame is always seen); None: every frame. Returns
+    :func:`filter_step`'s outputs stacked to [B, T+1, ...].
     """
     model = build_model(cfg)
     b, t1 = camera.shape[:2]
     flat = lambda x: x.reshape((b * t1,) + x.shape[2:])
-    features = model.apply(params, flat(camera), flat(lidar), method=PerceptionModel.encode)
+    encoded = model.apply(params, flat(camera), flat(lidar), method=PerceptionModel.encode)
+    encoded = jax.tree.map(lambda x: x.reshape((b, t1) + x.shape[1:]), encoded)
     state, first_action = (init_filter_state(b, cfg), jnp.zeros_like(action[:, 0])) if start is None else start
     prev_action = jnp.concatenate([first_action[:, None], action[:, :-1]], 1)
     time_major = lambda x: jnp.swapaxes(x, 0, 1)
     keys = None if key is None else jax.random.split(key, t1)
 
     def step(state, xs):
-        f, a, k = xs
-        return model.apply(params, state, f, a, k, method=PerceptionModel.posterior_step)
+        f, a, k, o = xs
+        return model.apply(params, state, f, a, k, o, method=PerceptionModel.posterior_step)
 
-    xs = (time_major(features.reshape(b, t1, -1)), time_major(prev_action), keys)
+    xs = (
+        jax.tree.map(time_major, encoded),
+        time_major(prev_action),
+        keys,
+        None if observed is None else time_major(observed),
+    )
     _, outputs = jax.lax.scan(step, state, xs)
-    return dict(jax.tree.map(time_major, outputs), features=features.reshape(b, t1, -1))
+    return dict(jax.tree.map(time_major, outputs), features=encoded["features"])
 
 
 def end_state(outputs: dict, action):
     """The ``start`` that continues :func:`filter_sequence`'s sequence into the next frame: (its last
     frame's filter state, the sequence's last action [B, 2])."""
     first = jnp.zeros(outputs["z1"].shape[:1], bool)
-    return FilterState(z1=outputs["z1"][:, -1], z2=outputs["z2"][:, -1], first=first), action[:, -1]
+    grid = outputs["grid"][:, -1] if "grid" in outputs else None
+    return FilterState(z1=outputs["z1"][:, -1], z2=outputs["z2"][:, -1], first=first, grid=grid), action[:, -1]
 
 
 def decode(params, filtered: dict, cfg: Config) -> dict:
@@ -450,8 +560,9 @@ def decode(params, filtered: dict, cfg: Config) -> dict:
     the frame's ``features`` beside it when ``cfg.model.detection_input`` asks."""
     z = jnp.concatenate([filtered["z1"], filtered["z2"]], -1)
     lead = z.shape[:-1]
-    flat = lambda x: x.reshape((-1, x.shape[-1]))
-    out = build_model(cfg).apply(params, flat(z), flat(filtered["features"]), method=PerceptionModel.decode)
+    flat = lambda x: None if x is None else x.reshape((-1,) + x.shape[len(lead) :])
+    args = flat(z), flat(filtered["features"]), flat(filtered.get("grid"))
+    out = build_model(cfg).apply(params, *args, method=PerceptionModel.decode)
     return jax.tree.map(lambda x: x.reshape(lead + x.shape[1:]), out)
 
 

@@ -238,14 +238,20 @@ def example_rows(frame, pred_boxes, pred_scores, panel_px=192):
     Row 1: camera, lidar, ground-truth roadmap, ground-truth boxes (:data:`GROUP_RGB`: green lidar, yellow
     camera only, orange remembered, grey unseen).
     Row 2: reconstructed camera, lidar, roadmap (black where the variant does not reconstruct it), and
-    the decoded boxes (cyan, brighter for higher scores) over the reconstructed (else true) roadmap.
+    the decoded boxes (cyan, brighter for higher scores) over the reconstructed (else true) roadmap, with the
+    remembered true boxes outlined in orange beneath them: whether the model kept what the sensors lost.
     """
     r = frame["camera"].shape[0]
-    no_boxes = dict(boxes=np.zeros((0, 5), np.float32), boxes_valid=np.zeros(0, bool), boxes_group=np.zeros(0, int))
+    remembered = np.asarray(frame["boxes_valid"]) & (box_groups(frame) == metrics_lib.GROUPS.index("remembered"))
+    memory = dict(
+        boxes=np.asarray(frame["boxes"])[remembered],
+        boxes_valid=np.ones(int(remembered.sum()), bool),
+        boxes_group=np.full(int(remembered.sum()), metrics_lib.GROUPS.index("remembered")),
+    )
     top = frame_panel(frame, panel_px, titles=False)
     blank = np.zeros((r, r, 3), np.uint8)
     recon = {k: frame.get(f"recon_{k}", blank) for k in ("camera", "lidar", "roadmap")}
-    recon_frame = dict(recon, **no_boxes)
+    recon_frame = dict(recon, **memory)
     if "recon_roadmap" not in frame:  # boxes drawn over the true roadmap, dimmed
         recon_frame["roadmap"] = frame["roadmap"]
     bottom = frame_panel(recon_frame, panel_px, pred_boxes, pred_scores, titles=False)
@@ -254,7 +260,12 @@ def example_rows(frame, pred_boxes, pred_scores, panel_px=192):
     for i, name in enumerate(("camera", "lidar", "GT roadmap", "GT boxes")):
         title(top[:, i * panel_px : (i + 1) * panel_px], name)
     for i, (key, name) in enumerate(
-        (("camera", "recon. camera"), ("lidar", "recon. lidar"), ("roadmap", "recon. roadmap"), (None, "decoded boxes"))
+        (
+            ("camera", "recon. camera"),
+            ("lidar", "recon. lidar"),
+            ("roadmap", "recon. roadmap"),
+            (None, "decoded (orange: remembered)"),
+        )
     ):
         view = bottom[:, i * panel_px : (i + 1) * panel_px]
         title(view, name if key is None or f"recon_{key}" in frame else f"{name}: not decoded")

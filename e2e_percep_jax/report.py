@@ -14,6 +14,7 @@ import os
 import cv2
 import numpy as np
 
+from e2e_percep_jax import metrics as metrics_lib
 from e2e_percep_jax import pictures, pose_belief, protocol
 from e2e_percep_jax.config import Config
 from e2e_percep_jax.summary import markdown_table
@@ -236,7 +237,9 @@ def markdown(m: dict) -> str:
     ]
     lines.append(markdown_table(["steps since start", "frames", "mean location error (m)"], steps))
     pictured = ", ".join(
-        f"world {x['world']} frame {x['frame']} ({x['vehicles_in_view']} vehicles in view)" for x in m["examples"]
+        f"world {x['world']} frame {x['frame']} ({x['vehicles_in_view']} vehicles in view, "
+        f"{x.get('remembered_in_view', 0)} remembered)"
+        for x in m["examples"]
     )
     lines += [
         "",
@@ -328,14 +331,19 @@ class Pictures:
                 cv2.cvtColor(np.concatenate(rows[:-1], 0), cv2.COLOR_RGB2BGR),
             )
         return [
-            {"world": int(w), "frame": int(i), "vehicles_in_view": int(np.sum(frame["boxes_valid"]))}
+            {
+                "world": int(w),
+                "frame": int(i),
+                "vehicles_in_view": int(np.sum(frame["boxes_valid"])),
+                "remembered_in_view": _remembered_in_view(frame),
+            }
             for i, w, frame, _, _ in chosen
         ]
 
 
 def pictured_frame(out, t, slot):
-    """Frame t of a chunk's ``out`` as seen in pictured slot ``slot`` (0: world 0, 1: the most crowded
-    world): its images, reconstructions and ground-truth boxes, as NumPy, for :func:`example_rows`."""
+    """Frame t of a chunk's ``out`` as seen in pictured slot ``slot`` (0: world 0, 1: the examples'
+    candidate world): its images, reconstructions and ground-truth boxes, as NumPy, for :func:`example_rows`."""
     frame = {
         k: np.array(out[k][t, slot])
         for k in out
@@ -346,17 +354,21 @@ def pictured_frame(out, t, slot):
     return frame
 
 
+def _remembered_in_view(frame) -> int:
+    return int(np.sum(frame["boxes_valid"] & (frame["boxes_group"] == metrics_lib.GROUPS.index("remembered"))))
+
+
 def _example_candidates(images, window, num_examples):
     """The kept (frame_index, world, frame, boxes, scores) entries: the drives' frame indices [0,
     window) are cut into ``num_examples`` equal parts and each part keeps its frame with the most
-    ground-truth vehicles in view (ties: the later frame, where the filter has run longer). Called
-    after every new frame, so at most ``num_examples`` frames are held."""
+    remembered vehicles in view, then the most vehicles (ties: the later frame, where the filter has run
+    longer). Called after every new frame, so at most ``num_examples`` frames are held."""
     if num_examples <= 0:
         return []
     best = {}
     for entry in images:
         part = min(num_examples - 1, entry[0] * num_examples // max(window, 1))
-        crowd = int(np.sum(entry[2]["boxes_valid"]))
+        crowd = (_remembered_in_view(entry[2]), int(np.sum(entry[2]["boxes_valid"])))
         if part not in best or crowd >= best[part][0]:
             best[part] = (crowd, entry)
     return [best[p][1] for p in sorted(best)]

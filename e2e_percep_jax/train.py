@@ -107,11 +107,12 @@ def _carried_loss(state: CarriedTrainState, batch: dict, key: jax.Array, cfg: Co
     slot, segment = state.step % per_drive, (state.step // per_drive) % per_drive
     carried = jax.tree.map(lambda x: x[slot], state.carry)
     first = jnp.full(carried["action"].shape[:1], segment == 0)
-    start = (model_lib.FilterState(z1=carried["z1"], z2=carried["z2"], first=first), carried["action"])
+    latents = {k: v for k, v in carried.items() if k != "action"}
+    start = (model_lib.FilterState(**latents, first=first), carried["action"])
     (total, (metrics, (end, action))), grads = jax.value_and_grad(loss_lib.sequence_loss, has_aux=True)(
         state.params, batch, key, cfg, start
     )
-    ended = {"z1": end.z1, "z2": end.z2, "action": action}
+    ended = {k: action if k == "action" else getattr(end, k) for k in state.carry}
     # A non-finite end (a skipped step's) would poison the chain: its rows restart from zeros.
     carry = jax.tree.map(lambda c, e: c.at[slot].set(jnp.where(jnp.isfinite(e), e, 0.0)), state.carry, ended)
     return ((total, metrics), grads), carry

@@ -50,14 +50,17 @@ class CarriedTrainState(TrainState):
     """The train state of a ``--data.carry_state`` run: also, per drive slot of the stream (K =
     ``batches_per_drive``), where its drive's last segment left the latent filter: carry = {z1 [K, B,
     z1_dim], z2 [K, B, z2_dim] (the last frame's samples), action [K, B, 2] (from that frame to the
-    next segment's first)}. Saved with the rest, so a resumed run continues its chains exactly."""
+    next segment's first), and with the bird-eye latent grid [K, B, G, G, C]}. Saved with the rest, so a resumed run continues its chains exactly."""
 
     carry: Any
 
 
 def _empty_carry(cfg: Config) -> dict:
     k, b, m = cfg.data.batches_per_drive, cfg.data.batch_size, cfg.model
-    return {"z1": jnp.zeros((k, b, m.z1_dim)), "z2": jnp.zeros((k, b, m.z2_dim)), "action": jnp.zeros((k, b, 2))}
+    carry = {"z1": jnp.zeros((k, b, m.z1_dim)), "z2": jnp.zeros((k, b, m.z2_dim)), "action": jnp.zeros((k, b, 2))}
+    if m.latent == "bev":
+        carry["grid"] = jnp.zeros((k, b, m.grid_cells, m.grid_cells, m.grid_channels))
+    return carry
 
 
 def learning_rate(cfg: Config) -> optax.ScalarOrSchedule:

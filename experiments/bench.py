@@ -10,7 +10,8 @@ one JSON line and writes it to ``--out_dir/<name>.json``; a table of all of them
 ``--peer_python``) at the same (B, T, R) right after ours and reports ``ratio_vs_peer`` = our
 frames/s over the peer's. ``frames_parts`` and ``train_parts`` are the profiles behind ``frames`` and
 ``train``: the same work split into its parts; ``train_profile`` is the step's per-op profile beside the
-peer's. ``--noeigen_convolutions`` measures XLA's default convolution path instead of the launchers'.
+peer's; ``latent`` is each latent's training step (the vector and the bird-eye grid) beside the peer, and
+``infer`` each latent's filtering step. ``--noeigen_convolutions`` measures XLA's default convolution path instead of the launchers'.
 
 The benchmarks live in ``experiments/benchmarks/``, one module per family; this file holds their list
 (BENCHMARKS), every flag and its check, and the run.
@@ -37,6 +38,7 @@ BENCHMARKS = {
     "batch": data.bench_batch,
     "loop": data.bench_loop,
     "train": training.bench_train,
+    "latent": training.bench_latent,
     "place": training.bench_place,
     "train_parts": training.bench_train_parts,
     "train_profile": training.bench_train_profile,

@@ -17,7 +17,7 @@ import sys
 import jax
 import numpy as np
 
-from e2e_percep_jax import config, loss
+from e2e_percep_jax import config, loss, pose_belief
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # the repository
 TINY = config.get_config("tiny")
@@ -155,6 +155,11 @@ TINY_FLAGS = [
 ]
 
 
+def np_kl(q_loc, q_scale, p_loc, p_scale):
+    """KL(N(q) || N(p)) of diagonal Gaussians, per dimension, in closed form (NumPy)."""
+    return np.log(p_scale / q_scale) + (q_scale**2 + (q_loc - p_loc) ** 2) / (2 * p_scale**2) - 0.5
+
+
 def readme_section(heading):
     """The README's ``## heading`` section, up to the next ``## `` heading."""
     with open(os.path.join(ROOT, "README.md"), encoding="utf-8") as f:
@@ -162,6 +167,32 @@ def readme_section(heading):
     start = text.index(f"\n## {heading}\n")
     end = text.find("\n## ", start + 1)
     return text[start : end if end > 0 else len(text)]
+
+
+def run_readme_example(workdir, cfg):
+    """Runs the Python block of the README's "Inference API" section as written on the run in ``workdir``
+    (trained with ``cfg``), with the inputs its comments describe (4 streams); checks the shapes its comments
+    state and returns the names it left."""
+    block = readme_section("Inference API").split("```python\n", 1)[1]
+    example = block[: block.index("```\n")]
+    assert example.count('"runs/demo"') == 1, example
+    rng, r = np.random.default_rng(0), cfg.data.image_size
+    names = {
+        "camera": rng.integers(0, 256, (4, r, r, 3), np.uint8),
+        "lidar": rng.integers(0, 256, (4, r, r, 3), np.uint8),
+        "action": rng.uniform([-1.0, -0.3], [1.0, 0.3], (4, 2)).astype(np.float32),
+        "start_pose": np.tile(np.float32([10.0, -5.0, 1.0, 0.0, 3.0]), (4, 1)),
+    }
+    exec(example.replace('"runs/demo"', repr(str(workdir))), names)
+    out, state, grid = names["out"], names["state"], pose_belief.grid_of(cfg.model)
+    assert out.pose.shape == (4, 5) and out.pose_place.shape == (4, grid.n, grid.n)
+    assert out.det_cls.shape == (4, r, r, 1) and out.det_reg.shape == (4, r, r, 6) and out.roadmap.shape == (4, r, r, 3)
+    assert state.pose.belief.shape == (4, grid.heading_bins, grid.n, grid.n)
+    boxes = names["boxes"]
+    assert len(boxes) == 4 and all(b.shape[1:] == (5,) and s.shape == b.shape[:1] for b, s in boxes)
+    # the known start without the measurement: stream 0, restarted, stands where its start_pose put it
+    np.testing.assert_allclose(out.pose[0, :2], names["start_pose"][0, :2], atol=grid.cell_m)
+    return names
 
 
 def read_jsonl(path):

@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import ROOT, readme_section
+from helpers import ROOT, run_readme_example
 
 import e2e_percep_jax as e2e
 from e2e_percep_jax import config as config_lib
@@ -226,35 +226,12 @@ def test_load_returns_the_trained_params_and_boxes_decode(trained_run):
     assert out.det_cls.shape == (2, R, R, 1) and out.pose.shape == (2, 5)
 
 
-def _readme_example():
-    """The Python block of the README's "Inference API" section."""
-    block = readme_section("Inference API").split("```python\n", 1)[1]
-    return block[: block.index("```\n")]
-
-
 @pytest.mark.slow
 def test_the_readmes_example_runs_as_written_on_a_trained_run(trained_run):
     """The README's inference example, run on a trained run with the inputs its comments describe (4 streams),
     gives the shapes its comments state: a user who copies it meets no renamed field."""
     workdir, cfg, _ = trained_run
-    example = _readme_example()
-    assert example.count('"runs/demo"') == 1, example
-    rng = np.random.default_rng(0)
-    names = {
-        "camera": rng.integers(0, 256, (4, R, R, 3), np.uint8),
-        "lidar": rng.integers(0, 256, (4, R, R, 3), np.uint8),
-        "action": rng.uniform([-1.0, -0.3], [1.0, 0.3], (4, 2)).astype(np.float32),
-        "start_pose": np.tile(np.float32([10.0, -5.0, 1.0, 0.0, 3.0]), (4, 1)),
-    }
-    exec(example.replace('"runs/demo"', repr(str(workdir))), names)
-    out, state, grid = names["out"], names["state"], pose_belief.grid_of(cfg.model)
-    assert out.pose.shape == (4, 5) and out.pose_place.shape == (4, grid.n, grid.n)
-    assert out.det_cls.shape == (4, R, R, 1) and out.det_reg.shape == (4, R, R, 6) and out.roadmap.shape == (4, R, R, 3)
-    assert state.pose.belief.shape == (4, grid.heading_bins, grid.n, grid.n)
-    boxes = names["boxes"]
-    assert len(boxes) == 4 and all(b.shape[1:] == (5,) and s.shape == b.shape[:1] for b, s in boxes)
-    # the known start without the measurement: stream 0, restarted, stands where its start_pose put it
-    np.testing.assert_allclose(out.pose[0, :2], names["start_pose"][0, :2], atol=grid.cell_m)
+    run_readme_example(workdir, cfg)
 
 
 def test_boxes_recover_the_cars_behind_pixor_maps():

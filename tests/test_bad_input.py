@@ -91,6 +91,16 @@ CASES = {
         "train", ["--data.image_size=256"], "--model.conv_channels has 3 widths; image_size 256 needs 6"
     ),
     "train variant": Case("train", ["--model.variant=both"], "--model.variant='both': choose one of"),
+    "train latent": Case("train", ["--model.latent=grid"], "--model.latent='grid': choose one of"),
+    "train observation_drop_share of one": Case(
+        "train", ["--train.observation_drop_share=1"], "--train.observation_drop_share=1.0: must lie in [0, 1)"
+    ),
+    "train grid_cells not a size the trunk passes": Case(
+        "train", ["--model.latent=bev", "--model.grid_cells=12"], "--model.grid_cells=12: must be a power of two in"
+    ),
+    "train grid_cells above half the image": Case(
+        "train", ["--model.latent=bev", "--model.grid_cells=32"], "--model.grid_cells=32: must be a power of two in"
+    ),
     "train batch_size zero": Case("train", ["--data.batch_size=0"], "--data.batch_size=0: must be positive"),
     "train batch_size not a multiple of the devices": Case(
         "train",

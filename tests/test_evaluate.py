@@ -116,18 +116,25 @@ def groups_in_view(cfg, frames: int):
 
 
 def vehicles_in_view(cfg, frames: int):
-    """[frames, E] valid ground-truth boxes of the evaluation drives, re-simulated step by step."""
+    """(remembered, all) [frames, E]: the valid ground-truth boxes of the evaluation drives and those of them
+    in the remembered group, re-simulated step by step."""
     town = town_lib.build_town(cfg.eval.town_seed)
     step = jax.jit(jax.vmap(lambda s: world.step(s, town)))
-    count = jax.jit(jax.vmap(lambda s: sensors.observe(s, town, cfg.data.image_size)["boxes_valid"].sum()))
+    observe = jax.jit(jax.vmap(lambda s: sensors.observe(s, town, cfg.data.image_size)))
     state = eval_lib.start_worlds(eval_lib.start_keys(cfg), town, cfg.world)
     for _ in range(cfg.data.warmup_steps):
         state = step(state)
-    counts = []
+    counts, since = [], None
     for _ in range(frames):
-        counts.append(np.asarray(count(state)))
+        frame = observe(state)
+        since = rollout.since_seen_step(
+            np.full(frame["boxes_valid"].shape, rollout.NEVER_SEEN) if since is None else since, frame
+        )
+        group = np.asarray(metrics_lib.box_groups(frame["boxes_lidar_visible"], frame["boxes_camera_visible"], since))
+        valid = np.asarray(frame["boxes_valid"])
+        counts.append((np.sum(valid & (group == metrics_lib.GROUPS.index("remembered")), -1), valid.sum(-1)))
         state = step(state)
-    return np.stack(counts)
+    return np.stack([c[0] for c in counts]), np.stack([c[1] for c in counts])
 
 
 @pytest.mark.slow  # two evaluations' drives compiled (~1 min)
@@ -297,15 +304,17 @@ def test_oracle_targets_through_the_decode_path_and_a_known_pose_offset(memory_r
     assert sum(by_step["count"]) == 160
     assert all(v == pytest.approx(5.0, abs=2e-4) for v, n in zip(by_step["mean"], by_step["count"]) if n)
     # No video, yet two examples (two rows of four panels and the 2 x 2 town map each, a 6-pixel rule
-    # between), not frame 0 alone: in each half of the drives, the frame of any world with the most vehicles
-    # in view (re-simulated).
+    # between), not frame 0 alone: in each half of the drives, the frame of any world with the most remembered
+    # vehicles in view, then the most vehicles (re-simulated).
     assert cv2.imread(os.path.join(tmp_path, "examples.png")).shape == (2 * 2 * 192 + 6, 6 * 192, 3)
-    counts = vehicles_in_view(cfg, frames=80)  # [frame, world]
+    remembered, counts = vehicles_in_view(cfg, frames=80)  # [frame, world]
+    rank = remembered * (counts.max() + 1) + counts
     for half, example in enumerate(m["examples"]):
-        assert example["vehicles_in_view"] == counts[example["frame"], example["world"]]
-        assert example["vehicles_in_view"] == counts[40 * half : 40 * (half + 1)].max() > 0
-    # The fixture discriminates: in some half, world 0 alone (the old choice) would miss the busiest frame.
-    assert any(counts[h : h + 40, 0].max() < counts[h : h + 40].max() for h in (0, 40))
+        f, w = example["frame"], example["world"]
+        assert (example["remembered_in_view"], example["vehicles_in_view"]) == (remembered[f, w], counts[f, w])
+        assert rank[f, w] == rank[40 * half : 40 * (half + 1)].max() and counts[f, w] > 0
+    # The fixture discriminates: in some half, world 0 alone (the old choice) would miss the best frame.
+    assert any(rank[h : h + 40, 0].max() < rank[h : h + 40].max() for h in (0, 40))
 
 
 def test_host_detections_follow_floor_view_and_nms():

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
-from helpers import TINY, loss_and_grads, np_focal, np_smooth_l1, synthetic_batch
+from helpers import TINY, loss_and_grads, np_focal, np_kl, np_smooth_l1, synthetic_batch
 
 from e2e_percep_jax import config, loss, model
 
@@ -93,7 +93,7 @@ def test_every_term_matches_numpy_per_sequence(setup, pose_head):
         f"recon_{k}": np.sum((pred[k] - batch[k] / 255.0) ** 2 / (2 * 0.1)) / b for k in ("camera", "lidar", "roadmap")
     }
     mq, sq, mp, sp = (out[k].astype(np.float64) for k in ("q_z1_loc", "q_z1_scale", "p_z1_loc", "p_z1_scale"))
-    want["kl"] = np.sum(np.log(sp / sq) + (sq**2 + (mq - mp) ** 2) / (2 * sp**2) - 0.5) / b
+    want["kl"] = np.sum(np_kl(mq, sq, mp, sp)) / b
     w = 32.0  # the reference's perception terms are summed over its batch of 32: the default weight
     assert cfg.train.perception_weight == w
     want["det_cls"] = w * np.sum(np_focal(pred["det_logit"], batch["det_cls"])) / b
@@ -171,3 +171,21 @@ def test_gradients_finite_and_reach_every_network():
     for path, g in jax.tree_util.tree_leaves_with_path(grads):
         assert np.all(np.isfinite(g)), path
         assert np.any(g != 0), path  # every parameter takes part in the loss
+
+
+@pytest.mark.slow
+def test_frames_dropped_from_the_filter_carry_no_kl_and_are_still_scored(setup):
+    """--train.observation_drop_share near 1: every frame after a sequence's first is hidden from the filter,
+    so the z1 KL is the first frames' alone (as the whole run's frame 0 has it) while the reconstructions and
+    detection still count every frame; with the posterior means (key None) nothing is dropped."""
+    cfg, params, batch = setup
+    hidden = config.replace(cfg, train=dict(observation_drop_share=0.999999))
+    key = jax.random.PRNGKey(4)
+    _, metrics = loss.loss_fn(params, batch, key, hidden)
+    out = model.filter_sequence(params, batch["camera"], batch["lidar"], batch["action"], key, cfg)
+    first_kl = np.sum(
+        np_kl(*(np.asarray(out[k][:, 0], np.float64) for k in ("q_z1_loc", "q_z1_scale", "p_z1_loc", "p_z1_scale")))
+    )
+    np.testing.assert_allclose(metrics["kl"], first_kl / batch["camera"].shape[0], rtol=1e-4)
+    assert metrics["recon_camera"] > 0 and metrics["det_cls"] > 0
+    np.testing.assert_allclose(loss.loss_fn(params, batch, None, hidden)[0], loss.loss_fn(params, batch, None, cfg)[0])

@@ -34,7 +34,7 @@ def test_every_network_output_shape(r):
     vec = lambda d: jax.ShapeDtypeStruct((n, d), jnp.float32)
     first = jax.ShapeDtypeStruct((n,), bool)
 
-    assert apply(PerceptionModel.encode, image, image).shape == (n, 2 * m.feature_dim)
+    assert apply(PerceptionModel.encode, image, image)["features"].shape == (n, 2 * m.feature_dim)
     for method, args, dim in [
         (PerceptionModel.z1_prior, (vec(m.z2_dim), vec(2), first), m.z1_dim),
         (PerceptionModel.z1_posterior, (vec(2 * m.feature_dim), vec(m.z2_dim), vec(2), first), m.z1_dim),
@@ -192,6 +192,20 @@ def test_subpixel_deconv_equals_flax_conv_transpose(kernel, features):
         np.testing.assert_allclose(g, want, rtol=1e-4, atol=1e-4)
 
 
+def test_the_grids_conv_as_a_matmul_equals_flax_conv():
+    """The bird-eye grid's 3 x 3 conv (nine shifted copies, one matmul) against flax's SAME conv with the same
+    parameters, values and gradients, edges included."""
+    x = jax.random.normal(jax.random.PRNGKey(0), (2, 6, 7, 4))
+    plain = nn.Conv(5, (3, 3))
+    params = jax.tree.map(lambda v: v + 0.1, plain.init(jax.random.PRNGKey(1), x))  # bias too
+    got = model.Conv3x3(5).apply(params, x)
+    np.testing.assert_allclose(got, plain.apply(params, x), rtol=1e-5, atol=1e-5)
+    cotangent = jax.random.normal(jax.random.PRNGKey(2), got.shape)
+    grad = lambda module: jax.grad(lambda p, x: jnp.sum(module.apply(p, x) * cotangent), argnums=(0, 1))(params, x)
+    for g, want in zip(jax.tree.leaves(grad(model.Conv3x3(5))), jax.tree.leaves(grad(plain))):
+        np.testing.assert_allclose(g, want, rtol=1e-4, atol=1e-4)
+
+
 @pytest.mark.parametrize("kernel", [2, 4])
 def test_whole_map_layers_equal_flax_conv_and_conv_transpose(kernel):
     """The encoder's last layer and the trunks' first, as matmuls, against flax's layers with the same
@@ -242,7 +256,7 @@ def test_layers_match_numpy_torch_semantics():
             np_conv(x, np.asarray(p[f"Conv_{i}"]["kernel"]), np.asarray(p[f"Conv_{i}"]["bias"]), 2, 2 if i == 0 else 1)
         )
     feature = leaky(np_conv(x, np.asarray(p["Conv_3"]["kernel"]), np.asarray(p["Conv_3"]["bias"]), 1, 0)).ravel()
-    got = net.apply({"params": params}, camera, camera, method=PerceptionModel.encode)[0]
+    got = net.apply({"params": params}, camera, camera, method=PerceptionModel.encode)["features"][0]
     np.testing.assert_allclose(got[: cfg.model.feature_dim], feature, rtol=1e-4, atol=1e-5)
 
     z = np.asarray(jax.random.normal(jax.random.PRNGKey(5), (cfg.model.z1_dim + cfg.model.z2_dim,)))
@@ -403,3 +417,35 @@ def test_carried_segments_equal_one_long_scan(filtered):
     # ...and not what a fresh start of the second piece gives
     fresh = run(params, *(piece(batch[k], slice(cut, None)) for k in ("camera", "lidar", "action")), None, cfg)
     assert not np.allclose(fresh["z2"], second["z2"], atol=1e-3)
+
+
+@pytest.mark.slow
+def test_a_frame_not_observed_leaves_the_latents_to_their_prior():
+    """``observed`` False at frame 2 of a sequence: frames 0-1 are as if every frame were seen; at frame 2 the
+    posterior is the prior (z1, and the bird-eye grid), so its images do not matter; frame 0 is seen even if
+    marked."""
+    cfg = with_sizes(TINY, latent="bev")
+    params = model.init_params(jax.random.PRNGKey(0), cfg)
+    batch = synthetic_batch(0, cfg)
+    filtered = jax.jit(
+        lambda camera, observed: model.filter_sequence(
+            params, camera, batch["lidar"], batch["action"], None, cfg, observed=observed
+        )
+    )
+    observed = np.ones(batch["camera"].shape[:2], bool)
+    observed[:, 2], observed[:, 0] = False, False
+    every = filtered(batch["camera"], np.ones_like(observed))
+    dropped = filtered(batch["camera"], observed)
+    for name in ("q_z1_loc", "q_grid_loc"):
+        np.testing.assert_array_equal(dropped[name][:, :2], every[name][:, :2])
+        prior = name.replace("q_", "p_")
+        np.testing.assert_array_equal(dropped[name][:, 2], dropped[prior][:, 2])
+        np.testing.assert_array_equal(
+            dropped[name.replace("loc", "scale")][:, 2], dropped[prior.replace("loc", "scale")][:, 2]
+        )
+        assert not np.allclose(every[name][:, 2], every[prior][:, 2])
+    # frame 2's camera reaches nothing of the latents at frame 2
+    changed = np.asarray(batch["camera"]).copy()
+    changed[:, 2] = 255 - changed[:, 2]
+    moved = filtered(changed, observed)
+    np.testing.assert_array_equal(moved["z1"][:, 2], dropped["z1"][:, 2])

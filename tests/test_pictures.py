@@ -37,21 +37,25 @@ def test_heading_tick_points_to_the_front():
         assert (view[row - 1 : row + 2, col - 1 : col + 2].max() > 0) == lit
 
 
-def test_frame_panel_colours_the_boxes_by_who_saw_them():
-    """Four boxes, one per group, from the frame contract's who-saw fields: each group's colour is drawn, and
-    a frame without the remembered box lacks its colour."""
-    r = 32
+def _one_box_per_group(r=32):
+    """A frame of the contract (R = ``r``) with four boxes, one per group: lidar, camera only, remembered, unseen."""
     shift = lambda dx, dy: BOX + [dx, dy, 0, 0, 0]
-    frame = dict(
+    return dict(
         camera=np.zeros((r, r, 3), np.uint8),
         lidar=np.zeros((r, r, 3), np.uint8),
         roadmap=np.zeros((r, r, 3), np.uint8),
         boxes=np.stack([shift(0, 0), shift(0, -12), shift(-14, 0), shift(-14, -12)]),
-        boxes_valid=np.array([True, True, True, True]),
+        boxes_valid=np.ones(4, bool),
         boxes_lidar_visible=np.array([True, False, False, False]),
         boxes_camera_visible=np.array([True, True, False, False]),
-        boxes_frames_since_seen=np.array([0, 0, 12, 31]),  # lidar, camera only, remembered, unseen
+        boxes_frames_since_seen=np.array([0, 0, 12, 31]),
     )
+
+
+def test_frame_panel_colours_the_boxes_by_who_saw_them():
+    """Four boxes, one per group, from the frame contract's who-saw fields: each group's colour is drawn, and
+    a frame without the remembered box lacks its colour."""
+    frame = _one_box_per_group()
     near = lambda panel, colour: np.min(np.linalg.norm(panel.reshape(-1, 3).astype(float) - colour, axis=-1)) < 40
     panel = pictures.frame_panel(frame, panel_px=VIEW_PX, titles=False)[:, 3 * VIEW_PX :]
     for colour in pictures.GROUP_RGB:  # each drawn (anti-aliased: near, not equal)
@@ -59,6 +63,17 @@ def test_frame_panel_colours_the_boxes_by_who_saw_them():
     frame["boxes_valid"] = np.array([True, True, False, True])
     panel = pictures.frame_panel(frame, panel_px=VIEW_PX, titles=False)[:, 3 * VIEW_PX :]
     assert not near(panel, pictures.GROUP_RGB[2])
+
+
+def test_the_decoded_panel_outlines_the_remembered_boxes_alone():
+    """In the examples' decoded-boxes panel the remembered true box is outlined (orange) beneath the decoded
+    ones (cyan); the boxes of the other groups are not drawn there."""
+    panel_px, frame = 64, _one_box_per_group()
+    near = lambda panel, colour: np.min(np.linalg.norm(panel.reshape(-1, 3).astype(float) - colour, axis=-1)) < 40
+    decoded = pictures.example_rows(frame, frame["boxes"][:1], np.ones(1), panel_px)[panel_px + 20 :, 3 * panel_px :]
+    assert near(decoded, pictures.GROUP_RGB[2]) and near(decoded, pictures.PREDICTED_RGB)
+    for group in (0, 1, 3):
+        assert not near(decoded, pictures.GROUP_RGB[group]), group
 
 
 def test_town_map_puts_the_belief_and_the_paths_where_the_town_frame_says():

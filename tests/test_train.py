@@ -470,13 +470,15 @@ def test_sigterm_saves_the_step_it_was_on_and_resume_equals_an_uninterrupted_run
 
 
 @pytest.mark.slow
-def test_a_run_with_the_place_stream_resumes_bit_identically(tmp_path):
-    """The presets' stream (drives of several batches, place frames beside them) and the PIXOR decoder reading
-    the frame's features: a run stopped at step 2 and resumed equals the uninterrupted one."""
+@pytest.mark.parametrize("model_fields", [dict(detection_input="latent_and_features"), dict(latent="bev")])
+def test_a_run_with_the_place_stream_resumes_bit_identically(tmp_path, model_fields):
+    """The presets' stream (drives of several batches, place frames beside them), with the PIXOR decoder reading
+    the frame's features or with the bird-eye latent: a run stopped at step 2 and resumed equals the
+    uninterrupted one."""
     cfg = config.replace(
         tiny(num_steps=4, checkpoint_every=2, log_every=2),
         data=dict(batches_per_drive=2, place_frames=2),
-        model=dict(detection_input="latent_and_features"),
+        model=model_fields,
     )
     batches = train.world_batches(cfg)
     whole = train.train(cfg, str(tmp_path / "whole"), batches)
@@ -491,11 +493,14 @@ def test_a_run_with_the_place_stream_resumes_bit_identically(tmp_path):
 
 
 @pytest.mark.slow
-def test_carried_state_chains_segments_and_resumes_bit_identically(tmp_path):
+@pytest.mark.parametrize("latent", config.LATENTS)
+def test_carried_state_chains_segments_and_resumes_bit_identically(tmp_path, latent):
     """With --data.carry_state the step starts each drive's first segment afresh (its loss is the plain
-    loss's) and continues later ones from the carry its slot left; a run stopped and resumed equals the
-    uninterrupted one, carry included."""
-    cfg = config.replace(CFG, data=dict(batches_per_drive=2, carry_state=True), train=dict(num_steps=6))
+    loss's) and continues later ones from the carry its slot left (the bird-eye grid too); a run stopped and
+    resumed equals the uninterrupted one, carry included."""
+    cfg = config.replace(
+        CFG, data=dict(batches_per_drive=2, carry_state=True), train=dict(num_steps=6), model=dict(latent=latent)
+    )
     whole = train.train(cfg, str(tmp_path / "whole"), batches=synthetic_batches())
     train.train(config.replace(cfg, train=dict(num_steps=3)), str(tmp_path / "stopped"), batches=synthetic_batches())
     resumed = train.train(cfg, str(tmp_path / "stopped"), batches=synthetic_batches())
@@ -512,7 +517,7 @@ def test_carried_state_chains_segments_and_resumes_bit_identically(tmp_path):
         state, metrics = step_fn(state, b, key)
         np.testing.assert_allclose(metrics["total"], expected, rtol=1e-6)
     start = (
-        model.FilterState(z1=state.carry["z1"][0], z2=state.carry["z2"][0], first=np.zeros(2, bool)),
+        model.FilterState(**{k: v[0] for k, v in state.carry.items() if k != "action"}, first=np.zeros(2, bool)),
         state.carry["action"][0],
     )
     np.testing.assert_array_equal(state.carry["action"][0], batches[0]["action"][:, -1])

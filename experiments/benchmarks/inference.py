@@ -18,26 +18,29 @@ FLAGS = flags.FLAGS
 
 
 def bench_infer(town, repeats):
-    """One filtering step plus every decoder, paper config at R = 128: latency at batch 1, throughput at
-    ``--infer_batch``."""
-    cfg = paper_config(1, 10, 128)
-    params = model_lib.init_params(jax.random.PRNGKey(0), cfg)
+    """One filtering step plus every decoder, paper config at R = 128, with each latent (``config.LATENTS``):
+    latency at batch 1, throughput at ``--infer_batch``."""
+    figures = []
+    for latent in config_lib.LATENTS:
+        cfg = config_lib.replace(paper_config(1, 10, 128), model=dict(latent=latent))
+        params = model_lib.init_params(jax.random.PRNGKey(0), cfg)
 
-    @jax.jit
-    def infer(params, state, camera, lidar, prev_action):
-        state, out = model_lib.filter_step(params, state, camera, lidar, prev_action, None, cfg)
-        return state, model_lib.decode(params, out, cfg)
+        @jax.jit
+        def infer(params, state, camera, lidar, prev_action, cfg=cfg):
+            state, out = model_lib.filter_step(params, state, camera, lidar, prev_action, None, cfg)
+            return state, model_lib.decode(params, out, cfg)
 
-    figure = {"image_size": 128}
-    for n in (1, FLAGS.infer_batch):
-        image = jnp.asarray(np.random.default_rng(0).integers(0, 256, (n, 128, 128, 3), np.uint8))
-        state = model_lib.init_filter_state(n, cfg)
-        step_s = median_s(lambda: infer(params, state, image, image, jnp.zeros((n, 2))), repeats)
-        if n == 1:
-            figure["latency_ms_batch1"] = 1e3 * step_s
-        else:
-            figure.update(batch=n, frames_per_s=n / step_s)
-    return figure
+        figure = {"image_size": 128, "network": latent}
+        for n in (1, FLAGS.infer_batch):
+            image = jnp.asarray(np.random.default_rng(0).integers(0, 256, (n, 128, 128, 3), np.uint8))
+            state = model_lib.init_filter_state(n, cfg)
+            step_s = median_s(lambda: infer(params, state, image, image, jnp.zeros((n, 2))), repeats)
+            if n == 1:
+                figure["latency_ms_batch1"] = 1e3 * step_s
+            else:
+                figure.update(batch=n, frames_per_s=n / step_s)
+        figures.append(figure)
+    return {"sizes": figures}
 
 
 def bench_eval(town, repeats):

@@ -90,6 +90,46 @@ def bench_train(town, repeats):
     return {"sizes": figures}
 
 
+def bench_latent(town, repeats):
+    """Each latent's training step (``config.LATENTS``) at the ``cpu`` preset's (B, T, R), with the preset's
+    network and with the paper's widths, alternated with the eager PyTorch peer (the paper's vector-latent
+    network at the same size) for ``--peer_rounds`` rounds of ``repeats`` steps, so that every ratio is taken
+    in one window of this shared VM; each figure is the median of its rounds' medians."""
+    cpu = config_lib.get_config("cpu")
+    b, t, r = cpu.data.batch_size, cpu.data.seq_len, cpu.data.image_size
+    runs = {}
+    for network, base in (
+        ("cpu", config_lib.replace(cpu, data=dict(place_frames=0))),
+        ("paper widths", paper_config(b, t, r)),
+    ):
+        for latent in config_lib.LATENTS:
+            cfg = config_lib.replace(base, model=dict(latent=latent))
+            runs[network, latent] = train_step_runner(cfg, batch_lib.make_batch(jax.random.PRNGKey(0), town, cfg))
+    rounds, peers = {key: [] for key in runs}, []
+    for _ in range(FLAGS.peer_rounds):
+        for key, (_, run, _) in runs.items():
+            rounds[key].append(median_s(run, repeats))
+        peers.append(_peer(b, t, r, repeats))
+    peer_s = None if peers[0] is None else statistics.median(peer["step_s_median"] for peer in peers)
+    figures = []
+    for (network, latent), step_rounds in rounds.items():
+        step_s, vector_s = statistics.median(step_rounds), statistics.median(rounds[network, "vector"])
+        figure = {
+            "batch": b,
+            "seq_len": t,
+            "image_size": r,
+            "network": f"{network}, {latent}",
+            "compile_s": runs[network, latent][0],
+            "step_s_median": step_s,
+            "step_s_rounds": step_rounds,
+            "ratio_vs_vector": step_s / vector_s,
+        }
+        if peer_s is not None:
+            figure.update(peer_step_s_median=peer_s, ratio_vs_peer=peer_s / step_s)
+        figures.append(figure)
+    return {"sizes": figures}
+
+
 def bench_place(town, repeats):
     """The place stream's cost: seconds per training step (batch, sharding and step, dispatched as
     ``train.train`` does, over the preset's stream) without it and with each ``--place_frames`` P, for the

@@ -1,0 +1,141 @@
+"""The bird-eye latent grid (``--model.latent=bev``): its warp by the ego's motion against closed forms, the
+ego's motion between two poses, its per-cell KL and motion terms against NumPy, streaming against the
+training scan, and the README's inference example on a trained run with the grid."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import TINY, np_kl, run_readme_example, synthetic_batch
+
+from e2e_percep_jax import bev_latent, loss, model
+from e2e_percep_jax import config as config_lib
+from e2e_percep_jax import train as train_lib
+
+CFG = config_lib.replace(TINY, model=dict(latent="bev"))
+G8_CELL_M = 32.0 / 8  # the BEV view is 32 m square: 4 m cells at G = 8, the ego on the corner of row 5, column 4
+
+
+def _grid(g=8, channels=3, seed=0):
+    return np.random.default_rng(seed).normal(size=(1, g, g, channels)).astype(np.float32)
+
+
+@pytest.mark.parametrize(
+    "motion_cells, shift_rows, shift_cols",
+    [((2, 0), 2, 0), ((0, 1), 0, 1), ((-1, -3), -1, -3), ((0, 0), 0, 0)],
+)
+def test_a_translation_by_whole_cells_shifts_the_grid(motion_cells, shift_rows, shift_cols):
+    """The ego moves ahead by k cells: what was k rows further ahead is now in its row (rows grow backwards);
+    moving left (+y) by k cells shifts the content k columns to the right. New cells hold zeros, inside 0."""
+    grid = _grid()
+    motion = jnp.array([[motion_cells[0] * G8_CELL_M, motion_cells[1] * G8_CELL_M, 0.0]])
+    warped, inside = map(np.asarray, bev_latent.warp(jnp.asarray(grid), motion))
+    want, seen = np.zeros_like(grid), np.zeros(grid.shape[:3] + (1,), np.float32)
+    rows, cols = slice(max(shift_rows, 0), 8 + min(shift_rows, 0)), slice(max(shift_cols, 0), 8 + min(shift_cols, 0))
+    src_rows = slice(max(-shift_rows, 0), 8 + min(-shift_rows, 0))
+    src_cols = slice(max(-shift_cols, 0), 8 + min(-shift_cols, 0))
+    want[:, rows, cols], seen[:, rows, cols] = grid[:, src_rows, src_cols], 1.0
+    np.testing.assert_allclose(warped, want, atol=1e-6)
+    np.testing.assert_array_equal(inside, seen)
+
+
+def test_a_quarter_turn_about_the_ego_moves_cells_by_the_closed_form():
+    """A left turn of 90 degrees on the spot (the ego on a cell corner at G = 8): cell (i, j) of the new frame,
+    centred at (x, y) = (20 - 4 (i + 1/2), 16 - 4 (j + 1/2)) m, lay at (-y, x) in the old one, which is old
+    cell (8 - j, i - 1). Row 0 (18 m ahead, beyond the old view's 16 m to the left) and column 0 (14 m left,
+    beyond the 12 m behind) are new."""
+    grid = _grid(seed=1)
+    warped, inside = map(np.asarray, bev_latent.warp(jnp.asarray(grid), jnp.array([[0.0, 0.0, np.pi / 2]])))
+    want, seen = np.zeros_like(grid), np.zeros(grid.shape[:3] + (1,), np.float32)
+    for i in range(8):
+        for j in range(8):
+            if 0 <= 8 - j < 8 and 0 <= i - 1 < 8:
+                want[0, i, j], seen[0, i, j] = grid[0, 8 - j, i - 1], 1.0
+    np.testing.assert_allclose(warped, want, atol=1e-5)
+    np.testing.assert_allclose(inside, seen, atol=1e-5)
+    assert seen.sum() == 49
+
+
+def test_a_motion_and_its_inverse_give_back_the_cells_both_frames_see():
+    """Warped by a motion and then by its inverse, a field linear in the cell indices (which bilinear sampling
+    reproduces exactly) comes back wherever both warps sampled whole cells."""
+    dx, dy, dyaw = 1.3, -0.4, 0.21
+    inverse = [-(np.cos(dyaw) * dx + np.sin(dyaw) * dy), -(-np.sin(dyaw) * dx + np.cos(dyaw) * dy), -dyaw]
+    field = np.fromfunction(lambda b, i, j, c: 0.3 * i - 0.2 * j + c, (1, 16, 16, 2)).astype(np.float32)
+    there, inside_there = bev_latent.warp(jnp.asarray(field), jnp.array([[dx, dy, dyaw]]))
+    back, _ = bev_latent.warp(there, jnp.array([inverse], jnp.float32))
+    # a cell comes back exactly where every cell it samples was itself sampled whole
+    whole_there = (np.asarray(inside_there) > 1 - 1e-5).astype(np.float32)
+    kept = np.asarray(bev_latent.warp(jnp.asarray(whole_there), jnp.array([inverse], jnp.float32))[0])[0, ..., 0]
+    kept = kept > 1 - 1e-5
+    assert kept.sum() > 150
+    np.testing.assert_allclose(np.asarray(back)[0][kept], field[0][kept], atol=1e-4)
+
+
+def test_relative_motion_is_the_later_pose_in_the_earlier_ego_frame():
+    """Heading north (yaw pi/2) and moving 1 m north and 0.5 m west, turning 0.1 rad left: 1 m ahead, 0.5 m to
+    the left, +0.1 rad; across the +-pi seam the heading change wraps."""
+    before = jnp.array([10.0, 20.0, 0.0, 1.0, 5.0])
+    after = jnp.array([9.5, 21.0, np.cos(np.pi / 2 + 0.1), np.sin(np.pi / 2 + 0.1), 5.0])
+    np.testing.assert_allclose(bev_latent.relative_motion(before, after), [1.0, 0.5, 0.1], atol=1e-5)
+    seam = lambda yaw: jnp.array([0.0, 0.0, np.cos(yaw), np.sin(yaw), 0.0])
+    np.testing.assert_allclose(bev_latent.relative_motion(seam(3.1), seam(-3.1))[2], 2 * np.pi - 6.2, atol=1e-5)
+
+
+@pytest.fixture(scope="module")
+def params():
+    return model.init_params(jax.random.PRNGKey(0), CFG)
+
+
+@pytest.mark.slow
+def test_the_grid_kl_and_the_motion_term_match_numpy(params):
+    """With posterior means the grid's KL term is the closed-form Gaussian KL summed over cells and channels,
+    and the motion term the squared error in MOTION_UNIT units against the poses' relative motion, computed
+    here with plain trigonometry; both per sequence. On first frames the grid's prior is N(0, I)."""
+    batch = synthetic_batch(0, CFG)
+    _, metrics = loss.loss_fn(params, batch, None, CFG)
+    out = jax.tree.map(
+        lambda x: np.asarray(x, np.float64),
+        model.filter_sequence(params, batch["camera"], batch["lidar"], batch["action"], None, CFG),
+    )
+    b = batch["camera"].shape[0]
+    kl = np_kl(out["q_grid_loc"], out["q_grid_scale"], out["p_grid_loc"], out["p_grid_scale"])
+    np.testing.assert_allclose(metrics["kl_grid"], kl.sum() / b, rtol=2e-4)
+    np.testing.assert_array_equal(out["p_grid_loc"][:, 0], 0.0)
+    np.testing.assert_array_equal(out["p_grid_scale"][:, 0], 1.0)
+    pose = np.asarray(batch["pose"], np.float64)
+    yaw = np.arctan2(pose[..., 3], pose[..., 2])
+    d = pose[:, 1:, :2] - pose[:, :-1, :2]
+    c, s = np.cos(yaw[:, :-1]), np.sin(yaw[:, :-1])
+    dyaw = np.angle(np.exp(1j * (yaw[:, 1:] - yaw[:, :-1])))
+    truth = np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1], dyaw], -1)
+    error = (out["motion"][:, 1:] - truth) / [1.0, 0.1, 0.02]
+    np.testing.assert_allclose(metrics["motion"], 32.0 * np.sum(0.5 * error**2) / b, rtol=2e-4)
+
+
+@pytest.mark.slow
+def test_streaming_the_grid_equals_the_training_scan(params):
+    """filter_step frame by frame (the grid in the state) gives filter_sequence's grid, with sampled latents
+    (each frame's key as the scan splits it; the means are the same code with no key)."""
+    batch = synthetic_batch(1, CFG)
+    key = jax.random.PRNGKey(3)
+    scanned = model.filter_sequence(params, batch["camera"], batch["lidar"], batch["action"], key, CFG)
+    t1 = batch["camera"].shape[1]
+    keys = jax.random.split(key, t1)
+    state, step = model.init_filter_state(batch["camera"].shape[0], CFG), jax.jit(model.filter_step, static_argnums=6)
+    prev_action = jnp.concatenate([jnp.zeros_like(batch["action"][:, :1]), batch["action"][:, :-1]], 1)
+    for t in range(t1):
+        state, out = step(params, state, batch["camera"][:, t], batch["lidar"][:, t], prev_action[:, t], keys[t], CFG)
+        np.testing.assert_allclose(out["grid"], scanned["grid"][:, t], rtol=1e-4, atol=1e-4)
+        np.testing.assert_allclose(out["z1"], scanned["z1"][:, t], rtol=1e-4, atol=1e-4)
+    assert state.grid.shape == (batch["camera"].shape[0], 16, 16, CFG.model.grid_channels)
+
+
+@pytest.mark.slow
+def test_the_readmes_example_runs_as_written_with_the_grid(tmp_path):
+    """The README's inference example on a trained run with the bird-eye latent: its state carries the grid."""
+    cfg = config_lib.replace(CFG, train=dict(num_steps=2, checkpoint_every=2, log_every=1))
+    train_lib.train(cfg, str(tmp_path))
+    names = run_readme_example(tmp_path, cfg)
+    assert names["state"].grid.shape == (4, 16, 16, cfg.model.grid_channels)
+    assert np.isfinite(np.asarray(names["state"].grid)).all()
