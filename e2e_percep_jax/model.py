@@ -355,8 +355,14 @@ class PerceptionModel(nn.Module):
         if seen is not None:
             q_loc, q_scale = _unless_seen(seen[:, None, None, None], (q_loc, q_scale), (p_loc, p_scale))
         grid = _sample(q_loc, q_scale, key)
-        outputs = {"grid": grid, "motion": motion, "q_grid_loc": q_loc, "q_grid_scale": q_scale}
-        return grid, dict(outputs, p_grid_loc=p_loc, p_grid_scale=p_scale)
+        return grid, {
+            "grid": grid,
+            "motion": motion,
+            "q_grid_loc": q_loc,
+            "q_grid_scale": q_scale,
+            "p_grid_loc": p_loc,
+            "p_grid_scale": p_scale,
+        }
 
     def posterior_step(self, state, encoded, prev_action, key, observed=None):
         """One filtering step from :meth:`encode`'s dict; see :func:`filter_step` for the arguments, and
