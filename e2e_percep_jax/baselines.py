@@ -8,8 +8,10 @@ Baselines (``BASELINES``), each run in ``<workdir>/<baseline>/``:
 - ``tracker``: the detector's trained run, its NMS'd detections fed to a ``tracking.Tracker`` per drive
   (host side, :func:`tracker_host`). Ego motion is compensated with the TRUE ego pose of each frame:
   AB3DMOT assumes known ego motion (KITTI's GPS/IMU), and it isolates what tracking adds to detection.
-  Track scores (last detection score, decayed while coasting) are what AP ranks; coasting tracks are
-  scored like any box.
+  Track scores (the last or the mean detection score, decayed while coasting) are what AP ranks; coasting
+  tracks are scored like any box. How long a hidden track coasts and how its score decays are tuned on drives
+  the evaluation does not use, for the most remembered boxes (:func:`tune_tracker`, kept in the tracker's
+  ``tuning.json``).
 - ``pose``: the same encoders and the pose head (``model.MLP``), one frame, on :func:`loss.pose_term`.
 - ``dead_reckoning``: no network, on the same information as the pose belief's motion: from each drive's
   true first pose and speed, the logged commands through the same calibrated motion model
@@ -29,6 +31,8 @@ The loss's ``key`` is unused (nothing is sampled) and kept for ``train.Objective
 
 import dataclasses
 import functools
+import itertools
+import json
 import os
 
 import flax.linen as nn
@@ -41,10 +45,12 @@ from e2e_percep_jax import calibration, checkpoint, ego_motion, report, tracking
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import evaluate as eval_lib
 from e2e_percep_jax import loss as loss_lib
+from e2e_percep_jax import metrics as metrics_lib
 from e2e_percep_jax import model as model_lib
 from e2e_percep_jax import train as train_lib
 from e2e_percep_jax.api import PerceiverOutputs
 from e2e_percep_jax.config import BASELINES, Config, ModelConfig
+from e2e_percep_jax.protocol import DRIVE_FIELDS
 from e2e_percep_jax.sim import geometry as geo
 from e2e_percep_jax.sim import motion as motion_lib
 from e2e_percep_jax.sim import odometry
@@ -186,6 +192,97 @@ def tracker_host(tracker_cfg=None):
         return post
 
     return per_drive
+
+
+# The tracker's coasting, tuned on drives the evaluation does not use (:func:`tune_tracker`): how long a hidden
+# track is kept, how fast its score decays, and what its confidence is.
+TRACKER_GRID = dict(max_age=(10, 30, 50), score_decay=(0.9, 0.95, 0.98, 1.0), confidence=tracking.CONFIDENCES)
+# Of the candidates whose lidar-group AP@0.5 is within this of the best one's, the tuning keeps the one with
+# the highest remembered AP@0.1: memory, without paying for it in false positives on the boxes in sight.
+LIDAR_AP_SLACK = 0.01
+TUNING_SEED_OFFSET = 1  # the tuning drives: PRNGKey(eval.seed + this), keys the evaluation never draws
+TUNING_SHARE = 4  # a quarter of the evaluation's detection drives (and of its pool of candidates)
+
+
+def tuning_config(cfg: Config) -> Config:
+    """The drives the tracker is tuned on: detection drives of the training town, chosen as the evaluation
+    chooses its own (the most remembered boxes), from keys of another seed; a quarter as many (without
+    detection drives: the pose drives' worlds, each as long as a pose drive's share)."""
+    ev = cfg.eval
+    drives = -(-max(ev.detection_drives, ev.num_worlds) // TUNING_SHARE)
+    return config_lib.replace(
+        cfg,
+        eval=dict(
+            seed=ev.seed + TUNING_SEED_OFFSET,
+            town_seed=cfg.world.town_seed,
+            known_start=False,
+            detection_drives=drives,
+            detection_frames=ev.detection_frames if ev.detection_drives else ev.num_frames // ev.num_worlds,
+            detection_pool=-(-ev.detection_pool // TUNING_SHARE),
+        ),
+    )
+
+
+def replay(recorded, host_fn) -> metrics_lib.DetectionAccumulator:
+    """Recorded drives (``evaluate.record_detections``) through ``host_fn`` (as ``evaluate`` calls it),
+    scored against their true boxes."""
+    acc = metrics_lib.DetectionAccumulator(eval_lib.IOU_THRESHOLDS)
+    for d, frames in enumerate(recorded):
+        post = host_fn(d)
+        for f in frames:
+            boxes, scores, _ = post(f.boxes, f.scores, None, f.pose)
+            acc.add_frame(boxes, scores, f.true_boxes, f.boxes_valid, f.boxes_group, drive=d)
+    return acc
+
+
+def tune_tracker(recorded, grid=TRACKER_GRID, log=print):
+    """The tracker settings of ``grid`` (every combination) that keep the most remembered boxes on the
+    recorded drives (:data:`LIDAR_AP_SLACK`): (the chosen :class:`tracking.TrackerConfig`, a row per
+    candidate: its settings and AP@0.1 / 0.5 per group)."""
+    rows = []
+    for values in itertools.product(*grid.values()):
+        settings = dict(zip(grid, values))
+        results = replay(recorded, tracker_host(tracking.TrackerConfig(**settings))).results()
+        ap = {f"{iou:g}": {s: float(c.ap) for s, c in results[iou].items()} for iou in (0.1, 0.5)}
+        rows.append(dict(settings, ap=ap))
+        log(
+            f"tracker tuning: {settings}: remembered AP@0.1 {ap['0.1']['remembered']:.3f}, lidar AP@0.5 "
+            f"{ap['0.5']['lidar']:.3f}"
+        )
+    best_lidar = max(r["ap"]["0.5"]["lidar"] for r in rows)
+    eligible = [r for r in rows if r["ap"]["0.5"]["lidar"] >= best_lidar - LIDAR_AP_SLACK]
+    chosen = max(eligible, key=lambda r: np.nan_to_num(r["ap"]["0.1"]["remembered"], nan=-1.0))  # first on ties
+    return tracking.TrackerConfig(**{k: chosen[k] for k in grid}), rows
+
+
+def tuned_tracker(cfg: Config, workdir: str, params, step: int, log=print) -> tracking.TrackerConfig:
+    """The tracker of ``<workdir>/tracker``, tuned (:func:`tune_tracker`) on :func:`tuning_config`'s drives with
+    the detector's params at ``step``; kept in ``tuning.json`` there and reused while the detector's step, the
+    tuning drives and the grid are the same."""
+    tuning_cfg = tuning_config(cfg)
+    identity = dict(
+        detector_step=step,
+        drives={k: getattr(tuning_cfg.eval, k) for k in ("town_seed", *DRIVE_FIELDS)},
+        world=dataclasses.asdict(tuning_cfg.world),
+        grid={k: list(v) for k, v in TRACKER_GRID.items()},
+    )
+    path = os.path.join(workdir, "tracker", "tuning.json")
+    if os.path.exists(path):
+        with open(path) as f:
+            saved = json.load(f)
+        if {k: saved.get(k) for k in identity} == identity:
+            return tracking.TrackerConfig(**saved["chosen"])
+    log(
+        f"tracker: tuning its coasting on {tuning_cfg.eval.detection_drives} drives of eval seed {tuning_cfg.eval.seed}"
+    )
+    perceiver = SingleFramePerceiver(tuning_cfg, RUN_HEAD["detector"])
+    recorded = eval_lib.record_detections(tuning_cfg, params, perceiver, log=log)
+    chosen, rows = tune_tracker(recorded, log=log)
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    with open(path + ".tmp", "w") as f:
+        json.dump(dict(identity, chosen={k: getattr(chosen, k) for k in TRACKER_GRID}, candidates=rows), f, indent=1)
+    os.replace(path + ".tmp", path)
+    return chosen
 
 
 @flax.struct.dataclass
@@ -361,10 +458,14 @@ def run(baseline: str, cfg: Config, workdir: str, *, video_frames: int = 300, lo
     else:
         label, model_dir = LABELS[baseline], os.path.abspath(os.path.join(workdir, TRAINED_RUN[baseline]))
         params, step = trained_params(cfg, workdir, TRAINED_RUN[baseline], log)
-        hooks = dict(
-            perceiver=SingleFramePerceiver(cfg, RUN_HEAD[TRAINED_RUN[baseline]]),
-            host_fn=tracker_host() if baseline == "tracker" else None,
-        )
+        hooks = dict(perceiver=SingleFramePerceiver(cfg, RUN_HEAD[TRAINED_RUN[baseline]]))
+        if baseline == "tracker":
+            tracker_cfg = tuned_tracker(cfg, workdir, params, step, log)
+            hooks.update(host_fn=tracker_host(tracker_cfg))
+            t = tracker_cfg
+            label += (
+                f" (coasting up to {t.max_age} frames, the {t.confidence} detection score x {t.score_decay:g} a frame)"
+            )
     out_dir = report.eval_dir(os.path.join(workdir, baseline), cfg)
     done = report.finished_evaluation(out_dir, label, step, cfg)
     if done is not None:

@@ -146,6 +146,10 @@ class TrainConfig:
     # not see in training: there the posterior is the prior (z1, and the bird-eye grid), so the latent must
     # carry the scene through them, while every decoder is still scored on them. 0 = the paper.
     observation_drop_share: float = 0.0
+    # A memory lever: the share of frames (never a sequence's first) whose lidar image loses one random wedge
+    # of returns beyond a random range in training (``loss.lidar_shadows``), as a car hidden behind another
+    # loses its returns, while the targets keep every vehicle. The camera is left whole. 0 = the paper.
+    lidar_shadow_share: float = 0.0
     checkpoint_every: int = 500  # steps; a checkpoint is also written at exit
     log_every: int = 10
     max_nonfinite_in_a_row: int = 10  # stop after this many skipped (non-finite) updates in a row
@@ -363,8 +367,9 @@ def validate(cfg: Config) -> Config:
     for name, value in positive.items():
         if not value > 0:
             raise ValueError(f"--{name}={value}: must be positive")
-    if not 0.0 <= cfg.train.observation_drop_share < 1.0:
-        raise ValueError(f"--train.observation_drop_share={cfg.train.observation_drop_share}: must lie in [0, 1)")
+    for name in ("observation_drop_share", "lidar_shadow_share"):
+        if not 0.0 <= getattr(cfg.train, name) < 1.0:
+            raise ValueError(f"--train.{name}={getattr(cfg.train, name)}: must lie in [0, 1)")
     seeds = {
         "world.town_seed": cfg.world.town_seed,
         "train.seed": cfg.train.seed,

@@ -50,6 +50,7 @@ import math
 import os
 import time
 import zipfile
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -290,6 +291,57 @@ def _drive_chunks(program, params, perceiver, keys, town, cfg: Config, num_frame
         yield jax.tree.map(np.asarray, out), rows
 
 
+def _detection_drives(program, params, perceiver, keys, town, cfg: Config, sample_root):
+    """Detection's drives from ``keys`` [D] (none for None), E at a time through ``program`` (the last group
+    padded with its last key). Yields, per chunk, its ``out`` and rows (:func:`_drive_chunks`) and the
+    drives its first worlds hold."""
+    e, num = cfg.eval.num_worlds, 0 if keys is None else len(keys)
+    for first in range(0, num, e):
+        drives = np.arange(first, min(first + e, num))
+        group = keys[np.minimum(np.arange(first, first + e), num - 1)]
+        root = jax.random.fold_in(sample_root, 1 + first // e)
+        for out, rows in _drive_chunks(program, params, perceiver, group, town, cfg, cfg.eval.detection_frames, root):
+            yield out, rows, drives
+
+
+class RecordedFrame(NamedTuple):
+    """One frame of a drive as :func:`record_detections` keeps it (NumPy): detections (after NMS) boxes
+    [M, 5] and scores [M]; the frame's true ego pose [5]; the true boxes [G, 5], boxes_valid [G] and
+    boxes_group [G] (indices into ``metrics.GROUPS``)."""
+
+    boxes: np.ndarray
+    scores: np.ndarray
+    pose: np.ndarray
+    true_boxes: np.ndarray
+    boxes_valid: np.ndarray
+    boxes_group: np.ndarray
+
+
+def record_detections(cfg: Config, params, perceiver, detect: detection.Settings = detection.Settings(), log=print):
+    """``perceiver``'s detections on ``cfg``'s detection drives (``cfg.eval.detection_drives`` >= 1),
+    driven, detected and grouped as :func:`evaluate` does, before any host-side step: a list per drive of
+    :class:`RecordedFrame`. For tuning a ``host_fn`` (a tracker) on drives an evaluation does not use: the
+    network runs once, the host side as often as the tuning asks."""
+    if cfg.eval.detection_drives < 1:
+        raise ValueError(f"--eval.detection_drives={cfg.eval.detection_drives}: recording needs detection drives")
+    town = town_lib.build_town(cfg.eval.town_seed)
+    program = chunk_program(_program_config(cfg), perceiver, False, detect)
+    keys, _ = detection_start_keys(cfg, town)
+    sample_root = jax.random.fold_in(jax.random.PRNGKey(cfg.eval.seed), SAMPLE_STREAM)
+    frames = [[] for _ in keys]
+    progress = _Progress(len(keys) * cfg.eval.detection_frames, log)
+    for out, rows, drives in _detection_drives(program, params, perceiver, keys, town, cfg, sample_root):
+        for t, _ in rows:
+            for w, d in enumerate(drives):
+                boxes, scores = detection.frame_detections(
+                    out["cand_boxes"][t, w], out["cand_scores"][t, w], detect.score_floor, detect.nms_iou
+                )
+                truth = (out[k][t, w] for k in ("pose", "boxes", "boxes_valid", "boxes_group"))
+                frames[d].append(RecordedFrame(boxes, scores, *truth))
+        progress.chunk(len(rows) * len(drives), f"recorded drives {drives[0] + 1}-{drives[-1] + 1}")
+    return frames
+
+
 class _Progress:
     """One log line per chunk: frames scored of all, their rate (chunks of driven frames only) and the time
     left."""
@@ -417,18 +469,15 @@ def evaluate(
             valid = f < per_world
             pose_acc.add(metrics_lib.pose_errors(pose_pred[t][valid], out["pose"][t][valid]), f)
         progress.chunk(sum(int(np.sum(f < per_world)) for _, f in rows), "pose drives")
-    # Detection's drives, E at a time through the same program (the last group padded with its last key).
-    for first in range(0, num_det, e):
-        drives = np.arange(first, min(first + e, num_det))
-        keys = det_keys[np.minimum(np.arange(first, first + e), num_det - 1)]
-        group_hosts = None if host_fn is None else [host_fn(e + d) for d in drives]
-        root = jax.random.fold_in(sample_root, 1 + first // e)
-        for out, rows in _drive_chunks(program, params, perceiver, keys, town, cfg, ev.detection_frames, root):
-            for t, _ in rows:
-                for w, d in enumerate(drives):
-                    boxes, scores, _ = detections(out, t, w, None if group_hosts is None else group_hosts[w])
-                    score(out, t, w, boxes, scores, d)
-            progress.chunk(len(rows) * len(drives), f"detection drives {first + 1}-{drives[-1] + 1}")
+    det_hosts = {}  # detection drive -> its host function, made as its group starts
+    for out, rows, drives in _detection_drives(program, params, perceiver, det_keys, town, cfg, sample_root):
+        if host_fn is not None and drives[0] not in det_hosts:
+            det_hosts.update({d: host_fn(e + d) for d in drives})
+        for t, _ in rows:
+            for w, d in enumerate(drives):
+                boxes, scores, _ = detections(out, t, w, det_hosts.get(d))
+                score(out, t, w, boxes, scores, d)
+        progress.chunk(len(rows) * len(drives), f"detection drives {drives[0] + 1}-{drives[-1] + 1}")
     seconds = time.perf_counter() - t0
     examples = pictures.close()
     metrics = _metrics(

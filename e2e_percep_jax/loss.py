@@ -9,7 +9,9 @@
   pixel and channel, without the constant 0.5 * log(2 pi 0.1) per value (as the torch peer).
 - kl: KL(q(z1_t) || p(z1_t)) (prior N(0, I) at t = 1); the z2 KL is zero because q(z2) = p(z2). With
   ``train.observation_drop_share`` a share of frames (drawn from the key; none when it is None) are not shown
-  to the filter: q = p there, so their KL is zero, and every decoder is still scored on them.
+  to the filter: q = p there, so their KL is zero, and every decoder is still scored on them. With
+  ``train.lidar_shadow_share`` a share of frames lose a wedge of their lidar image (:func:`lidar_shadows`)
+  before the filter sees them; the targets and the reconstructed lidar image stay whole.
 - with the bird-eye latent (``model.latent="bev"``), two more: kl_grid, the grid's KL summed over its cells
   (weighted as kl); motion, the ego-motion head's squared error / 2 in ``bev_latent.MOTION_UNIT`` units against
   the true motion between the batch's consecutive frames (frames 1..T; weighted as detection).
@@ -36,11 +38,13 @@ import functools
 import distrax
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 
 from e2e_percep_jax import bev_latent, pose_belief
 from e2e_percep_jax import model as model_lib
 from e2e_percep_jax.config import Config
+from e2e_percep_jax.sim import geometry as geo
 
 RECON_VAR = 0.1  # fixed decoder variance: std sqrt(0.1)
 FOCAL_ALPHA, FOCAL_GAMMA = 0.25, 2.0
@@ -49,6 +53,34 @@ REFERENCE_POSE_WEIGHT = 10.0
 BATCH_KEYS = ("camera", "lidar", "roadmap", "det_cls", "det_reg", "pose", "action")  # what the loss reads
 PLACE_KEYS = ("place_camera", "place_lidar", "place_pose")  # and of the place stream, when a batch has it
 OBSERVATION_DROP_STREAM = 7  # fold_in data of the dropped frames' draw (the latents' draws split the key itself)
+SHADOW_STREAM = 8  # and of the lidar shadows' draw
+# A shadow: every azimuth within SHADOW_HALF_WIDTH_DEG of its centre (uniform all round), beyond its start
+# range: a car 4.5 m long 8-30 m away hides 9-30 degrees behind it.
+SHADOW_HALF_WIDTH_DEG, SHADOW_START_M = (4.0, 15.0), (3.0, 15.0)  # (low, high) of the uniform draws
+
+
+def shadow(lidar, azimuth_rad, half_width_rad, start_m):
+    """The lidar images [..., R, R, 3] with no return beyond ``start_m`` within ``half_width_rad`` of
+    ``azimuth_rad`` (each [...]; 0 ahead, positive to the left) from the sensor at the ego's centre."""
+    xy = geo.bev_pixel_centres(lidar.shape[-2], xp=np)
+    pixel_azimuth, pixel_range = np.arctan2(xy[..., 1], xy[..., 0]), np.hypot(xy[..., 0], xy[..., 1])
+    off = geo.wrap_angle(pixel_azimuth - azimuth_rad[..., None, None])
+    hidden = (jnp.abs(off) < half_width_rad[..., None, None]) & (pixel_range > start_m[..., None, None])
+    return jnp.where(hidden[..., None], jnp.zeros_like(lidar), lidar)
+
+
+def lidar_shadows(lidar, key, share: float):
+    """Training's lidar images [B, T+1, R, R, 3] with a share of frames (never a sequence's first) shadowed
+    (:func:`shadow`), the wedges drawn from ``key``: as a vehicle behind another loses its returns."""
+    b, t1 = lidar.shape[:2]
+    k_on, k_az, k_width, k_start = jax.random.split(key, 4)
+    on = (jax.random.uniform(k_on, (b, t1)) < share) & (jnp.arange(t1) > 0)
+    azimuth = jax.random.uniform(k_az, (b, t1), minval=-jnp.pi, maxval=jnp.pi)
+    width = jnp.deg2rad(
+        jax.random.uniform(k_width, (b, t1), minval=SHADOW_HALF_WIDTH_DEG[0], maxval=SHADOW_HALF_WIDTH_DEG[1])
+    )
+    start = jax.random.uniform(k_start, (b, t1), minval=SHADOW_START_M[0], maxval=SHADOW_START_M[1])
+    return shadow(lidar, azimuth, jnp.where(on, width, 0.0), start)
 
 
 def gaussian_kl(q_loc, q_scale, p_loc, p_scale):
@@ -148,7 +180,10 @@ def sequence_loss(params, batch, key, cfg: Config, start=None):
             jax.random.uniform(jax.random.fold_in(key, OBSERVATION_DROP_STREAM), (b, t1))
             >= cfg.train.observation_drop_share
         )
-    out = model_lib.filter_sequence(params, batch["camera"], batch["lidar"], batch["action"], key, cfg, start, observed)
+    lidar = batch["lidar"]
+    if cfg.train.lidar_shadow_share > 0 and key is not None:
+        lidar = lidar_shadows(lidar, jax.random.fold_in(key, SHADOW_STREAM), cfg.train.lidar_shadow_share)
+    out = model_lib.filter_sequence(params, batch["camera"], lidar, batch["action"], key, cfg, start, observed)
     pred = model_lib.decode(params, out, cfg)
 
     metrics = {}

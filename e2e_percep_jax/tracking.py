@@ -18,8 +18,8 @@ AB3DMOT (:class:`Tracker`).
   innovation is wrapped.
 - Track life: a detection that matches no track opens a tentative track. It is born (confirmed, reported)
   once it has ``min_hits`` consecutive hits; a tentative track dies at its first miss. A confirmed track coasts
-  (predict only) while unmatched and is still reported, with score ``last detection score * score_decay **
-  misses``; it dies on its ``max_age + 1``-th consecutive miss (so it is reported through ``max_age`` missed
+  (predict only) while unmatched and is still reported, with score ``confidence * score_decay ** misses``
+  (confidence: its last detection's score, or the mean of its detections'); it dies on its ``max_age + 1``-th consecutive miss (so it is reported through ``max_age`` missed
   frames, SORT's convention). The reported score is what AP ranks.
 
 Everything is float64 NumPy: per-frame host logic with small varying sizes, where JAX dispatch and
@@ -37,6 +37,7 @@ from e2e_percep_jax.sim import geometry as geo
 from e2e_percep_jax.sim.motion import DT_S
 
 STATE_DIM = 7  # x, y, yaw, length, width, vx, vy
+CONFIDENCES = ("last", "mean")  # TrackerConfig.confidence
 MEAS_DIM = 5  # x, y, yaw, length, width (a box)
 _POS, _YAW, _SIZE, _VEL = [0, 1], 2, [3, 4], [5, 6]
 
@@ -145,7 +146,10 @@ class TrackerConfig:
     min_hits: consecutive hits to confirm (born, reported) a track (AB3DMOT's default 3).
     max_age: missed frames a confirmed track survives (coasting, reported); it dies at the next miss.
       1 s at 10 Hz outlasts short occlusions without spawning many stale false positives.
-    score_decay: reported score of a coasting track is the last detection score times this per missed frame.
+    score_decay: reported score of a coasting track is its confidence times this per missed frame.
+    confidence: a track's confidence, before the decay: ``"last"``, the score of its last matched detection;
+      ``"mean"``, the mean score of all its matched detections (a car's last detections, as it slips behind
+      another, are its weakest, and "last" carries that weakness through its coasting).
     centre_gate: second association stage (0 disables it): tracks and detections left unmatched by IoU are
       matched by the Mahalanobis distance of the centre innovation, ``y^T S^-1 y`` with
       ``S = P_xy + R_xy``, when it is below this (9.21: the 99% quantile of chi-square with 2 degrees of
@@ -166,6 +170,7 @@ class TrackerConfig:
     min_hits: int = 3
     max_age: int = 10
     score_decay: float = 0.9
+    confidence: str = "last"
     centre_gate: float = 9.21
 
 
@@ -248,12 +253,14 @@ class Tracker:
     Per-track arrays (rows = live tracks, tentative and confirmed, ordered by id), public for inspection:
     mean ``[T, 7]`` and cov ``[T, 7, 7]`` (town frame), ids ``[T]``, hit_streak ``[T]`` (consecutive hits),
     misses ``[T]`` (consecutive missed frames), confirmed ``[T]`` bool, det_score ``[T]`` (score of the last
-    matched detection).
+    matched detection), hits ``[T]`` and score_sum ``[T]`` (matched detections, and the sum of their scores).
     """
 
     def __init__(self, cfg: TrackerConfig = TrackerConfig()):
         if cfg.min_hits < 1 or cfg.max_age < 0:
             raise ValueError("need min_hits >= 1 and max_age >= 0")
+        if cfg.confidence not in CONFIDENCES:
+            raise ValueError(f"confidence={cfg.confidence!r}: choose from {CONFIDENCES}")
         self.cfg = cfg
         self._f = transition_matrix(cfg.dt_s)
         self._q = process_noise(cfg)
@@ -269,11 +276,13 @@ class Tracker:
         self.misses = np.zeros(0, np.int64)
         self.confirmed = np.zeros(0, bool)
         self.det_score = np.zeros(0)
+        self.hits = np.zeros(0, np.int64)
+        self.score_sum = np.zeros(0)
         self._next_id = 0
         self.num_frames = 0
 
     def _keep(self, keep):
-        for name in ("mean", "cov", "ids", "hit_streak", "misses", "confirmed", "det_score"):
+        for name in ("mean", "cov", "ids", "hit_streak", "misses", "confirmed", "det_score", "hits", "score_sum"):
             setattr(self, name, getattr(self, name)[keep])
 
     def update(self, det_boxes, det_scores, ego_pose):
@@ -318,6 +327,8 @@ class Tracker:
             self.hit_streak[t_idx] += 1
             self.misses[t_idx] = 0
             self.det_score[t_idx] = det_scores[d_idx]
+            self.hits[t_idx] += 1
+            self.score_sum[t_idx] += det_scores[d_idx]
         self.hit_streak[unmatched_tracks] = 0
         self.misses[unmatched_tracks] += 1
         self.confirmed |= self.hit_streak >= cfg.min_hits
@@ -335,7 +346,10 @@ class Tracker:
         self.misses = np.concatenate([self.misses, np.zeros(num_new, np.int64)])
         self.confirmed = np.concatenate([self.confirmed, np.full(num_new, cfg.min_hits <= 1)])
         self.det_score = np.concatenate([self.det_score, det_scores[unmatched_dets]])
+        self.hits = np.concatenate([self.hits, np.ones(num_new, np.int64)])
+        self.score_sum = np.concatenate([self.score_sum, det_scores[unmatched_dets]])
 
         shown = self.confirmed
-        scores = np.clip(self.det_score[shown] * cfg.score_decay ** self.misses[shown], 0.0, 1.0)
+        confidence = self.det_score if cfg.confidence == "last" else self.score_sum / self.hits
+        scores = np.clip(confidence[shown] * cfg.score_decay ** self.misses[shown], 0.0, 1.0)
         return TrackerOutput(boxes_town_to_ego(self.mean[shown, :5], ego_pose), scores, self.ids[shown].copy())

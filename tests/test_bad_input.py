@@ -95,6 +95,9 @@ CASES = {
     "train observation_drop_share of one": Case(
         "train", ["--train.observation_drop_share=1"], "--train.observation_drop_share=1.0: must lie in [0, 1)"
     ),
+    "train lidar_shadow_share negative": Case(
+        "train", ["--train.lidar_shadow_share=-0.1"], "--train.lidar_shadow_share=-0.1: must lie in [0, 1)"
+    ),
     "train grid_cells not a size the trunk passes": Case(
         "train", ["--model.latent=bev", "--model.grid_cells=12"], "--model.grid_cells=12: must be a power of two in"
     ),

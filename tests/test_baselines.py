@@ -176,6 +176,35 @@ def test_tracker_on_oracle_detections_keeps_their_ap(oracle_eval):
             )
 
 
+def _recorded_drive():
+    """35 frames seen from a standing ego: car A drives 0.2 m a frame, detected (score 0.9) while the lidar
+    sees it (frames 0-9), then remembered (frames 10-34: no detection); car B stands, detected (0.8) in
+    every frame."""
+    frames, ego = [], np.array([0.0, 0.0, 1.0, 0.0, 0.0])
+    for k in range(35):
+        a, b = [2.0 + 0.2 * k, 3.5, 0.0, 4.5, 1.9], [10.0, -4.0, 0.0, 4.5, 1.9]
+        true = np.array([a, b])
+        group = [0 if k < 10 else 2, 0]  # metrics.GROUPS: lidar, remembered
+        detected = np.array([a, b] if k < 10 else [b])
+        scores = np.array([0.9, 0.8] if k < 10 else [0.8])
+        frames.append(eval_lib.RecordedFrame(detected, scores, ego, true, np.ones(len(true), bool), np.array(group)))
+    return [frames]
+
+
+def test_the_tracker_tuning_keeps_the_hidden_car_as_long_as_it_is_remembered():
+    """The hidden car coasts on its velocity: kept 10 frames (max_age 10), 10 of its 25 remembered boxes are
+    found (AP@0.1 0.4: every reported box a true one); kept 30 or 50 frames, all 25 (AP 1). The tuning keeps
+    the first of the best (grid order) and reports every candidate."""
+    grid = dict(max_age=(10, 30, 50), score_decay=(0.9, 1.0), confidence=("last",))
+    chosen, rows = baselines.tune_tracker(_recorded_drive(), grid, log=lambda _: None)
+    assert len(rows) == 6
+    for r in rows:
+        expected = 0.4 if r["max_age"] == 10 else 1.0
+        assert r["ap"]["0.1"]["remembered"] == pytest.approx(expected, abs=1e-9), r
+    assert (chosen.max_age, chosen.score_decay, chosen.confidence) == (30, 0.9, "last")
+    assert chosen.min_hits == tracking.TrackerConfig().min_hits  # what is not tuned keeps its default
+
+
 @pytest.mark.slow
 def test_wheel_odometry_without_noise_or_bias_follows_the_true_path(oracle_eval):
     """Exact sensors: the reckoned pose is the true one up to float32 rounding of ~400 m coordinates; with
@@ -243,6 +272,13 @@ def test_cli_trains_evaluates_and_resumes(cli_run):
     assert metrics["dead_reckoning"]["pose"]["known_start"]
     assert os.path.exists(os.path.join(workdir, "dead_reckoning", "motion_model.json"))
     assert r["again"].count("nothing to do") == 2 and "training" not in r["again"], r["again"]
+    # The tracker's coasting was tuned once, on drives of another seed, and named in its label.
+    with open(os.path.join(workdir, "tracker", "tuning.json")) as f:
+        tuning = json.load(f)
+    assert tuning["drives"]["seed"] != metrics["tracker"]["config"]["eval"]["seed"]
+    assert len(tuning["candidates"]) == np.prod([len(v) for v in baselines.TRACKER_GRID.values()])
+    assert f"coasting up to {tuning['chosen']['max_age']} frames" in metrics["tracker"]["label"]
+    assert "tuning" not in r["again"]
 
 
 @pytest.mark.slow

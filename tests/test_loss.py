@@ -1,6 +1,8 @@
 """Loss tests: distrax pinned to closed forms, every term against NumPy formulas, per-sequence
 normalisation, variants, finite gradients reaching every network."""
 
+import math
+
 import distrax
 import jax
 import jax.numpy as jnp
@@ -10,6 +12,7 @@ import pytest
 from helpers import TINY, loss_and_grads, np_focal, np_kl, np_smooth_l1, synthetic_batch
 
 from e2e_percep_jax import config, loss, model
+from e2e_percep_jax.sim import geometry as geo
 
 
 def test_distrax_gaussian_kl_and_log_prob_match_closed_form():
@@ -189,3 +192,50 @@ def test_frames_dropped_from_the_filter_carry_no_kl_and_are_still_scored(setup):
     np.testing.assert_allclose(metrics["kl"], first_kl / batch["camera"].shape[0], rtol=1e-4)
     assert metrics["recon_camera"] > 0 and metrics["det_cls"] > 0
     np.testing.assert_allclose(loss.loss_fn(params, batch, None, hidden)[0], loss.loss_fn(params, batch, None, cfg)[0])
+
+
+def test_a_lidar_shadow_hides_exactly_the_pixels_of_its_wedge_beyond_its_start():
+    """Against a pixel-by-pixel loop over the BEV grid's convention (row 0 at the view's front edge, column 0
+    at its left edge, 32 m / R a pixel): a pixel is emptied iff its centre's azimuth from the ego lies
+    within the half-width of the centre (wrapped) and its range beyond the start; the wedge across the
+    rear (azimuth pi) wraps."""
+    r = 32
+    image = np.random.default_rng(0).integers(1, 256, (3, r, r, 3), dtype=np.uint8)
+    azimuth, half_width, start = np.array([0.3, np.pi, -1.2]), np.array([0.2, 0.5, 0.1]), np.array([5.0, 3.0, 10.0])
+    out = np.asarray(loss.shadow(jnp.asarray(image), jnp.asarray(azimuth), jnp.asarray(half_width), jnp.asarray(start)))
+    metres = geo.BEV_SPAN_M / r
+    for n in range(3):
+        for row in range(r):
+            for col in range(r):
+                x, y = geo.BEV_AHEAD_M - (row + 0.5) * metres, geo.BEV_SIDE_M - (col + 0.5) * metres
+                off = (math.atan2(y, x) - azimuth[n] + math.pi) % (2 * math.pi) - math.pi
+                hidden = abs(off) < half_width[n] and math.hypot(x, y) > start[n]
+                expected = np.zeros(3, np.uint8) if hidden else image[n, row, col]
+                np.testing.assert_array_equal(out[n, row, col], expected, err_msg=str((n, row, col)))
+    assert (out == 0).all(-1).sum() > 20  # the wedges hold pixels
+
+
+def test_lidar_shadows_spare_the_first_frames_and_fall_on_about_their_share():
+    lidar = jnp.full((64, 5, 32, 32, 3), 200, jnp.uint8)
+    out = np.asarray(loss.lidar_shadows(lidar, jax.random.PRNGKey(0), 0.5))
+    shadowed = (out == 0).any((-3, -2, -1))  # [B, T+1]
+    assert not shadowed[:, 0].any()
+    assert 0.4 < shadowed[:, 1:].mean() < 0.6, shadowed[:, 1:].mean()
+    assert set(np.unique(out)) == {0, 200}  # returns are emptied, never changed
+
+
+@pytest.mark.slow
+def test_the_filter_sees_the_shadowed_lidar_and_the_reconstruction_the_whole_one(setup):
+    """--train.lidar_shadow_share: the loss's lidar reconstruction term is that of the filter run on the
+    shadowed images (the same draw), scored against the whole ones."""
+    cfg, params, batch = setup
+    shadowed_cfg = config.replace(cfg, train=dict(lidar_shadow_share=0.9))
+    key = jax.random.PRNGKey(5)
+    _, metrics = loss.loss_fn(params, batch, key, shadowed_cfg)
+    seen = loss.lidar_shadows(batch["lidar"], jax.random.fold_in(key, loss.SHADOW_STREAM), 0.9)
+    assert (np.asarray(seen) != np.asarray(batch["lidar"])).any()
+    out = model.filter_sequence(params, batch["camera"], seen, batch["action"], key, cfg)
+    pred = np.asarray(model.decode(params, out, cfg)["lidar"], np.float64)
+    whole = np.asarray(batch["lidar"], np.float64) / 255.0
+    expected = np.sum((pred - whole) ** 2) / (2 * loss.RECON_VAR) / batch["lidar"].shape[0]
+    np.testing.assert_allclose(metrics["recon_lidar"], expected, rtol=1e-4)

@@ -412,6 +412,25 @@ def test_birth_after_min_hits_and_death_after_max_age():
     assert len(tracker.ids) == 0
 
 
+@pytest.mark.parametrize("confidence, base", [("last", 0.3), ("mean", 0.75)])
+def test_a_coasting_track_scores_its_confidence_decayed_by_its_misses(confidence, base):
+    """Detections scored 0.9, 0.9, 0.9, 0.3, then three misses: the track reports its last detection's score
+    (0.3) or the mean of its detections' (0.75), times 0.8 per miss (undecayed on the frame it is seen)."""
+    tracker = tr.Tracker(tr.TrackerConfig(min_hits=1, score_decay=0.8, confidence=confidence))
+    car = np.array([_box(8.0, 0.0, 0.0)])
+    for score in (0.9, 0.9, 0.9, 0.3):
+        out = tracker.update(car, [score], IDENTITY_POSE)
+    np.testing.assert_allclose(out.scores, [base])
+    for misses in (1, 2, 3):
+        out = tracker.update(np.zeros((0, 5)), np.zeros(0), IDENTITY_POSE)
+        np.testing.assert_allclose(out.scores, [base * 0.8**misses])
+
+
+def test_an_unknown_confidence_is_named():
+    with pytest.raises(ValueError, match="confidence='max'"):
+        tr.Tracker(tr.TrackerConfig(confidence="max"))
+
+
 def test_min_hits_one_reports_immediately_and_output_is_ego_frame():
     tracker = tr.Tracker(tr.TrackerConfig(min_hits=1))
     pose = pose_of(100.0, 50.0, 1.0, 5.0)
