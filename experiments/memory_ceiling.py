@@ -9,7 +9,8 @@ seen. Memory can keep only what was found, so this records the run's detections 
 single-frame detector's run) on its evaluation's detection drives (the ``--drives`` holding the most
 remembered boxes) and counts, for each remembered box, whether a detection at the operating score
 (``eval.score_threshold``) matched its vehicle (IoU >= 0.1, ``metrics.match_detections``) in one of the 30
-frames before, and whether one matches it now. Prints JSON, the lidar group's share found now beside it.
+frames before, and whether one matches it now: of those found before, the share found now is what the
+perceiver kept. Prints JSON, the lidar group's share found now beside it.
 """
 
 import json
@@ -45,13 +46,17 @@ def found_per_vehicle(frames, score_threshold: float):
 def ceiling(recorded, score_threshold: float) -> dict:
     """The counts of the module docstring over recorded drives."""
     remembered, lidar = metrics.GROUPS.index("remembered"), metrics.GROUPS.index("lidar")
-    counts = dict(remembered=0, remembered_found_before=0, remembered_found_now=0, lidar=0, lidar_found_now=0)
+    counts = dict(
+        remembered=0, remembered_found_before=0, remembered_found_now=0, remembered_kept=0, lidar=0, lidar_found_now=0
+    )
     for frames in recorded:
         found, group, valid = found_per_vehicle(frames, score_threshold)
         for t, g in zip(*np.nonzero(valid & (group == remembered))):
             counts["remembered"] += 1
-            counts["remembered_found_before"] += bool(found[max(0, t - WINDOW_FRAMES) : t, g].any())
+            before = bool(found[max(0, t - WINDOW_FRAMES) : t, g].any())
+            counts["remembered_found_before"] += before
             counts["remembered_found_now"] += bool(found[t, g])
+            counts["remembered_kept"] += before and bool(found[t, g])
         is_lidar = valid & (group == lidar)
         counts["lidar"] += int(is_lidar.sum())
         counts["lidar_found_now"] += int((is_lidar & found).sum())
@@ -60,6 +65,7 @@ def ceiling(recorded, score_threshold: float) -> dict:
         counts,
         share_remembered_found_before=share("remembered_found_before", "remembered"),
         share_remembered_found_now=share("remembered_found_now", "remembered"),
+        share_found_before_kept=share("remembered_kept", "remembered_found_before"),
         share_lidar_found_now=share("lidar_found_now", "lidar"),
     )
 
