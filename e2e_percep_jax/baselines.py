@@ -249,9 +249,10 @@ def tune_tracker(recorded, grid=TRACKER_GRID, log=print):
             f"tracker tuning: {settings}: remembered AP@0.1 {ap['0.1']['remembered']:.3f}, lidar AP@0.5 "
             f"{ap['0.5']['lidar']:.3f}"
         )
-    best_lidar = max(r["ap"]["0.5"]["lidar"] for r in rows)
-    eligible = [r for r in rows if r["ap"]["0.5"]["lidar"] >= best_lidar - LIDAR_AP_SLACK]
-    chosen = max(eligible, key=lambda r: np.nan_to_num(r["ap"]["0.1"]["remembered"], nan=-1.0))  # first on ties
+    defined = lambda r, iou, group: np.nan_to_num(r["ap"][iou][group], nan=-1.0)  # NaN: the drives hold none
+    best_lidar = max(defined(r, "0.5", "lidar") for r in rows)
+    eligible = [r for r in rows if defined(r, "0.5", "lidar") >= best_lidar - LIDAR_AP_SLACK]
+    chosen = max(eligible, key=lambda r: defined(r, "0.1", "remembered"))  # the first on ties
     return tracking.TrackerConfig(**{k: chosen[k] for k in grid}), rows
 
 

@@ -424,6 +424,7 @@ def evaluate(
 
     hosts = None if host_fn is None else [host_fn(w) for w in range(e)]
     det_acc = metrics_lib.DetectionAccumulator(IOU_THRESHOLDS)
+    memory_acc = metrics_lib.MemoryAccumulator(ev.score_threshold)
     pose_acc = metrics_lib.PoseErrorAccumulator()
     saturated = 0
     # Per pose drive and frame: true and estimated poses, the belief's NLL of the truth and its 95 % regions'
@@ -448,10 +449,10 @@ def evaluate(
         )
         return (boxes, scores, None) if host is None else host(boxes, scores, out["pose_pred"][t, w], out["pose"][t, w])
 
-    def score(out, t, w, boxes, scores, drive):
-        det_acc.add_frame(
-            boxes, scores, out["boxes"][t, w], out["boxes_valid"][t, w], out["boxes_group"][t, w], drive=drive
-        )
+    def score(out, t, w, boxes, scores, drive, frame):
+        truth = out["boxes"][t, w], out["boxes_valid"][t, w], out["boxes_group"][t, w]
+        det_acc.add_frame(boxes, scores, *truth, drive=drive)
+        memory_acc.add_frame(boxes, scores, *truth, drive=drive, frame=frame)
 
     t0 = time.perf_counter()
     chunks = _drive_chunks(program, params, perceiver, start_keys(cfg), town, cfg, per_world.max(), sample_root)
@@ -462,7 +463,7 @@ def evaluate(
                 boxes, scores, pose = detections(out, t, w, None if hosts is None else hosts[w])
                 pose_pred[t, w] = pose_pred[t, w] if pose is None else pose
                 if not num_det:
-                    score(out, t, w, boxes, scores, w)
+                    score(out, t, w, boxes, scores, w, f)
                 drives_true[w, f], drives_pred[w, f] = out["pose"][t, w], pose_pred[t, w]
                 nll[w, f], cover[w, f] = out["pose_nll"][t, w], out["pose_cover"][t, w]
                 pictures.add(out, t, w, f, boxes, scores)
@@ -473,10 +474,10 @@ def evaluate(
     for out, rows, drives in _detection_drives(program, params, perceiver, det_keys, town, cfg, sample_root):
         if host_fn is not None and drives[0] not in det_hosts:
             det_hosts.update({d: host_fn(e + d) for d in drives})
-        for t, _ in rows:
+        for t, f in rows:
             for w, d in enumerate(drives):
                 boxes, scores, _ = detections(out, t, w, det_hosts.get(d))
-                score(out, t, w, boxes, scores, d)
+                score(out, t, w, boxes, scores, d, f)
         progress.chunk(len(rows) * len(drives), f"detection drives {drives[0] + 1}-{drives[-1] + 1}")
     seconds = time.perf_counter() - t0
     examples = pictures.close()
@@ -512,6 +513,9 @@ def evaluate(
         top_k=detect.top_k,
         dedup_cell_m=detection.DEDUP_CELL_M,
         topk_saturated_frac=saturated / max(num_frames, 1),
+        # of the remembered boxes, those whose vehicle was found in the 3 s before, and of those the share
+        # found now: memory apart from the scene's false positives (metrics.MemoryAccumulator)
+        memory=dict(memory_acc.results(BOOTSTRAP_RESAMPLES), iou=memory_acc.iou),
         drives=dict(
             set="detection" if num_det else "pose",
             num=num_det or e,

@@ -357,6 +357,56 @@ class DetectionAccumulator:
         }
 
 
+class MemoryAccumulator:
+    """What a perceiver keeps of the vehicles it found, frame by frame, per drive.
+
+    A remembered box's vehicle was seen by a sensor within :data:`REMEMBER_FRAMES` frames, which is not the
+    same as found: one beam on a corner counts as seen. Here a vehicle is *found* in a frame when a
+    detection at or above ``score_threshold`` is matched to it at IoU ``iou`` (:func:`match_detections`).
+    For every remembered box this counts whether its vehicle was found in one of the REMEMBER_FRAMES frames
+    before (``found_before``), whether it is found now, and both (``kept``). ``kept / found_before`` is
+    memory measured apart from the scene's false positives, which pull a small group's AP down whatever it
+    keeps (:class:`DetectionAccumulator`). Each drive's frames must come in order, and its boxes in the same
+    vehicle slots every frame (the frame contract's order).
+    """
+
+    COUNTS = ("remembered", "found_before", "found_now", "kept")
+
+    def __init__(self, score_threshold: float, iou: float = 0.1):
+        self.score_threshold, self.iou = float(score_threshold), float(iou)
+        self._last_found, self._counts = {}, {}  # per drive: frame each slot was last found; COUNTS
+
+    def add_frame(self, pred_boxes, pred_scores, gt_boxes, gt_valid, gt_group, drive: int, frame: int):
+        """Frame ``frame`` (from the drive's start) of drive ``drive``: arguments as
+        :meth:`DetectionAccumulator.add_frame`'s, the ground truths in their vehicle slots."""
+        gt_valid = np.asarray(gt_valid, dtype=bool)
+        slots = np.nonzero(gt_valid)[0]
+        scores = np.asarray(pred_scores, dtype=np.float64)
+        keep = scores >= self.score_threshold
+        matched = match_detections(_as_boxes(pred_boxes)[keep], scores[keep], _as_boxes(gt_boxes)[slots], (self.iou,))
+        found = np.zeros(len(gt_valid), bool)
+        found[slots[matched[0][matched[0] >= 0]]] = True
+        last = self._last_found.setdefault(drive, np.full(len(gt_valid), -(10**9)))
+        counts = self._counts.setdefault(drive, np.zeros(len(self.COUNTS), np.int64))
+        remembered = gt_valid & (np.asarray(gt_group) == GROUPS.index("remembered"))
+        before = remembered & (frame - last <= REMEMBER_FRAMES)
+        counts += [remembered.sum(), before.sum(), (remembered & found).sum(), (before & found).sum()]
+        last[found] = frame
+
+    def results(self, num_resamples: int = 1000, seed: int = 0) -> dict:
+        """The counts over all drives, the shares ``found_before`` (of the remembered boxes) and ``kept`` (of
+        those found before), each with its 95 % bootstrap interval over whole drives."""
+        counts = np.stack(list(self._counts.values())) if self._counts else np.zeros((1, len(self.COUNTS)), np.int64)
+        total = dict(zip(self.COUNTS, (int(v) for v in counts.sum(0))))
+        ratio = lambda w, a, b: (w @ counts[:, a]) / np.maximum(w @ counts[:, b], 1)  # [n] shares of resamples
+        share = lambda a, b: total[self.COUNTS[a]] / max(total[self.COUNTS[b]], 1)
+        out = dict(total, share_found_before=share(1, 0), share_kept=share(3, 1))
+        for name, (a, b) in (("share_found_before", (1, 0)), ("share_kept", (3, 1))):
+            low, high = bootstrap_interval(lambda w: ratio(w, a, b), len(counts), num_resamples, seed)
+            out[f"{name}_interval95"] = [float(low), float(high)]
+        return out
+
+
 class PoseErrors(NamedTuple):
     """Per-step ego pose errors, each ``[...]``."""
 

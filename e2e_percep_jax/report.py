@@ -78,6 +78,21 @@ def write(out_dir: str, metrics: dict, results) -> None:
     cv2.imwrite(os.path.join(out_dir, "pr_curves.png"), pictures.pr_curves_image(results))
 
 
+def _memory_lines(memory) -> list:
+    """report.md's lines on what the perceiver kept of the vehicles it found (none for an evaluation made
+    before they were counted)."""
+    if memory is None:
+        return []
+    interval = lambda name: "[{}, {}]".format(*(fmt(v, True) for v in memory[f"{name}_interval95"]))
+    return [
+        f"Memory: of the {memory['remembered']} remembered boxes, {fmt(memory['share_found_before'], True)} "
+        f"{interval('share_found_before')} belong to a vehicle found (a detection at the operating threshold, "
+        f"IoU {memory['iou']:g}) in the 3 s before; of those, **{fmt(memory['share_kept'], True)}** "
+        f"{interval('share_kept')} are found now (what the perceiver kept).",
+        "",
+    ]
+
+
 def fmt(v, pct=False, digits=1):
     """A metric for a table: a percentage or a fixed number of digits; n/a for None or non-finite."""
     if v is None or (isinstance(v, float) and not np.isfinite(v)):
@@ -156,6 +171,7 @@ def markdown(m: dict) -> str:
             ],
         ),
         "",
+        *_memory_lines(det.get("memory")),
         "## Table II: ego global pose error (in brackets: the 95 % bootstrap interval over the pose drives)",
         "",
     ]

@@ -205,6 +205,15 @@ def test_the_tracker_tuning_keeps_the_hidden_car_as_long_as_it_is_remembered():
     assert chosen.min_hits == tracking.TrackerConfig().min_hits  # what is not tuned keeps its default
 
 
+def test_the_tracker_tuning_on_drives_without_a_box_keeps_the_first_setting():
+    """No box, no AP (NaN): every candidate ties, and the grid's first is kept."""
+    ego, empty = np.array([0.0, 0.0, 1.0, 0.0, 0.0]), np.zeros((0, 5))
+    frame = eval_lib.RecordedFrame(empty, np.zeros(0), ego, empty, np.zeros(0, bool), np.zeros(0, np.int64))
+    grid = dict(max_age=(10, 30), score_decay=(0.9,), confidence=("last", "mean"))
+    chosen, rows = baselines.tune_tracker([[frame] * 5], grid, log=lambda _: None)
+    assert (chosen.max_age, chosen.confidence) == (10, "last") and len(rows) == 4
+
+
 @pytest.mark.slow
 def test_wheel_odometry_without_noise_or_bias_follows_the_true_path(oracle_eval):
     """Exact sensors: the reckoned pose is the true one up to float32 rounding of ~400 m coordinates; with

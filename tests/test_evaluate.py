@@ -390,6 +390,10 @@ def test_end_to_end_report_files(memory_run):
     groups = groups_in_view(cfg, m["frames_per_world"])
     assert det["num_gt"] == {s: int(n) for s, n in zip(metrics_lib.SUBSETS, [groups.sum()] + list(groups))}
     assert det["num_gt"]["lidar"] > 0
+    # Memory counts the same remembered boxes, and can keep only what it found before
+    memory = det["memory"]
+    assert memory["remembered"] == det["num_gt"]["remembered"]
+    assert memory["kept"] <= min(memory["found_before"], memory["found_now"]) <= memory["remembered"]
     for thr, subsets in det["ap"].items():
         for subset, ap in subsets.items():
             low, high = det["ap_interval95"][thr][subset]

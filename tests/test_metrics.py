@@ -374,3 +374,43 @@ def test_pose_accumulator_grows_past_its_initial_buffer():
     assert res["heading_rad"]["within"]["0.1"] == pytest.approx(np.mean(every / 10 <= 0.1))
     assert res["heading_rad"]["mean"] == pytest.approx(np.mean(every) / 10, rel=1e-6)
     np.testing.assert_array_equal(res["location_m_by_step"]["count"][:2], [len(every), 0])
+
+
+def test_memory_counts_a_remembered_box_as_found_before_only_if_its_vehicle_was_detected_at_the_threshold():
+    """35 frames, four cars in fixed slots. A: detected (0.9) while the lidar sees it (frames 0-9), then
+    remembered and not detected (10-34). B: seen and detected (0.8) throughout. C: seen 0-9 but detected
+    only at 0.3, under the threshold, then remembered (10-19), then gone. D: detected (0.9) while seen
+    (0-9), then remembered and still detected (0.6) for 5 frames (10-14), then gone. Of the 40 remembered
+    boxes, A's 25 and D's 5 were found before (the last find while seen, frame 9, lies within 30 frames of
+    all of them), C's 10 were not; D's 5 are kept: 5 of 30. One drive: each interval is its own value."""
+    lidar, remembered = metrics.GROUPS.index("lidar"), metrics.GROUPS.index("remembered")
+    acc = metrics.MemoryAccumulator(score_threshold=0.5)
+    for k in range(35):
+        a, b = [5.0 + 0.2 * k, 3.5, 0.0, 4.5, 1.9], [10.0, -4.0, 0.0, 4.5, 1.9]
+        c, d = [-6.0, 6.0, 0.0, 4.5, 1.9], [-6.0, -8.0, 0.0, 4.5, 1.9]
+        valid = np.array([True, True, k < 20, k < 15])
+        hidden = lidar if k < 10 else remembered
+        detected = ([a, c] if k < 10 else []) + [b] + ([d] if k < 15 else [])
+        scores = ([0.9, 0.3] if k < 10 else []) + [0.8] + ([0.9 if k < 10 else 0.6] if k < 15 else [])
+        group = np.array([hidden, lidar, hidden, hidden])
+        acc.add_frame(np.reshape(detected, (-1, 5)), scores, np.array([a, b, c, d]), valid, group, drive=0, frame=k)
+    out = acc.results(num_resamples=20)
+    assert [out[k] for k in acc.COUNTS] == [40, 30, 5, 5]
+    assert out["share_found_before"] == 30 / 40 and out["share_kept"] == 5 / 30
+    np.testing.assert_allclose(out["share_kept_interval95"], [5 / 30, 5 / 30])
+
+
+def test_memory_forgets_a_find_older_than_the_remembered_window():
+    """A car found at frame 0 only, then remembered from frame 1 (its group as the caller gives it): found
+    before through frame 30, not from frame 31 (REMEMBER_FRAMES = 30); a second drive is counted apart."""
+    remembered = metrics.GROUPS.index("remembered")
+    acc = metrics.MemoryAccumulator(score_threshold=0.5)
+    car = np.array([[8.0, 0.0, 0.0, 4.5, 1.9]])
+    for drive in (0, 1):
+        for k in range(40):
+            shown = k == 0 and drive == 0
+            acc.add_frame(
+                car if shown else np.zeros((0, 5)), [0.9] if shown else [], car, [True], [remembered], drive, k
+            )
+    out = acc.results(num_resamples=20)
+    assert [out[k] for k in acc.COUNTS] == [80, metrics.REMEMBER_FRAMES, 1, 0]
