@@ -17,6 +17,7 @@ import numpy as np
 from e2e_percep_jax import metrics as metrics_lib
 from e2e_percep_jax import pictures, pose_belief, protocol
 from e2e_percep_jax.config import Config
+from e2e_percep_jax.sim.motion import DT_S
 from e2e_percep_jax.summary import markdown_table
 
 # The paper's Tables I and II (CARLA Town03), one row per variant.
@@ -78,16 +79,16 @@ def write(out_dir: str, metrics: dict, results) -> None:
     cv2.imwrite(os.path.join(out_dir, "pr_curves.png"), pictures.pr_curves_image(results))
 
 
-def _memory_lines(memory) -> list:
-    """report.md's lines on what the perceiver kept of the vehicles it found (none for an evaluation made
-    before they were counted)."""
+def _memory_lines(memory, seconds: float) -> list:
+    """report.md's lines on what the perceiver kept of the vehicles it found in the ``seconds`` before (none
+    for an evaluation made before they were counted)."""
     if memory is None:
         return []
     interval = lambda name: "[{}, {}]".format(*(fmt(v, True) for v in memory[f"{name}_interval95"]))
     return [
         f"Memory: of the {memory['remembered']} remembered boxes, {fmt(memory['share_found_before'], True)} "
         f"{interval('share_found_before')} belong to a vehicle found (a detection at the operating threshold, "
-        f"IoU {memory['iou']:g}) in the 3 s before; of those, **{fmt(memory['share_kept'], True)}** "
+        f"IoU {memory['iou']:g}) in the {seconds:g} s before; of those, **{fmt(memory['share_kept'], True)}** "
         f"{interval('share_kept')} are found now (what the perceiver kept).",
         "",
     ]
@@ -107,6 +108,7 @@ def markdown(m: dict) -> str:
     is_variant = label == variant  # else a baseline: it has no model variant, and no paper row is its own
     thr = [f"{t:g}" for t in det["iou_thresholds"]]
     span = pose.get("interval95", {})
+    remember_s = det["remember_frames"] * DT_S  # the remembered group's window
 
     def bracket(name, pct=False, digits=1):
         low, high = span.get(name, (None, None))
@@ -144,9 +146,7 @@ def markdown(m: dict) -> str:
         "",
         f"Detection is scored on {where}: {n['all']} ground-truth boxes. In brackets: the 95 % bootstrap "
         "interval over whole drives. Groups, by who saw each box: "
-        + "; ".join(f"{GROUP_TEXT[g][0]}: {GROUP_TEXT[g][1]}" for g in det["groups"]).format(
-            seconds=det["remember_frames"] / 10
-        )
+        + "; ".join(f"{GROUP_TEXT[g][0]}: {GROUP_TEXT[g][1]}" for g in det["groups"]).format(seconds=remember_s)
         + ". A group's recall is over its "
         "boxes; a detection matched to a box of another group is ignored, an unmatched one is a false "
         f"positive in every group. Detections: PIXOR class map -> "
@@ -171,7 +171,7 @@ def markdown(m: dict) -> str:
             ],
         ),
         "",
-        *_memory_lines(det.get("memory")),
+        *_memory_lines(det.get("memory"), remember_s),
         "## Table II: ego global pose error (in brackets: the 95 % bootstrap interval over the pose drives)",
         "",
     ]

@@ -19,8 +19,9 @@ AB3DMOT (:class:`Tracker`).
 - Track life: a detection that matches no track opens a tentative track. It is born (confirmed, reported)
   once it has ``min_hits`` consecutive hits; a tentative track dies at its first miss. A confirmed track coasts
   (predict only) while unmatched and is still reported, with score ``confidence * score_decay ** misses``
-  (confidence: its last detection's score, or the mean of its detections'); it dies on its ``max_age + 1``-th consecutive miss (so it is reported through ``max_age`` missed
-  frames, SORT's convention). The reported score is what AP ranks.
+  (confidence: its last detection's score, or the mean of its detections'); it dies on its ``max_age +
+  1``-th consecutive miss (so it is reported through ``max_age`` missed frames, SORT's convention). The
+  reported score is what AP ranks.
 
 Everything is float64 NumPy: per-frame host logic with small varying sizes, where JAX dispatch and
 per-shape compilation would dominate (as in ``metrics``).
