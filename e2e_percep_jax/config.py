@@ -150,6 +150,10 @@ class TrainConfig:
     # of returns beyond a random range in training (``loss.lidar_shadows``), as a car hidden behind another
     # loses its returns, while the targets keep every vehicle. The camera is left whole. 0 = the paper.
     lidar_shadow_share: float = 0.0
+    # A memory lever: the detection loss's weight on the target pixels of remembered vehicles (seen by a sensor
+    # earlier in the sequence, by neither now: ``metrics.box_groups``), every other pixel weighing 1, so that
+    # the few hidden cars a batch holds are not drowned by the visible ones. 1 = the paper.
+    remembered_weight: float = 1.0
     checkpoint_every: int = 500  # steps; a checkpoint is also written at exit
     log_every: int = 10
     max_nonfinite_in_a_row: int = 10  # stop after this many skipped (non-finite) updates in a row
@@ -355,6 +359,7 @@ def validate(cfg: Config) -> Config:
         "train.learning_rate": cfg.train.learning_rate,
         "train.perception_weight": cfg.train.perception_weight,
         "train.kl_weight": cfg.train.kl_weight,
+        "train.remembered_weight": cfg.train.remembered_weight,
         "train.checkpoint_every": cfg.train.checkpoint_every,
         "train.log_every": cfg.train.log_every,
         "train.max_nonfinite_in_a_row": cfg.train.max_nonfinite_in_a_row,

@@ -17,7 +17,8 @@
   the true motion between the batch's consecutive frames (frames 1..T; weighted as detection).
 - det_cls: focal loss (alpha 0.25 on positives, gamma 2) on the class map.
 - det_reg: 0.1 x smooth-L1 (beta 1) between predicted and target regression maps at positive pixels
-  (``det_cls`` > 0.5); targets elsewhere are ignored, whatever their value.
+  (``det_cls`` > 0.5); targets elsewhere are ignored, whatever their value. Both weigh each pixel 1, but
+  with ``train.remembered_weight`` the positive pixels of remembered vehicles (:func:`remembered_pixels`).
 - pose, by ``model.pose_head``: ``belief`` (the presets): the belief head's cross-entropies and offset and
   speed losses (``pose_belief.loss_terms``), logged as ``pose_place``, ``pose_heading``, ``pose_offset`` and
   ``pose_speed``; ``regression``: smooth-L1 (beta 1) on the pose in
@@ -42,6 +43,7 @@ import numpy as np
 import optax
 
 from e2e_percep_jax import bev_latent, pose_belief
+from e2e_percep_jax import metrics as metrics_lib
 from e2e_percep_jax import model as model_lib
 from e2e_percep_jax.config import Config
 from e2e_percep_jax.sim import geometry as geo
@@ -52,6 +54,8 @@ DET_REG_WEIGHT = 0.1
 REFERENCE_POSE_WEIGHT = 10.0
 BATCH_KEYS = ("camera", "lidar", "roadmap", "det_cls", "det_reg", "pose", "action")  # what the loss reads
 PLACE_KEYS = ("place_camera", "place_lidar", "place_pose")  # and of the place stream, when a batch has it
+# and who saw each box, under train.remembered_weight
+MEMORY_KEYS = ("boxes", "boxes_valid", "boxes_lidar_visible", "boxes_camera_visible", "boxes_frames_since_seen")
 OBSERVATION_DROP_STREAM = 7  # fold_in data of the dropped frames' draw (the latents' draws split the key itself)
 SHADOW_STREAM = 8  # and of the lidar shadows' draw
 # A shadow: every azimuth within SHADOW_HALF_WIDTH_DEG of its centre (uniform all round), beyond its start
@@ -93,18 +97,41 @@ def per_sequence(x, batch_size: int):
     return jnp.sum(x) / batch_size
 
 
-def detection_terms(pred: dict, batch: dict, weight: float) -> dict:
+def batch_keys(cfg: Config) -> tuple:
+    """The frame contract's fields that the loss reads under ``cfg`` (the place stream's when a batch has it)."""
+    return BATCH_KEYS + (MEMORY_KEYS if cfg.train.remembered_weight != 1.0 else ()) + PLACE_KEYS
+
+
+def remembered_pixels(batch: dict):
+    """Whether each pixel of the class map lies inside a remembered vehicle's box (``metrics.box_groups``: seen
+    by a sensor within the last ``metrics.REMEMBER_FRAMES`` frames of its sequence, by neither now), bool
+    [B, T+1, R, R, 1], from the batch's :data:`MEMORY_KEYS`."""
+    group = metrics_lib.box_groups(
+        batch["boxes_lidar_visible"], batch["boxes_camera_visible"], batch["boxes_frames_since_seen"]
+    )
+    remembered = batch["boxes_valid"] & (group == metrics_lib.GROUPS.index("remembered"))  # [B, T+1, N]
+    centres = geo.bev_pixel_centres(batch["det_cls"].shape[-2])[:, :, None, :]  # [R, R, 1, 2]
+    boxes = batch["boxes"][:, :, None, None]  # [B, T+1, 1, 1, N, 5]
+    inside = geo.points_in_boxes(centres, boxes) & remembered[:, :, None, None]  # [B, T+1, R, R, N]
+    return jnp.any(inside, -1, keepdims=True)
+
+
+def detection_terms(pred: dict, batch: dict, weight: float, remembered_weight: float = 1.0) -> dict:
     """``det_cls`` and ``det_reg`` of decoded PIXOR maps ``pred["det_logit"]`` [B, T+1, R, R, 1] and
-    ``pred["det_reg"]`` [B, T+1, R, R, 6] against the batch's targets, per sequence, times ``weight``."""
+    ``pred["det_reg"]`` [B, T+1, R, R, 6] against the batch's targets, per sequence, times ``weight``; the
+    positive pixels of remembered vehicles (:func:`remembered_pixels`) count ``remembered_weight`` times."""
     b = batch["det_cls"].shape[0]
-    focal = optax.sigmoid_focal_loss(pred["det_logit"], batch["det_cls"], alpha=FOCAL_ALPHA, gamma=FOCAL_GAMMA)
-    terms = {"det_cls": weight * per_sequence(focal, b)}
     # Regression targets are defined at positive pixels only (elsewhere they may be anything, even
     # non-finite): select them with `where` on both sides so no NaN reaches the value or the gradient.
     positive = batch["det_cls"] > 0.5
+    pixel_weight = 1.0
+    if remembered_weight != 1.0:
+        pixel_weight = jnp.where(positive & remembered_pixels(batch), remembered_weight, 1.0)
+    focal = optax.sigmoid_focal_loss(pred["det_logit"], batch["det_cls"], alpha=FOCAL_ALPHA, gamma=FOCAL_GAMMA)
+    terms = {"det_cls": weight * per_sequence(pixel_weight * focal, b)}
     reg_target = jnp.where(positive, batch["det_reg"], 0.0)
     reg_error = jnp.where(positive, optax.huber_loss(pred["det_reg"], reg_target), 0.0)  # smooth-L1, beta 1
-    terms["det_reg"] = weight * DET_REG_WEIGHT * per_sequence(reg_error, b)
+    terms["det_reg"] = weight * DET_REG_WEIGHT * per_sequence(pixel_weight * reg_error, b)
     return terms
 
 
@@ -161,7 +188,7 @@ def with_total(terms: dict) -> tuple:
 def loss_fn(params, batch, key, cfg: Config):
     """-ELBO + weighted detection + pose loss of a batch, per sequence (see the module docstring).
 
-    batch: the frame contract with [B, T+1] leading axes (only :data:`BATCH_KEYS` are read);
+    batch: the frame contract with [B, T+1] leading axes (only :func:`batch_keys` are read);
     key: PRNG key for the posterior samples. Returns (total [], metrics dict of [] float32: one entry
     per active term (``recon_<image>``, ``kl``, ``det_cls``, ``det_reg``, the pose terms) and ``total``).
     """
@@ -198,7 +225,7 @@ def sequence_loss(params, batch, key, cfg: Config, start=None):
         truth = bev_latent.relative_motion(batch["pose"][:, :-1], batch["pose"][:, 1:])
         error = (out["motion"][:, 1:] - truth) / bev_latent.MOTION_UNIT
         metrics["motion"] = cfg.train.perception_weight * per_sequence(0.5 * error**2, b)
-    metrics.update(detection_terms(pred, batch, cfg.train.perception_weight))
+    metrics.update(detection_terms(pred, batch, cfg.train.perception_weight, cfg.train.remembered_weight))
     metrics.update(pose_terms(params, out, pred, batch["pose"], cfg))
     metrics.update(place_terms(params, batch, cfg))
     total, metrics = with_total(metrics)

@@ -98,6 +98,9 @@ CASES = {
     "train lidar_shadow_share negative": Case(
         "train", ["--train.lidar_shadow_share=-0.1"], "--train.lidar_shadow_share=-0.1: must lie in [0, 1)"
     ),
+    "train remembered_weight zero": Case(
+        "train", ["--train.remembered_weight=0"], "--train.remembered_weight=0.0: must be positive"
+    ),
     "train grid_cells not a size the trunk passes": Case(
         "train", ["--model.latent=bev", "--model.grid_cells=12"], "--model.grid_cells=12: must be a power of two in"
     ),

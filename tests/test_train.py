@@ -547,3 +547,31 @@ def test_resume_from_a_damaged_latest_checkpoint_falls_back_to_the_newest_intact
     assert [r["step"] for r in read_jsonl(run / "metrics.jsonl")] == [2, 4, 6, 8]
     assert_trees_equal(saved_params(run, 8), saved_params(tmp_path / "whole", 8))
     assert int(state.step) == 8
+
+
+@pytest.mark.slow
+def test_the_remembered_weight_reads_who_saw_each_box_from_the_worlds_batches(world_run):
+    """--train.remembered_weight on the world's batches, which carry the loss's memory keys: the weighted
+    detection terms exceed the plain ones exactly where a batch holds a remembered vehicle's positive pixels
+    (the tiny sequences hold none, so one held-out batch's nearest vehicle is hidden from both sensors by
+    hand in its last frame), and every other term is unchanged."""
+    _, params, _, held_out = world_run
+    weighted_cfg = config.replace(TINY, train=dict(remembered_weight=4.0))
+    hidden = dict(held_out[0])
+    near = np.argmin(
+        np.where(hidden["boxes_valid"][0, -1], np.linalg.norm(hidden["boxes"][0, -1, :, :2], axis=-1), np.inf)
+    )
+    for k, value in (("boxes_lidar_visible", False), ("boxes_camera_visible", False), ("boxes_frames_since_seen", 1)):
+        hidden[k] = np.array(hidden[k])
+        hidden[k][0, -1, near] = value
+    holds = []
+    for b in [hidden] + held_out:
+        plain = jax.device_get(loss.loss_fn(params, {k: b[k] for k in loss.batch_keys(TINY) if k in b}, None, TINY)[1])
+        weighted = jax.device_get(
+            loss.loss_fn(params, {k: b[k] for k in loss.batch_keys(weighted_cfg) if k in b}, None, weighted_cfg)[1]
+        )
+        holds.append(bool(np.any(np.asarray(loss.remembered_pixels(b)) & (np.asarray(b["det_cls"]) > 0.5))))
+        assert (weighted["det_cls"] > plain["det_cls"]) == holds[-1]
+        for k in set(plain) - {"det_cls", "det_reg", "total"}:
+            assert weighted[k] == plain[k], k
+    assert holds[0]
