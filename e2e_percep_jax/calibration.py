@@ -227,16 +227,77 @@ def fit_scans(cfg: Config, model: MotionModel) -> MotionModel:
     return dataclasses.replace(model, scan_yaw_noise_rad=float(spread))
 
 
+# The odometry's spread: errors in distance bins of these edges (m driven from the known start), each bin's
+# 95 % quantile turned into a std (location: per axis of a circular 2-D Gaussian; heading: of a 1-D one).
+SPREAD_BIN_EDGES_M = (10.0, 20.0, 40.0, 80.0, 160.0, 320.0, 640.0)
+SPREAD_MIN_ERRORS = 50  # a bin with fewer errors is left out of the fit
+CHI_95 = {2: 2.4477, 1: 1.9600}  # sqrt of chi-square's 95 % quantile with 1 and 2 degrees of freedom
+
+
+def spread_law(travelled_m, error, dims: int, rounds: int = 8):
+    """(std at 100 m, growth) of the power law ``std = a (d / 100 m) ^ growth`` for errors ``error`` [M] (a
+    distance in ``dims`` dimensions) after ``travelled_m`` [M], over the distance bins of
+    :data:`SPREAD_BIN_EDGES_M`. The errors are scaled by ``(d / 100 m) ^ growth`` and the growth corrected by
+    the slope, in log-log, of the scaled errors' 95 % quantiles over the bins, ``rounds`` times (scaling each
+    error by its own distance keeps a bin's width out of its quantile); then ``a`` is the 95 % quantile of all
+    the scaled errors over CHI_95[dims]."""
+    kept = np.zeros(error.shape, bool)
+    bins = []
+    for low, high in zip(SPREAD_BIN_EDGES_M[:-1], SPREAD_BIN_EDGES_M[1:]):
+        inside = (travelled_m >= low) & (travelled_m < high)
+        if inside.sum() >= SPREAD_MIN_ERRORS:
+            bins.append((np.log(np.sqrt(low * high) / 100.0), inside))
+            kept |= inside
+    if len(bins) < 2:
+        raise ValueError(f"the odometry's spread needs errors in two distance bins of {SPREAD_BIN_EDGES_M} m")
+    error, d, bins = error[kept], travelled_m[kept] / 100.0, [(log_d, inside[kept]) for log_d, inside in bins]
+    growth = 1.0
+    for _ in range(rounds):
+        quantiles = [np.log(np.quantile(error[inside] / d[inside] ** growth, 0.95)) for _, inside in bins]
+        growth += np.polyfit([log_d for log_d, _ in bins], quantiles, 1)[0]
+    return float(np.quantile(error / d**growth, 0.95) / CHI_95[dims]), float(growth)
+
+
+def fit_spread(cfg: Config, model: MotionModel, num_worlds: int = 8, num_frames: int = 1500) -> MotionModel:
+    """``model`` with the odometry's spread: ``num_worlds`` lidar drives of the training town from a key of
+    their own, followed from their true starts by the odometry (``ego_motion.follow``: with the scans when
+    ``model`` has the matcher's noise), its location and heading errors against the distance the car drove
+    (:func:`spread_law`)."""
+    key = jax.random.fold_in(jax.random.PRNGKey(CALIBRATION_SEED), 2)
+    with jax.default_device(jax.local_devices()[0]):
+        town = town_lib.build_town(cfg.world.town_seed)
+        pose, speed, command, lidar = drives(
+            key, town, cfg.world, cfg.data.warmup_steps, num_worlds, num_frames, cfg.data.image_size
+        )
+    start, prev_action = start_and_commands(pose, speed, command)
+    followed, _ = jax.jit(ego_motion.follow, static_argnums=0)(model, start, prev_action, lidar)
+    pose, followed = np.asarray(pose, np.float64), np.asarray(followed, np.float64)
+    step_m = np.linalg.norm(np.diff(pose[:, :, :2], axis=1), axis=-1)
+    travelled_m = np.concatenate([np.zeros((num_worlds, 1)), np.cumsum(step_m, 1)], 1).ravel()
+    location_m = np.linalg.norm(followed[..., :2] - pose[..., :2], axis=-1).ravel()
+    heading_rad = np.abs(wrap_angle(np.arctan2(followed[..., 3], followed[..., 2]) - pose[..., 2])).ravel()
+    location, heading = spread_law(travelled_m, location_m, 2), spread_law(travelled_m, heading_rad, 1)
+    return dataclasses.replace(
+        model,
+        odometry_location_std_at_100m_m=location[0],
+        odometry_location_growth=location[1],
+        odometry_heading_std_at_100m_rad=heading[0],
+        odometry_heading_growth=heading[1],
+    )
+
+
 def calibrate(cfg: Config, scans: bool = False, **drive_kwargs) -> MotionModel:
     """The motion model of ``cfg``'s world, fitted on :func:`training_drives`; with ``scans``, also the scan
-    matcher's noise (:func:`fit_scans`), which only the lidar odometry reads."""
+    matcher's noise (:func:`fit_scans`) and the odometry's spread (:func:`fit_spread`), which only the lidar
+    odometry reads."""
     model = fit(training_drives(cfg, **drive_kwargs))
-    return fit_scans(cfg, model) if scans else model
+    return fit_spread(cfg, fit_scans(cfg, model)) if scans else model
 
 
 def ensure_scans(cfg: Config, workdir: str) -> MotionModel:
-    """Run ``workdir``'s motion model with the scan matcher's noise, fitted (:func:`fit_scans`, about a
-    minute) and saved into the run the first time the lidar odometry needs it."""
+    """Run ``workdir``'s motion model with the scan matcher's noise and the odometry's spread, fitted
+    (:func:`fit_scans`, :func:`fit_spread`: a few minutes) and saved into the run the first time the lidar
+    odometry needs them."""
     model = MotionModel.load(workdir)
     if not ego_motion.uses_scans(model):
         print("fitting the scan matcher's noise on training drives", flush=True)
@@ -245,5 +306,9 @@ def ensure_scans(cfg: Config, workdir: str) -> MotionModel:
             _, ds, dyaw = _steps(drives["pose"])
             model = _with_yaw_spread(model, drives, ds, dyaw)
         model = fit_scans(cfg, model)
+        model.save(workdir)
+    if not ego_motion.spreads(model):
+        print("fitting the odometry's spread on training drives", flush=True)
+        model = fit_spread(cfg, model)
         model.save(workdir)
     return model

@@ -128,7 +128,10 @@ class OdometryState:
     correction: float32 [B, 2], the drive's estimated curvature bias (1/m: a steering offset over the
         wheelbase) and yaw gain error (a share): the model's yaw change ``dyaw`` over a distance ``ds``
         becomes ``dyaw + ds * bias + dyaw * gain_error``;
-    covariance: float32 [B, 2, 2], the correction's.
+    covariance: float32 [B, 2, 2], the correction's;
+    pose: float32 [B, 5], the odometry's pose after the last frame (x m, y m, cos, sin, speed m/s);
+    travelled_m: float32 [B], the distance the motion model drove since the drive's start (what the
+        odometry's spread grows with: :func:`spread`).
     """
 
     keyframe_points: jax.Array
@@ -139,6 +142,8 @@ class OdometryState:
     model_yaw_rad: jax.Array
     correction: jax.Array
     covariance: jax.Array
+    pose: jax.Array
+    travelled_m: jax.Array
 
 
 def prior_covariance(model: MotionModel):
@@ -158,6 +163,8 @@ def init_state(batch_size: int) -> OdometryState:
         model_yaw_rad=zeros,
         correction=jnp.zeros((batch_size, 2), jnp.float32),
         covariance=jnp.zeros((batch_size, 2, 2), jnp.float32),
+        pose=jnp.zeros((batch_size, 5), jnp.float32),
+        travelled_m=zeros,
     )
 
 
@@ -231,11 +238,12 @@ def step(state: OdometryState, model: MotionModel, actuator, command, pose, lida
         keyframe_age=state.keyframe_age + 1,
         distance_m=state.distance_m + ds,
         model_yaw_rad=state.model_yaw_rad + model_dyaw,
+        travelled_m=jnp.where(first, 0.0, state.travelled_m + ds),
     )
     moved = jnp.concatenate([xy, jnp.stack([jnp.cos(yaw), jnp.sin(yaw), v_new], -1)], -1)
     pose = jnp.where(first[:, None], start_pose, moved)
     if lidar is None or not uses_scans(model):
-        return state, actuator, pose
+        return state.replace(pose=pose), actuator, pose
     due = (state.keyframe_age >= KEYFRAME_FRAMES) & ~first
     # (matched only on frames where some stream is due: streams that start together match together)
     correction, covariance, turn = jax.lax.cond(
@@ -259,8 +267,25 @@ def step(state: OdometryState, model: MotionModel, actuator, command, pose, lida
         covariance=jnp.where(
             first[:, None, None], prior_covariance(model), jnp.where(due[:, None, None], covariance, state.covariance)
         ),
+        pose=pose,
+        travelled_m=state.travelled_m,
     )
     return state, actuator, pose
+
+
+def spreads(model: MotionModel) -> bool:
+    """Whether ``model`` has the odometry's fitted spread (:func:`e2e_percep_jax.calibration.fit_spread`)."""
+    return model.odometry_location_std_at_100m_m > 0
+
+
+def spread(model: MotionModel, travelled_m):
+    """The odometry's error spread after ``travelled_m`` [B] metres from a known start, as fitted on training
+    drives: (location std [B] m per axis, heading std [B] rad), each ``std at 100 m x (d / 100 m) ^ growth``."""
+    d = jnp.maximum(travelled_m, 0.0) / 100.0
+    return (
+        model.odometry_location_std_at_100m_m * d**model.odometry_location_growth,
+        model.odometry_heading_std_at_100m_rad * d**model.odometry_heading_growth,
+    )
 
 
 def follow(model: MotionModel, start_pose, prev_action, lidar):

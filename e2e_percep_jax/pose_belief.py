@@ -37,6 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from jax.scipy.stats import norm
 
 from e2e_percep_jax import ego_motion
 from e2e_percep_jax.config import ModelConfig
@@ -351,10 +352,12 @@ def filter_step(
     :func:`estimate`).
 
     ``measure=False`` (known start only: an odometry for a town the head does not know) takes no
-    measurement; the belief is then kept a point (:func:`start_at`) that the odometry moves
-    (:func:`ego_motion.step`: the commands through the motion model, with the scans of ``lidar`` [B, R, R,
-    3] correcting the heading when the model has the matcher's fitted noise), and the pose is that point (a
-    histogram without measurements spreads over the town, and its mode says little).
+    measurement; the pose is the odometry's (:func:`ego_motion.step`: the commands through the motion model,
+    with the scans of ``lidar`` [B, R, R, 3] correcting the heading when the model has the matcher's fitted
+    noise), and the belief a Gaussian around it whose spread grows with the distance driven as the
+    odometry's errors did on training drives (:func:`spread_at`, :func:`ego_motion.spread`), or a point
+    (:func:`start_at`) when the model has no fitted spread (a histogram moved without measurements spreads
+    over the town, and its mode says little).
     A stream's actuators start at its first logged commands (the car is taken to be in steady state).
     """
     if start_pose is None and not measure:
@@ -367,9 +370,12 @@ def filter_step(
     )
     if start_pose is not None and not measure:
         odometry, _, pose = ego_motion.step(
-            state.odometry, model, actuator, prev_action, mean_pose(state, grid), lidar, first, start_pose
+            state.odometry, model, actuator, prev_action, state.odometry.pose, lidar, first, start_pose
         )
-        belief, offset = start_at(pose, grid)
+        if ego_motion.spreads(model):
+            belief, offset = spread_at(pose, *ego_motion.spread(model, odometry.travelled_m), grid)
+        else:
+            belief, offset = start_at(pose, grid)
         return PoseBeliefState(
             belief=belief, speed_mps=pose[:, 4], yaw_offset_rad=offset, odometry=odometry, **started
         ), pose
@@ -449,6 +455,21 @@ def start_at(pose, grid: Grid):
     wk = jax.nn.one_hot((k + near) % grid.heading_bins, grid.heading_bins)
     wx, wy = _linear_split(u[:, 0], grid.n), _linear_split(u[:, 1], grid.n)
     return wk[:, :, None, None] * wy[:, None, :, None] * wx[:, None, None, :], (offset - near) * grid.bin_rad
+
+
+def spread_at(pose, location_std_m, heading_std_rad, grid: Grid):
+    """(belief [B, H, n, n], heading offset [B] of 0) of a Gaussian around poses [B, 5]: ``location_std_m``
+    [B] per axis, ``heading_std_rad`` [B] (wrapped), each cell's and bin's probability its integral over the
+    cell or bin; a std of 0 puts all of it in the cell and bin holding the pose."""
+    edges = AREA_ORIGIN_M + grid.cell_m * jnp.arange(grid.n + 1)  # [n + 1]
+    std = jnp.maximum(location_std_m, 1e-6)[:, None]
+    axis = lambda centre: jnp.diff(norm.cdf((edges - centre[:, None]) / std), axis=-1)  # [B, n]
+    half = 0.5 * grid.bin_rad
+    d = wrap_angle(jnp.asarray(grid.bin_centres()) - pose_yaw(pose)[:, None])  # [B, H]
+    h_std = jnp.maximum(heading_std_rad, 1e-6)[:, None]
+    heading = norm.cdf((d + half) / h_std) - norm.cdf((d - half) / h_std)
+    belief = heading[:, :, None, None] * axis(pose[:, 1])[:, None, :, None] * axis(pose[:, 0])[:, None, None, :]
+    return _normalised(belief), jnp.zeros(pose.shape[:1])
 
 
 def mean_pose(state: PoseBeliefState, grid: Grid):

@@ -4,9 +4,9 @@ dead reckoning follow, fitted on training drives of the run's world (``e2e_perce
     python experiments/calibrate.py --workdir=runs/demo [--refit]
 
 Training fits it at the start of a run with the belief pose head; this launcher fits it for a run that
-has none, or again with ``--refit``, with the scan matcher's noise that the lidar odometry reads (which an
-evaluation from a known start on a held-out town otherwise fits the first time it needs it). Prints the fitted model. A bad flag prints one line and exits with
-status 1.
+has none, or again with ``--refit``, with the scan matcher's noise and the odometry's spread that the lidar
+odometry reads (which an evaluation from a known start on a held-out town otherwise fits the first time it
+needs them). Prints the fitted model. A bad flag prints one line and exits with status 1.
 """
 
 import dataclasses

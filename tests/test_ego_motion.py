@@ -160,17 +160,19 @@ def test_the_scan_matcher_follows_the_true_motion_on_a_town_it_never_saw():
     assert np.mean(np.abs(error[kept]) > 0.05) < 0.1
 
 
-def test_a_motion_model_from_before_the_lidar_odometry_gains_its_prior_and_scan_noise(tmp_path):
-    """A run whose motion_model.json predates the lidar odometry (no offset prior, no scan noise) gets both
-    fitted and saved the first time the odometry needs them; its own fields stay as they were."""
+def test_a_motion_model_from_before_the_lidar_odometry_gains_its_prior_scan_noise_and_spread(tmp_path):
+    """A run whose motion_model.json predates the lidar odometry (no offset prior, no scan noise, no spread)
+    gets all three fitted and saved the first time the odometry needs them; its own fields stay as they
+    were. The spread grows with the distance driven."""
     cfg = config_lib.get_config("tiny")
     old = motion.MotionModel(lag_share=0.5, steer_gain=0.97, heading_noise_rad2pm=3e-4)
     old.save(str(tmp_path))
     model = calibration.ensure_scans(cfg, str(tmp_path))
     assert model.yaw_bias_std_1pm > 0 and model.yaw_gain_std > 0 and model.yaw_noise_rad2pm > 0
-    assert ego_motion.uses_scans(model)
-    assert (
-        dataclasses.replace(model, yaw_bias_std_1pm=0.0, yaw_gain_std=0.0, yaw_noise_rad2pm=0.0, scan_yaw_noise_rad=0.0)
-        == old
-    )
+    assert ego_motion.uses_scans(model) and ego_motion.spreads(model)
+    assert model.odometry_location_growth > 0 and model.odometry_heading_std_at_100m_rad > 0
+    fitted = dict(yaw_bias_std_1pm=0.0, yaw_gain_std=0.0, yaw_noise_rad2pm=0.0, scan_yaw_noise_rad=0.0)
+    fitted.update(odometry_location_std_at_100m_m=0.0, odometry_heading_std_at_100m_rad=0.0)
+    fitted.update(odometry_location_growth=1.0, odometry_heading_growth=1.0)
+    assert dataclasses.replace(model, **fitted) == old
     assert motion.MotionModel.load(str(tmp_path)) == model

@@ -489,16 +489,21 @@ def smooth_commands(rng, frames):
 
 
 @pytest.mark.slow
-def test_known_start_odometry_follows_the_motion_model():
-    """The known-start point odometry with a lagged, biased, understeering model, over 600 frames of
-    varying pedal and steering, restarting at frame 350: its poses, speed and actuators follow the motion
-    model integrated here in float64 (:func:`np_odometry`) from the start, and again from the restart."""
+@pytest.mark.parametrize("spread", [False, True])
+def test_known_start_odometry_follows_the_motion_model(spread):
+    """The known-start odometry with a lagged, biased, understeering model, over 600 frames of varying pedal
+    and steering, restarting at frame 350: its poses, speed and actuators follow the motion model integrated
+    here in float64 (:func:`np_odometry`) from the start, and again from the restart, whether its belief is a
+    point or spread as the odometry's fitted errors (the pose is the odometry's either way)."""
     grid = pose_belief.Grid(cell_m=10.0, heading_bins=36)
     rng = np.random.default_rng(7)
     commands = smooth_commands(rng, 600).astype(np.float32)
     start = np.array([150.0, 210.0, math.cos(2.0), math.sin(2.0), 7.0])
     restart = 350
-    got, got_actuator = known_start_track(LAGGED, start, commands, grid, restart_at=restart)
+    model = LAGGED
+    if spread:
+        model = dataclasses.replace(LAGGED, odometry_location_std_at_100m_m=5.0, odometry_heading_std_at_100m_rad=0.1)
+    got, got_actuator = known_start_track(model, start, commands, grid, restart_at=restart)
     # frame t's pose comes from commands 0..t-1; after the restart from commands restart..t-1
     first_part, first_act = np_odometry(LAGGED, start, commands[: restart - 1].astype(np.float64))
     second_part, second_act = np_odometry(LAGGED, start, commands[restart:].astype(np.float64))
@@ -731,3 +736,54 @@ def test_position_estimate_is_the_local_mean_around_the_mode():
         got = pose_belief.estimate(b, head, pose[:, 4], GRID)
         np.testing.assert_allclose(got[:, :2], pose[:, :2], atol=1e-3)
         np.testing.assert_allclose(got[:, 2:], pose[:, 2:], atol=1e-4)  # heading from the head's offset
+
+
+def test_a_spread_belief_is_the_gaussian_it_stands_for():
+    """``spread_at``: its 95 % regions (place; place and heading) hold 95-99 % of poses drawn from the
+    Gaussian it stands for (at least 95 %: the cells are whole; 20,000 draws, so 0.5 point of slack below),
+    its mean is the pose, and a std of 0 puts all the mass in the pose's own cell and bin."""
+    grid = pose_belief.Grid(cell_m=5.0, heading_bins=36)
+    pose = np.array([[203.0, 151.0, math.cos(0.7), math.sin(0.7), 5.0]], np.float32)
+    belief, offset = pose_belief.spread_at(jnp.asarray(pose), jnp.asarray([9.0]), jnp.asarray([0.2]), grid)
+    belief = np.asarray(belief[0], np.float64)
+    assert float(offset[0]) == 0.0 and abs(belief.sum() - 1.0) < 1e-5
+    rng = np.random.default_rng(3)
+    xy = pose[0, :2] + rng.normal(0, 9.0, (20000, 2))
+    yaw = 0.7 + rng.normal(0, 0.2, 20000)
+    cell = np.asarray(pose_belief.true_cell(jnp.asarray(xy), grid)[0])
+    k = np.asarray(pose_belief.true_bin(jnp.asarray(yaw), grid)[0])
+    place, flat = belief.sum(0).ravel(), belief.reshape(-1)
+
+    def region(p, index):
+        """Whether each state ``index`` is in the 95 % region: the states more probable hold under 95 %."""
+        ascending = np.sort(p)
+        above = p.sum() - np.cumsum(ascending)[np.searchsorted(ascending, p, "right") - 1]  # [S]
+        return (above < 0.95 * p.sum())[index]
+
+    assert 0.945 <= region(place, cell).mean() <= 0.99
+    assert 0.945 <= region(flat, k * grid.num_cells + cell).mean() <= 0.99
+    state = pose_belief.init_state(1, grid).replace(belief=jnp.asarray(belief[None], jnp.float32))
+    mean = np.asarray(pose_belief.mean_pose(state, grid)[0])
+    np.testing.assert_allclose(mean[:2], pose[0, :2], atol=0.05)
+    assert abs(math.atan2(mean[3], mean[2]) - 0.7) < 0.005
+    point, _ = pose_belief.spread_at(jnp.asarray(pose), jnp.zeros(1), jnp.zeros(1), grid)
+    own = np.zeros(np.asarray(point).shape[1:])
+    own[int(pose_belief.true_bin(jnp.asarray(0.7), grid)[0])].flat[
+        int(pose_belief.true_cell(jnp.asarray(pose[0, :2]), grid)[0])
+    ] = 1.0
+    np.testing.assert_allclose(np.asarray(point[0]), own, atol=1e-6)
+
+
+def test_the_spread_law_recovers_a_planted_power_law():
+    """``calibration.spread_law`` on errors drawn from a 2-D Gaussian of std 4 m x (d / 100 m)^1.3 per axis and
+    a 1-D one of 0.08 rad x (d / 100 m)^0.6 returns both laws within 5 %."""
+    rng = np.random.default_rng(0)
+    d = rng.uniform(10.0, 640.0, 40000)
+    location = np.linalg.norm(rng.normal(size=(d.size, 2)), axis=-1) * 4.0 * (d / 100.0) ** 1.3
+    heading = np.abs(rng.normal(size=d.size)) * 0.08 * (d / 100.0) ** 0.6
+    a, growth = calibration.spread_law(d, location, 2)
+    assert abs(a / 4.0 - 1) < 0.05 and abs(growth - 1.3) < 0.05
+    a, growth = calibration.spread_law(d, heading, 1)
+    assert abs(a / 0.08 - 1) < 0.05 and abs(growth - 0.6) < 0.05
+    with pytest.raises(ValueError, match="two distance bins"):
+        calibration.spread_law(np.full(100, 15.0), location[:100], 2)
