@@ -187,16 +187,20 @@ def _with_yaw_spread(model: MotionModel, drives: dict, ds, dyaw) -> MotionModel:
     )
 
 
+def lidar_drives(cfg: Config, town_seed: int, key, num_worlds: int, num_frames: int):
+    """:func:`drives` of town ``town_seed`` under ``cfg``'s world, with its lidar images, on the first
+    local device."""
+    with jax.default_device(jax.local_devices()[0]):
+        town = town_lib.build_town(town_seed)
+        return drives(key, town, cfg.world, cfg.data.warmup_steps, num_worlds, num_frames, cfg.data.image_size)
+
+
 def scan_errors(cfg: Config, model: MotionModel, town_seed: int, key, num_worlds: int = 4, num_frames: int = 300):
     """The scan matcher's heading errors on ``num_worlds`` lidar drives of town ``town_seed`` (reset from
     ``key``): every ``ego_motion.KEYFRAME_FRAMES`` frames, the matched heading change minus the true one,
     searched around the motion ``model``'s own prediction from the true pose. Returns (errors [M] rad,
     the fewer of each pair's returns [M])."""
-    with jax.default_device(jax.local_devices()[0]):
-        town = town_lib.build_town(town_seed)
-        pose, speed, command, lidar = drives(
-            key, town, cfg.world, cfg.data.warmup_steps, num_worlds, num_frames, cfg.data.image_size
-        )
+    pose, speed, command, lidar = lidar_drives(cfg, town_seed, key, num_worlds, num_frames)
     k = ego_motion.KEYFRAME_FRAMES
     starts = np.arange(0, num_frames - k, k)
     predicted = []
@@ -264,11 +268,7 @@ def fit_spread(cfg: Config, model: MotionModel, num_worlds: int = 8, num_frames:
     ``model`` has the matcher's noise), its location and heading errors against the distance the car drove
     (:func:`spread_law`)."""
     key = jax.random.fold_in(jax.random.PRNGKey(CALIBRATION_SEED), 2)
-    with jax.default_device(jax.local_devices()[0]):
-        town = town_lib.build_town(cfg.world.town_seed)
-        pose, speed, command, lidar = drives(
-            key, town, cfg.world, cfg.data.warmup_steps, num_worlds, num_frames, cfg.data.image_size
-        )
+    pose, speed, command, lidar = lidar_drives(cfg, cfg.world.town_seed, key, num_worlds, num_frames)
     start, prev_action = start_and_commands(pose, speed, command)
     followed, _ = jax.jit(ego_motion.follow, static_argnums=0)(model, start, prev_action, lidar)
     pose, followed = np.asarray(pose, np.float64), np.asarray(followed, np.float64)

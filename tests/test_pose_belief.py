@@ -406,14 +406,17 @@ def test_filter_step_is_brute_force_bayes_through_the_motion_model(name, monkeyp
 # ----------------------------------------------------------------------------- credible regions
 
 
-def np_in_region(p, true_index, mass):
-    """Sorting: the states in decreasing probability, the mass before each; the true state is in the region
-    when the mass before the first state as probable as it is below ``mass`` of the total."""
+def np_region(p, mass):
+    """Sorting: whether each state is in the region holding ``mass``: the states more probable than it hold
+    less than ``mass`` of the total. bool [S]."""
     p = np.asarray(p, np.float64)
-    order = np.sort(p)[::-1]
-    before = np.concatenate([[0.0], np.cumsum(order)[:-1]])
-    first = np.flatnonzero(order == p[true_index])[0]
-    return before[first] < mass * p.sum()
+    ascending = np.sort(p)
+    above = p.sum() - np.cumsum(ascending)[np.searchsorted(ascending, p, "right") - 1]
+    return above < mass * p.sum()
+
+
+def np_in_region(p, true_index, mass):
+    return np_region(p, mass)[true_index]
 
 
 def test_in_region_against_sorting():
@@ -753,12 +756,7 @@ def test_a_spread_belief_is_the_gaussian_it_stands_for():
     cell = np.asarray(pose_belief.true_cell(jnp.asarray(xy), grid)[0])
     k = np.asarray(pose_belief.true_bin(jnp.asarray(yaw), grid)[0])
     place, flat = belief.sum(0).ravel(), belief.reshape(-1)
-
-    def region(p, index):
-        """Whether each state ``index`` is in the 95 % region: the states more probable hold under 95 %."""
-        ascending = np.sort(p)
-        above = p.sum() - np.cumsum(ascending)[np.searchsorted(ascending, p, "right") - 1]  # [S]
-        return (above < 0.95 * p.sum())[index]
+    region = lambda p, index: np_region(p, 0.95)[index]
 
     assert 0.945 <= region(place, cell).mean() <= 0.99
     assert 0.945 <= region(flat, k * grid.num_cells + cell).mean() <= 0.99
