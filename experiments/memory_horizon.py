@@ -1,0 +1,170 @@
+"""How long a trained latent keeps the vehicles it found once every sensor is hidden from its filter.
+
+    python experiments/memory_horizon.py --workdir=runs/cpu-bev [--drives=64 --seen=20 --hidden=30]
+
+The occluded groups of the evaluation need a vehicle that a sensor lost while the filter saw the rest of the
+frame, which few drives hold. This asks the question underneath on any drive: ``--drives`` worlds of the
+run's town (reset keys from ``--seed``, held out from training's; the config's warm-up), driven for
+``--seen`` + ``--hidden`` frames. The filter runs twice over the same frames (posterior means, one scan):
+once seeing every frame, once seeing the first ``--seen`` only, its posterior then its prior
+(``model.filter_sequence``'s ``observed``; the ego-motion head of the bird-eye grid still reads each frame's
+features, so the grid is warped by the motion as it is when a vehicle is occluded). Followed: every vehicle
+the lidar sees in the last seen frame and the decoder finds there (a detection at the operating score,
+``eval.score_threshold``, matched at IoU 0.1). For each k = 1..``--hidden`` frames later, of the followed
+vehicles still in view: the share found with the sensors hidden (memory) and with them on (sight), standing
+vehicles (moved under 0.5 m in the town since the last seen frame) and moving ones apart, each with a 95 %
+bootstrap interval over drives. Prints a table and writes JSON to ``--out`` (default
+``<workdir>/memory_horizon.json``).
+
+The run's detection decoder must read the latent alone: one that reads the frame's features
+(``--model.detection_input=latent_and_features``) would see through the hiding.
+"""
+
+import json
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from absl import app, flags
+
+from e2e_percep_jax import checkpoint, detection, launch, metrics
+from e2e_percep_jax import config as config_lib
+from e2e_percep_jax import model as model_lib
+from e2e_percep_jax.sim import geometry as geo
+from e2e_percep_jax.sim import rollout, world
+from e2e_percep_jax.sim import town as town_lib
+
+flags.DEFINE_string("workdir", None, "a training run")
+flags.DEFINE_integer("seed", 7000, "the worlds' reset keys")
+flags.DEFINE_integer("drives", 64, "drives (worlds)")
+flags.DEFINE_integer("seen", 20, "frames the filter sees first")
+flags.DEFINE_integer("hidden", 30, "frames hidden from it after them")
+flags.DEFINE_string("out", None, "the JSON written (default: <workdir>/memory_horizon.json)")
+FLAGS = flags.FLAGS
+
+MATCH_IOU = 0.1  # the groups' loosest IoU: where a kept vehicle is, not its box's fit
+STANDING_M = 0.5  # a followed vehicle that moved less than this in the town is standing
+DRIVES_AT_ONCE = 16  # drives filtered and decoded together (bounds the PIXOR maps' memory)
+REPORTED_K = (1, 2, 3, 5, 10, 15, 20, 30)  # the table's rows (frames since the last seen one)
+
+
+def found_vehicles(boxes, scores, gt_boxes, gt_valid) -> np.ndarray:
+    """bool [N]: which of a frame's N vehicle boxes ``gt_boxes`` [N, 5] (``gt_valid`` [N]) a detection
+    (``boxes`` [M, 5], ``scores`` [M], at the operating score already) matches at :data:`MATCH_IOU`."""
+    found = np.zeros(len(gt_valid), bool)
+    index = np.nonzero(gt_valid)[0]
+    matched = metrics.match_detections(boxes, scores, gt_boxes[index], [MATCH_IOU])[0]
+    found[index[matched[matched >= 0]]] = True
+    return found
+
+
+def horizon(found_hidden, found_seen, in_view, followed, standing, num_resamples: int = 1000) -> dict:
+    """The shares of followed vehicles found k frames after the last seen one, with the sensors hidden and
+    on. found_hidden, found_seen, in_view: bool [D, K, N] (frame last seen + k, k = 1..K); followed: bool
+    [D, N]; standing: bool [D, K, N]. Returns {"standing" | "moving" | "all": {"boxes": [K], "memory": [K],
+    "sight": [K], "memory_interval95": [K, 2], "sight_interval95": [K, 2]}} (shares in [0, 1]; NaN for a k
+    without a box); intervals resample whole drives."""
+    counted = in_view & followed[:, None, :]
+    result = {}
+    for name, subset in (("standing", standing), ("moving", ~standing), ("all", np.ones_like(standing))):
+        boxes = (counted & subset).sum(-1)  # [D, K]
+        hits = {
+            run: (counted & subset & found).sum(-1) for run, found in (("memory", found_hidden), ("sight", found_seen))
+        }
+
+        def share(weights, h=None):  # weights [n, D] -> [n, K]
+            with np.errstate(invalid="ignore", divide="ignore"):
+                return (weights @ h) / (weights @ boxes)
+
+        entry = {"boxes": boxes.sum(0).tolist()}
+        for run, h in hits.items():
+            entry[run] = share(np.ones((1, len(boxes))), h)[0].tolist()
+            low, high = metrics.bootstrap_interval(lambda w, h=h: share(w, h), len(boxes), num_resamples)
+            entry[f"{run}_interval95"] = np.stack([low, high], -1).tolist()
+        result[name] = entry
+    return result
+
+
+def main(argv):
+    cfg = launch.run_config(argv, FLAGS.workdir)
+    if cfg.model.detection_input != "latent":
+        raise app.UsageError(
+            f"--workdir={FLAGS.workdir}: its detection decoder reads the frame's features "
+            f"(--model.detection_input={cfg.model.detection_input}), which would see through the hiding"
+        )
+    if FLAGS.drives < 1 or FLAGS.seen < 1 or FLAGS.hidden < 1:
+        raise app.UsageError("--drives, --seen and --hidden must each be >= 1")
+    _, params, step = checkpoint.restore_params(FLAGS.workdir, cfg)
+    town = town_lib.build_town(cfg.world.town_seed)
+    frames_per_drive, last_seen = FLAGS.seen + FLAGS.hidden, FLAGS.seen - 1
+    detect = detection.Settings()
+
+    @jax.jit
+    def record(key):
+        state = rollout.advance(world.reset(key, town, cfg.world), town, cfg.data.warmup_steps)
+        return rollout.drive(state, town, frames_per_drive, cfg.data.image_size)[1]
+
+    @jax.jit
+    def candidates(camera, lidar, action, observed):
+        filtered = model_lib.filter_sequence(params, camera, lidar, action, None, cfg, observed=observed)
+        out = model_lib.decode(params, filtered, cfg)
+        return detection.candidates(out["det_cls"], out["det_reg"], detect.top_k, detect.score_floor)[:2]
+
+    keys = jax.random.split(jax.random.PRNGKey(FLAGS.seed), FLAGS.drives)
+    found = {"memory": [], "sight": []}
+    truth = []
+    for first in range(0, FLAGS.drives, DRIVES_AT_ONCE):
+        frames = jax.vmap(record)(keys[first : first + DRIVES_AT_ONCE])
+        d = frames.camera.shape[0]
+        seen_first = jnp.broadcast_to(jnp.arange(frames_per_drive) <= last_seen, (d, frames_per_drive))
+        gt = jax.tree.map(np.asarray, (frames.boxes, frames.boxes_valid, frames.pose))
+        truth.append(gt + (np.asarray(frames.boxes_lidar_visible),))
+        for run, observed in (("memory", seen_first), ("sight", None)):
+            cand_boxes, cand_scores = jax.device_get(candidates(frames.camera, frames.lidar, frames.action, observed))
+            per_frame = np.zeros(gt[1].shape, bool)  # [d, T, N]
+            for i in range(d):
+                for t in range(last_seen, frames_per_drive):
+                    boxes, scores = detection.frame_detections(cand_boxes[i, t], cand_scores[i, t], detect.score_floor)
+                    keep = scores >= cfg.eval.score_threshold
+                    per_frame[i, t] = found_vehicles(boxes[keep], scores[keep], gt[0][i, t], gt[1][i, t])
+            found[run].append(per_frame)
+    boxes, valid, pose, lidar_visible = (np.concatenate(x) for x in zip(*truth))
+    found = {run: np.concatenate(f) for run, f in found.items()}
+    # the hidden run equals the seen one up to the last seen frame: followed are the vehicles found there
+    followed = valid[:, last_seen] & lidar_visible[:, last_seen] & found["memory"][:, last_seen]
+    town_xy = geo.ego_to_town(boxes[..., :2], pose[..., None, :2], geo.pose_yaw(pose)[..., None])
+    moved = np.linalg.norm(town_xy[:, last_seen + 1 :] - town_xy[:, last_seen, None], axis=-1)
+    after = slice(last_seen + 1, None)
+    result = horizon(found["memory"][:, after], found["sight"][:, after], valid[:, after], followed, moved < STANDING_M)
+    result = dict(
+        workdir=os.path.abspath(FLAGS.workdir),
+        checkpoint_step=step,
+        latent=cfg.model.latent,
+        drives=FLAGS.drives,
+        seen=FLAGS.seen,
+        hidden=FLAGS.hidden,
+        seed=FLAGS.seed,
+        followed=int(followed.sum()),
+        score_threshold=cfg.eval.score_threshold,
+        match_iou=MATCH_IOU,
+        **result,
+    )
+    out = FLAGS.out or os.path.join(FLAGS.workdir, "memory_horizon.json")
+    with open(out, "w") as f:
+        json.dump(result, f, indent=1)
+    print(f"{FLAGS.workdir} (step {step}, {cfg.model.latent} latent): {result['followed']} vehicles followed")
+    print("| frames hidden | standing: boxes, memory %, sight % | moving: boxes, memory %, sight % |")
+    print("|---|---|---|")
+    pct = lambda v: f"{100 * v:.1f}"
+    for k in REPORTED_K:
+        if k <= FLAGS.hidden:
+            s, m = result["standing"], result["moving"]
+            cells = [f"{e['boxes'][k - 1]}, {pct(e['memory'][k - 1])}, {pct(e['sight'][k - 1])}" for e in (s, m)]
+            print(f"| {k} | " + " | ".join(cells) + " |")
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    flags.mark_flag_as_required("workdir")
+    app.run(main, flags_parser=config_lib.parse_flags)
