@@ -9,11 +9,14 @@ the town while the grid moves with the ego. With G = 8 the ego sits on a cell co
 so a 90-degree turn maps cell centres onto cell centres.
 """
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from e2e_percep_jax.sim import geometry as geo
+from e2e_percep_jax.sim import sensors
 
 # The ego-motion head predicts motion / MOTION_UNIT: a step at 10 Hz moves up to ~1.5 m ahead, centimetres
 # sideways and a few hundredths of a radian, so each part is O(1) in these units.
@@ -53,3 +56,41 @@ def warp(grid, motion):
         return sampled[..., :-1], sampled[..., -1:]
 
     return jax.vmap(one)(grid, motion)
+
+
+# The lidar image's obstacle returns (its green channel: 0.25-3.1 m above the ground) shadow what lies behind
+# them, seen from the sensor at the ego's centre. The shadow test bins directions by the lidar's own azimuth step.
+VISIBILITY_BINS = sensors.LIDAR_NUM_AZIMUTHS
+SHADOW_MARGIN_M = 1.0  # a return's own surface is seen: its shadow starts this far behind it
+
+
+@functools.cache
+def _pixel_directions(image_size: int):
+    """NumPy constants of an R x R BEV image: each pixel's distance from the ego (m, [R*R]) and the azimuth bin
+    of its centre ([R*R]), and every (pixel, bin) pair whose bin the pixel's square covers as seen from the ego
+    (two [P] index arrays): a near pixel spans many degrees, and its return shadows all of them."""
+    centres = np.asarray(geo.bev_pixel_centres(image_size, np), np.float64).reshape(-1, 2)
+    distance = np.hypot(centres[:, 0], centres[:, 1])
+    step = 2 * np.pi / VISIBILITY_BINS
+    azimuth = np.mod(np.arctan2(centres[:, 1], centres[:, 0]), 2 * np.pi)
+    half_width = np.arctan2(geo.bev_metres_per_px(image_size) * np.sqrt(0.5), distance)  # the square's half-diagonal
+    first, last = np.floor((azimuth - half_width) / step), np.floor((azimuth + half_width) / step)
+    pixels = np.concatenate([np.full(int(b - a) + 1, p) for p, (a, b) in enumerate(zip(first, last))])
+    bins = np.concatenate([np.arange(a, b + 1) for a, b in zip(first, last)]).astype(np.int64) % VISIBILITY_BINS
+    centre_bin = np.floor(azimuth / step).astype(np.int64) % VISIBILITY_BINS
+    return distance.astype(np.float32), centre_bin, pixels, bins
+
+
+def lidar_visibility(lidar, cells: int):
+    """How much of each grid cell the lidar sees: float32 [N, G, G, 1] in [0, 1], the share of the cell's pixels
+    that lie no farther than :data:`SHADOW_MARGIN_M` behind the nearest obstacle return in their direction, from
+    lidar images uint8 [N, R, R, 3] (the frame contract's; G = ``cells`` divides R). An empty direction is seen
+    to the view's edge (the lidar's range, 50 m, is past it)."""
+    n, r = lidar.shape[0], lidar.shape[1]
+    distance, centre_bin, pixels, bins = _pixel_directions(r)
+    obstacle = lidar[..., 1].reshape(n, r * r) > 0
+    blocked_at = jnp.where(obstacle[:, pixels], distance[pixels], jnp.inf)  # [N, P]
+    nearest = jax.vmap(lambda d: jax.ops.segment_min(d, bins, num_segments=VISIBILITY_BINS))(blocked_at)
+    seen = distance <= nearest[:, centre_bin] + SHADOW_MARGIN_M  # [N, R*R]
+    per_cell = seen.reshape(n, cells, r // cells, cells, r // cells).astype(jnp.float32).mean((2, 4))
+    return per_cell[..., None]

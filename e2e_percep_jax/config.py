@@ -39,6 +39,11 @@ DETECTION_INPUTS = ("latent", "latent_and_features")
 # The latent: vector, the paper's z1 and z2; bev, the vector beside a stochastic bird-eye grid carried from frame
 # to frame, warped by the ego's motion (bev_latent.py), which the PIXOR, lidar and roadmap decoders read.
 LATENTS = ("vector", "bev")
+# How the bird-eye grid's posterior updates a cell: learned, q reads the warped prior and the frame and may write
+# anything; lidar_gated, q moves from the prior only as far as the lidar sees the cell (the share of its pixels
+# that no nearer return shadows, bev_latent.lidar_visibility), so a cell behind an obstacle keeps its prior, as
+# an occupancy grid keeps what it cannot observe.
+GRID_UPDATES = ("learned", "lidar_gated")
 DEFAULT_TOWN_SEED = 0
 
 
@@ -115,6 +120,7 @@ class ModelConfig:
     # per cell, each a Gaussian; G is a size the decoders' trunk passes through: a power of two in [4, R / 2].
     grid_cells: int = 16
     grid_channels: int = 8
+    grid_update: str = "learned"  # one of GRID_UPDATES
 
 
 @dataclasses.dataclass(frozen=True)
@@ -337,6 +343,12 @@ def validate(cfg: Config) -> Config:
         raise ValueError(f"--model.grid_cells={g}: must be a power of two in [4, data.image_size / 2 = {r // 2}]")
     if cfg.model.latent == "bev" and cfg.model.grid_channels < 1:
         raise ValueError(f"--model.grid_channels={cfg.model.grid_channels}: must be >= 1")
+    if cfg.model.grid_update not in GRID_UPDATES:
+        raise ValueError(f"--model.grid_update={cfg.model.grid_update!r}: choose one of {GRID_UPDATES}")
+    if cfg.model.grid_update != "learned" and cfg.model.latent != "bev":
+        raise ValueError(
+            f"--model.grid_update={cfg.model.grid_update!r} updates the bird-eye grid: needs --model.latent=bev"
+        )
     # The filter moves a heading bin's mass by at most one cell a step (pose_belief.predict): 2 m is above
     # the world's fastest step (12 m/s x 0.1 s); above 40 m a cell is as large as a block.
     if not 2.0 <= cfg.model.pose_cell_m <= 40.0:

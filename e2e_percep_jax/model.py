@@ -270,6 +270,14 @@ class GaussianConv(nn.Module):
         return loc, jax.nn.softplus(raw) + MIN_SCALE
 
 
+def gated_update(prior, posterior, share_seen):
+    """A Gaussian (loc, scale) moved from ``prior`` towards ``posterior`` by ``share_seen`` in [0, 1]
+    (broadcast): the location linearly, the scale geometrically (linearly in log scale). 0 gives the prior
+    exactly (its KL is zero), 1 the posterior."""
+    (p_loc, p_scale), (q_loc, q_scale) = prior, posterior
+    return p_loc + share_seen * (q_loc - p_loc), p_scale * (q_scale / p_scale) ** share_seen
+
+
 def _unless_seen(seen, posterior, prior):
     """The posterior's (loc, scale) where ``seen`` (broadcast), the prior's elsewhere (a frame not observed)."""
     return tuple(jnp.where(seen, q, p) for q, p in zip(posterior, prior))
@@ -316,6 +324,8 @@ class PerceptionModel(nn.Module):
         encoded = {"features": jnp.concatenate([camera_features, lidar_features], -1)}
         if self.cfg.latent == "bev":
             encoded["lidar_map"] = lidar_maps[self.cfg.grid_cells]
+        if self.cfg.grid_update == "lidar_gated":
+            encoded["lidar_seen"] = bev_latent.lidar_visibility(lidar, self.cfg.grid_cells)
         return encoded
 
     def z1_prior(self, z2_prev, prev_action, first):
@@ -341,7 +351,9 @@ class PerceptionModel(nn.Module):
     def grid_step(self, state, encoded, prev_action, key, seen):
         """The bird-eye grid's filtering step: the earlier sample warped by the motion the ego-motion head
         predicts (its gradient stopped: the head learns from the true motion alone), then the prior and the
-        posterior per cell (the prior where ``seen`` [N], if given, is False). Returns (grid sample [N, G, G, C], outputs)."""
+        posterior per cell (with ``grid_update="lidar_gated"``, moved from the prior only as far as the lidar
+        sees the cell: :func:`gated_update`; the prior where ``seen`` [N], if given, is False). Returns (grid
+        sample [N, G, G, C], outputs)."""
         first = state.first[:, None, None, None]
         inputs = [encoded["features"], state.z1, state.z2, prev_action]
         motion = self.motion_head(jnp.concatenate(inputs, -1)) * bev_latent.MOTION_UNIT
@@ -352,6 +364,8 @@ class PerceptionModel(nn.Module):
         p_loc, p_scale = jnp.where(first, 0.0, p_loc), jnp.where(first, 1.0, p_scale)  # N(0, I) on first frames
         lifted = self.camera_lift(encoded["features"]).reshape(warped.shape)
         q_loc, q_scale = self.q_grid(warped, inside, encoded["lidar_map"], lifted)
+        if "lidar_seen" in encoded:  # --model.grid_update=lidar_gated: from the prior as far as the lidar sees
+            q_loc, q_scale = gated_update((p_loc, p_scale), (q_loc, q_scale), encoded["lidar_seen"])
         if seen is not None:
             q_loc, q_scale = _unless_seen(seen[:, None, None, None], (q_loc, q_scale), (p_loc, p_scale))
         grid = _sample(q_loc, q_scale, key)

@@ -13,7 +13,9 @@ the lidar sees in the last seen frame and the decoder finds there (a detection a
 ``eval.score_threshold``, matched at IoU 0.1). For each k = 1..``--hidden`` frames later, of the followed
 vehicles still in view: the share found with the sensors hidden (memory) and with them on (sight), standing
 vehicles (moved under 0.5 m in the town since the last seen frame) and moving ones apart, each with a 95 %
-bootstrap interval over drives. Prints a table and writes JSON to ``--out`` (default
+bootstrap interval over drives. Beside them, chance: the same vehicles matched by the hidden run's
+detections of another drive at the same frame (drive d + 1's for drive d), which is what a decoder that knew
+only where vehicles usually stand would find. Prints a table and writes JSON to ``--out`` (default
 ``<workdir>/memory_horizon.json``).
 
 The run's detection decoder must read the latent alone: one that reads the frame's features
@@ -47,6 +49,7 @@ MATCH_IOU = 0.1  # the groups' loosest IoU: where a kept vehicle is, not its box
 STANDING_M = 0.5  # a followed vehicle that moved less than this in the town is standing
 DRIVES_AT_ONCE = 16  # drives filtered and decoded together (bounds the PIXOR maps' memory)
 REPORTED_K = (1, 2, 3, 5, 10, 15, 20, 30)  # the table's rows (frames since the last seen one)
+RUNS = ("memory", "sight", "chance")
 
 
 def found_vehicles(boxes, scores, gt_boxes, gt_valid) -> np.ndarray:
@@ -59,28 +62,26 @@ def found_vehicles(boxes, scores, gt_boxes, gt_valid) -> np.ndarray:
     return found
 
 
-def horizon(found_hidden, found_seen, in_view, followed, standing, num_resamples: int = 1000) -> dict:
-    """The shares of followed vehicles found k frames after the last seen one, with the sensors hidden and
-    on. found_hidden, found_seen, in_view: bool [D, K, N] (frame last seen + k, k = 1..K); followed: bool
-    [D, N]; standing: bool [D, K, N]. Returns {"standing" | "moving" | "all": {"boxes": [K], "memory": [K],
-    "sight": [K], "memory_interval95": [K, 2], "sight_interval95": [K, 2]}} (shares in [0, 1]; NaN for a k
-    without a box); intervals resample whole drives."""
+def horizon(found: dict, in_view, followed, standing, num_resamples: int = 1000) -> dict:
+    """The shares of followed vehicles found k frames after the last seen one, by each run. found: {run:
+    bool [D, K, N]} (frame last seen + k, k = 1..K); in_view: bool [D, K, N]; followed: bool [D, N];
+    standing: bool [D, K, N]. Returns {"standing" | "moving" | "all": {"boxes": [K], run: [K],
+    f"{run}_interval95": [K, 2]}} (shares in [0, 1]; NaN for a k without a box); intervals resample whole
+    drives."""
     counted = in_view & followed[:, None, :]
     result = {}
     for name, subset in (("standing", standing), ("moving", ~standing), ("all", np.ones_like(standing))):
         boxes = (counted & subset).sum(-1)  # [D, K]
-        hits = {
-            run: (counted & subset & found).sum(-1) for run, found in (("memory", found_hidden), ("sight", found_seen))
-        }
-
-        def share(weights, h=None):  # weights [n, D] -> [n, K]
-            with np.errstate(invalid="ignore", divide="ignore"):
-                return (weights @ h) / (weights @ boxes)
-
         entry = {"boxes": boxes.sum(0).tolist()}
-        for run, h in hits.items():
-            entry[run] = share(np.ones((1, len(boxes))), h)[0].tolist()
-            low, high = metrics.bootstrap_interval(lambda w, h=h: share(w, h), len(boxes), num_resamples)
+        for run, found_by_run in found.items():
+            hits = (counted & subset & found_by_run).sum(-1)
+
+            def share(weights, hits=hits):  # weights [n, D] -> [n, K]
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    return (weights @ hits) / (weights @ boxes)
+
+            entry[run] = share(np.ones((1, len(boxes))))[0].tolist()
+            low, high = metrics.bootstrap_interval(share, len(boxes), num_resamples)
             entry[f"{run}_interval95"] = np.stack([low, high], -1).tolist()
         result[name] = entry
     return result
@@ -112,31 +113,44 @@ def main(argv):
         return detection.candidates(out["det_cls"], out["det_reg"], detect.top_k, detect.score_floor)[:2]
 
     keys = jax.random.split(jax.random.PRNGKey(FLAGS.seed), FLAGS.drives)
-    found = {"memory": [], "sight": []}
+    detections = {"memory": [], "sight": []}  # per run, drive and frame from the last seen: (boxes, scores)
     truth = []
     for first in range(0, FLAGS.drives, DRIVES_AT_ONCE):
         frames = jax.vmap(record)(keys[first : first + DRIVES_AT_ONCE])
         d = frames.camera.shape[0]
         seen_first = jnp.broadcast_to(jnp.arange(frames_per_drive) <= last_seen, (d, frames_per_drive))
-        gt = jax.tree.map(np.asarray, (frames.boxes, frames.boxes_valid, frames.pose))
-        truth.append(gt + (np.asarray(frames.boxes_lidar_visible),))
+        truth.append(
+            jax.tree.map(np.asarray, (frames.boxes, frames.boxes_valid, frames.pose, frames.boxes_lidar_visible))
+        )
         for run, observed in (("memory", seen_first), ("sight", None)):
             cand_boxes, cand_scores = jax.device_get(candidates(frames.camera, frames.lidar, frames.action, observed))
-            per_frame = np.zeros(gt[1].shape, bool)  # [d, T, N]
             for i in range(d):
+                detections[run].append([])
                 for t in range(last_seen, frames_per_drive):
                     boxes, scores = detection.frame_detections(cand_boxes[i, t], cand_scores[i, t], detect.score_floor)
                     keep = scores >= cfg.eval.score_threshold
-                    per_frame[i, t] = found_vehicles(boxes[keep], scores[keep], gt[0][i, t], gt[1][i, t])
-            found[run].append(per_frame)
+                    detections[run][-1].append((boxes[keep], scores[keep]))
     boxes, valid, pose, lidar_visible = (np.concatenate(x) for x in zip(*truth))
-    found = {run: np.concatenate(f) for run, f in found.items()}
+
+    def found_by(dets, drive_of):  # bool [D, frames from the last seen, N]: drive_of(d)'s detections on d
+        return np.array(
+            [
+                [
+                    found_vehicles(*dets[drive_of(i)][k], boxes[i, last_seen + k], valid[i, last_seen + k])
+                    for k in range(len(dets[i]))
+                ]
+                for i in range(len(dets))
+            ]
+        )
+
+    found = {run: found_by(dets, lambda i: i) for run, dets in detections.items()}
+    found["chance"] = found_by(detections["memory"], lambda i: (i + 1) % len(boxes))
     # the hidden run equals the seen one up to the last seen frame: followed are the vehicles found there
-    followed = valid[:, last_seen] & lidar_visible[:, last_seen] & found["memory"][:, last_seen]
+    followed = valid[:, last_seen] & lidar_visible[:, last_seen] & found["memory"][:, 0]
     town_xy = geo.ego_to_town(boxes[..., :2], pose[..., None, :2], geo.pose_yaw(pose)[..., None])
     moved = np.linalg.norm(town_xy[:, last_seen + 1 :] - town_xy[:, last_seen, None], axis=-1)
     after = slice(last_seen + 1, None)
-    result = horizon(found["memory"][:, after], found["sight"][:, after], valid[:, after], followed, moved < STANDING_M)
+    result = horizon({run: f[:, 1:] for run, f in found.items()}, valid[:, after], followed, moved < STANDING_M)
     result = dict(
         workdir=os.path.abspath(FLAGS.workdir),
         checkpoint_step=step,
@@ -154,13 +168,13 @@ def main(argv):
     with open(out, "w") as f:
         json.dump(result, f, indent=1)
     print(f"{FLAGS.workdir} (step {step}, {cfg.model.latent} latent): {result['followed']} vehicles followed")
-    print("| frames hidden | standing: boxes, memory %, sight % | moving: boxes, memory %, sight % |")
+    print("| frames hidden | standing: boxes, memory %, sight %, chance % | moving: the same |")
     print("|---|---|---|")
     pct = lambda v: f"{100 * v:.1f}"
     for k in REPORTED_K:
         if k <= FLAGS.hidden:
             s, m = result["standing"], result["moving"]
-            cells = [f"{e['boxes'][k - 1]}, {pct(e['memory'][k - 1])}, {pct(e['sight'][k - 1])}" for e in (s, m)]
+            cells = [", ".join([str(e["boxes"][k - 1])] + [pct(e[run][k - 1]) for run in RUNS]) for e in (s, m)]
             print(f"| {k} | " + " | ".join(cells) + " |")
     print(f"wrote {out}")
 

@@ -11,6 +11,7 @@ from helpers import TINY, np_kl, run_readme_example, synthetic_batch
 from e2e_percep_jax import bev_latent, loss, model
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import train as train_lib
+from e2e_percep_jax.sim import geometry as geo
 
 CFG = config_lib.replace(TINY, model=dict(latent="bev"))
 G8_CELL_M = 32.0 / 8  # the BEV view is 32 m square: 4 m cells at G = 8, the ego on the corner of row 5, column 4
@@ -139,3 +140,84 @@ def test_the_readmes_example_runs_as_written_with_the_grid(tmp_path):
     names = run_readme_example(tmp_path, cfg)
     assert names["state"].grid.shape == (4, 16, 16, cfg.model.grid_channels)
     assert np.isfinite(np.asarray(names["state"].grid)).all()
+
+
+def _lidar_with(points_m, image_size=64):
+    """A lidar image uint8 [1, R, R, 3] with an obstacle return (green) at each ego-frame point [M, 2] (m)."""
+    image = np.zeros((1, image_size, image_size, 3), np.uint8)
+    row, col = np.floor(np.asarray(geo.ego_to_bev_px(np.asarray(points_m, np.float32), image_size))).astype(int).T
+    image[0, row, col, 1] = 255
+    return image
+
+
+def _shadowed_by_ray_march(image, margin_m):
+    """bool [R, R]: pixels whose centre lies more than ``margin_m`` behind an obstacle pixel that the straight
+    segment from the ego to that centre crosses (the segment against each obstacle square, by slab clipping)."""
+    r = image.shape[1]
+    res = geo.bev_metres_per_px(r)
+    centres = np.asarray(geo.bev_pixel_centres(r, np), np.float64)
+    shadowed = np.zeros((r, r), bool)
+    for orow, ocol in zip(*np.nonzero(image[0, ..., 1])):
+        lo, hi = centres[orow, ocol] - res / 2, centres[orow, ocol] + res / 2  # the square's x and y extents
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t_lo, t_hi = lo / centres, hi / centres  # where the segment t * centre, t in [0, 1], meets each slab
+        enter = np.nanmax(np.minimum(t_lo, t_hi), -1)
+        leave = np.nanmin(np.maximum(t_lo, t_hi), -1)
+        crosses = (enter <= leave) & (leave >= 0) & (enter <= 1)
+        obstacle_m = np.hypot(*centres[orow, ocol])
+        shadowed |= crosses & (np.hypot(centres[..., 0], centres[..., 1]) > obstacle_m + margin_m)
+    return shadowed
+
+
+def test_the_lidar_sees_every_cell_of_an_empty_view_and_none_behind_a_wall():
+    np.testing.assert_array_equal(bev_latent.lidar_visibility(np.zeros((2, 64, 64, 3), np.uint8), 16), 1.0)
+    across = np.stack([np.full(64, 9.9), np.linspace(-15.9, 15.9, 64)], -1)  # a wall 9.9 m ahead, view-wide
+    seen = np.asarray(bev_latent.lidar_visibility(_lidar_with(across), 16))[0, ..., 0]
+    cell_ahead_m = 20.0 - 2.0 * (np.arange(16) + 1)  # the near edge of each row of 2 m cells
+    np.testing.assert_array_equal(seen[cell_ahead_m >= 9.9 + 2.0], 0.0)  # wholly over a metre behind the wall
+    np.testing.assert_array_equal(seen[cell_ahead_m + 2.0 <= 9.9], 1.0)  # wholly before it
+
+
+def test_a_parked_car_shadows_the_cells_behind_it_and_no_others():
+    """A car's face 8 m ahead (returns across 2 m): the cell 16 m straight behind it is unseen, the cells at
+    its side, before it, and behind the ego are seen; pixel by pixel the shadow agrees with a ray march."""
+    face = np.stack([np.full(9, 8.0), np.linspace(-1.0, 1.0, 9)], -1)
+    image = _lidar_with(face)
+    cells = np.asarray(bev_latent.lidar_visibility(image, 16))[0, ..., 0]
+    cell = lambda x_m, y_m: cells[tuple(np.floor(np.asarray(geo.ego_to_bev_px(np.array([x_m, y_m]), 16))).astype(int))]
+    assert cell(17.0, 0.0) == 0.0
+    assert cell(17.0, 10.0) == cell(4.0, 0.0) == cell(-8.0, 0.0) == 1.0
+    pixels = ~np.asarray(bev_latent.lidar_visibility(image, 64))[0, ..., 0].astype(bool)
+    marched = _shadowed_by_ray_march(image, bev_latent.SHADOW_MARGIN_M)
+    assert np.all(pixels[marched])  # every pixel a ray march finds behind the car is shadowed
+    assert (pixels & ~marched).sum() <= 0.1 * marched.sum()  # and the bins widen it by at most a tenth
+
+
+def test_the_gated_update_moves_from_the_prior_by_the_share_seen():
+    prior, posterior = (np.array([1.0, -2.0]), np.array([0.5, 2.0])), (np.array([3.0, 0.0]), np.array([2.0, 0.5]))
+    for share, loc, scale in [(0.0, prior[0], prior[1]), (1.0, *posterior), (0.5, [2.0, -1.0], [1.0, 1.0])]:
+        np.testing.assert_allclose(model.gated_update(prior, posterior, share), (loc, scale), rtol=1e-6)
+
+
+@pytest.mark.slow
+def test_a_gated_grid_keeps_its_prior_in_every_cell_the_lidar_cannot_see():
+    """With ``grid_update="lidar_gated"`` the posterior of a cell behind a wall is its prior exactly (KL zero), in
+    front of it the learned posterior (the same as the ungated model's, whose parameters are the same)."""
+    gated = config_lib.replace(CFG, model=dict(grid_update="lidar_gated"))
+    params = model.init_params(jax.random.PRNGKey(0), gated)
+    batch = synthetic_batch(0, gated)
+    r = gated.data.image_size
+    across = np.stack([np.full(r, 3.9), np.linspace(-15.9, 15.9, r)], -1)
+    lidar = np.broadcast_to(_lidar_with(across, r), batch["lidar"].shape)
+    run = lambda cfg: model.filter_sequence(params, batch["camera"], lidar, batch["action"], None, cfg)
+    out, plain = run(gated), run(CFG)
+    g = gated.model.grid_cells
+    behind = np.asarray(bev_latent.lidar_visibility(lidar[:1, 0], g))[0, ..., 0] == 0.0
+    assert behind.any() and (~behind).any()
+    for name in ("loc", "scale"):
+        q, p = np.asarray(out[f"q_grid_{name}"])[:, 1:], np.asarray(out[f"p_grid_{name}"])[:, 1:]
+        np.testing.assert_array_equal(q[:, :, behind], p[:, :, behind])
+    seen = np.asarray(bev_latent.lidar_visibility(lidar[:1, 0], g))[0, ..., 0] == 1.0
+    np.testing.assert_allclose(
+        out["q_grid_loc"][:, 0][:, seen], plain["q_grid_loc"][:, 0][:, seen], rtol=1e-5, atol=1e-6
+    )

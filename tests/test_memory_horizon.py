@@ -1,0 +1,63 @@
+"""The memory horizon's counting (``experiments/memory_horizon.py``) against loops and hand-made frames."""
+
+import numpy as np
+from helpers import load_experiment
+
+memory_horizon = load_experiment("memory_horizon")
+
+
+def test_a_vehicle_is_found_only_by_a_detection_on_its_valid_box():
+    gt = np.array([[5.0, 0.0, 0.0, 4.5, 2.0], [10.0, 5.0, 0.3, 4.5, 2.0], [15.0, 0.0, 0.0, 4.5, 2.0]])
+    valid = np.array([True, True, False])
+    # on the first box; on the third (outside the view); far from every box
+    boxes = np.array([[5.0, 0.0, 0.0, 4.5, 2.0], [15.0, 0.0, 0.0, 4.5, 2.0], [-8.0, -8.0, 0.0, 4.5, 2.0]])
+    found = memory_horizon.found_vehicles(boxes, np.array([0.9, 0.8, 0.7]), gt, valid)
+    np.testing.assert_array_equal(found, [True, False, False])
+    none = memory_horizon.found_vehicles(np.zeros((0, 5)), np.zeros(0), gt, valid)
+    np.testing.assert_array_equal(none, [False, False, False])
+
+
+def _looped(found, in_view, followed, subset):
+    """Shares [K] by counting box by box."""
+    d, k, n = found.shape
+    shares = []
+    for j in range(k):
+        boxes = hits = 0
+        for i in range(d):
+            for v in range(n):
+                if in_view[i, j, v] and followed[i, v] and subset[i, j, v]:
+                    boxes += 1
+                    hits += found[i, j, v]
+        shares.append(hits / boxes if boxes else np.nan)
+    return np.array(shares)
+
+
+def test_the_shares_equal_a_box_by_box_count():
+    rng = np.random.default_rng(3)
+    d, k, n = 6, 4, 7
+    hidden, seen, in_view, standing = (rng.random((d, k, n)) < p for p in (0.4, 0.8, 0.7, 0.5))
+    followed = rng.random((d, n)) < 0.6
+    in_view[:, 2] = False  # a k without a box: NaN
+    found = {"memory": hidden, "sight": seen}
+    result = memory_horizon.horizon(found, in_view, followed, standing, num_resamples=50)
+    for name, subset in (("standing", standing), ("moving", ~standing), ("all", np.ones_like(standing))):
+        for run, found_by_run in found.items():
+            np.testing.assert_allclose(result[name][run], _looped(found_by_run, in_view, followed, subset))
+        boxes = [(in_view & followed[:, None] & subset)[:, j].sum() for j in range(k)]
+        assert result[name]["boxes"] == boxes
+    assert np.isnan(result["all"]["memory"][2]) and np.all(np.isnan(result["all"]["memory_interval95"][2]))
+
+
+def test_drives_that_all_agree_give_an_interval_of_one_point():
+    rng = np.random.default_rng(4)
+    k, n = 3, 5
+    one = [rng.random((1, k, n)) < 0.5 for _ in range(4)]
+    hidden, seen, in_view, standing = (np.repeat(x, 8, axis=0) for x in one)
+    followed = np.ones((8, n), bool)
+    found = {"memory": hidden, "sight": seen}
+    result = memory_horizon.horizon(found, in_view, followed, standing, num_resamples=100)
+    for name in ("standing", "moving", "all"):
+        for run in ("memory", "sight"):
+            low, high = np.array(result[name][f"{run}_interval95"]).T
+            np.testing.assert_allclose(low, result[name][run])
+            np.testing.assert_allclose(high, result[name][run])
