@@ -101,6 +101,14 @@ CASES = {
     "train remembered_weight zero": Case(
         "train", ["--train.remembered_weight=0"], "--train.remembered_weight=0.0: must be positive"
     ),
+    "train grid_update": Case(
+        "train",
+        ["--model.latent=bev", "--model.grid_update=occupancy"],
+        "--model.grid_update='occupancy': choose one of",
+    ),
+    "train grid_update without the grid": Case(
+        "train", ["--model.grid_update=lidar_gated"], "--model.grid_update='lidar_gated' updates the bird-eye grid"
+    ),
     "train grid_cells not a size the trunk passes": Case(
         "train", ["--model.latent=bev", "--model.grid_cells=12"], "--model.grid_cells=12: must be a power of two in"
     ),
