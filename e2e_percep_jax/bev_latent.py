@@ -16,7 +16,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from e2e_percep_jax.sim import geometry as geo
-from e2e_percep_jax.sim import sensors
 
 # The ego-motion head predicts motion / MOTION_UNIT: a step at 10 Hz moves up to ~1.5 m ahead, centimetres
 # sideways and a few hundredths of a radian, so each part is O(1) in these units.
@@ -59,8 +58,9 @@ def warp(grid, motion):
 
 
 # The lidar image's obstacle returns (its green channel: 0.25-3.1 m above the ground) shadow what lies behind
-# them, seen from the sensor at the ego's centre. The shadow test bins directions by the lidar's own azimuth step.
-VISIBILITY_BINS = sensors.LIDAR_NUM_AZIMUTHS
+# them, seen from the sensor at the ego's centre. The shadow test bins directions by the lidar's own azimuth step
+# (sim.sensors.LIDAR_NUM_AZIMUTHS, which the tests compare: the model does not import the simulator's renderer).
+VISIBILITY_BINS = 360
 SHADOW_MARGIN_M = 1.0  # a return's own surface is seen: its shadow starts this far behind it
 
 

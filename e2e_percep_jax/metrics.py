@@ -407,6 +407,42 @@ class MemoryAccumulator:
         return out
 
 
+def found_boxes(boxes, scores, gt_boxes, gt_valid, iou: float) -> np.ndarray:
+    """bool [N]: which of a frame's N vehicle boxes ``gt_boxes`` [N, 5] (``gt_valid`` [N]) a detection
+    (``boxes`` [M, 5], ``scores`` [M]) matches at ``iou`` (:func:`match_detections`)."""
+    found = np.zeros(len(gt_valid), bool)
+    index = np.nonzero(gt_valid)[0]
+    matched = match_detections(boxes, scores, gt_boxes[index], [iou])[0]
+    found[index[matched[matched >= 0]]] = True
+    return found
+
+
+def kept_shares(found: dict, in_view, followed, standing, num_resamples: int = 1000) -> dict:
+    """The memory horizon (``experiments/memory_horizon.py``): the shares of followed vehicles found k frames
+    after the last frame the filter saw, by each run. found: {run:
+    bool [D, K, N]} (frame last seen + k, k = 1..K); in_view: bool [D, K, N]; followed: bool [D, N];
+    standing: bool [D, K, N]. Returns {"standing" | "moving" | "all": {"boxes": [K], run: [K],
+    f"{run}_interval95": [K, 2]}} (shares in [0, 1]; NaN for a k without a box); intervals resample whole
+    drives."""
+    counted = in_view & followed[:, None, :]
+    result = {}
+    for name, subset in (("standing", standing), ("moving", ~standing), ("all", np.ones_like(standing))):
+        boxes = (counted & subset).sum(-1)  # [D, K]
+        entry = {"boxes": boxes.sum(0).tolist()}
+        for run, found_by_run in found.items():
+            hits = (counted & subset & found_by_run).sum(-1)
+
+            def share(weights, hits=hits):  # weights [n, D] -> [n, K]
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    return (weights @ hits) / (weights @ boxes)
+
+            entry[run] = share(np.ones((1, len(boxes))))[0].tolist()
+            low, high = bootstrap_interval(share, len(boxes), num_resamples)
+            entry[f"{run}_interval95"] = np.stack([low, high], -1).tolist()
+        result[name] = entry
+    return result
+
+
 class PoseErrors(NamedTuple):
     """Per-step ego pose errors, each ``[...]``."""
 

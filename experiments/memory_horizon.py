@@ -52,41 +52,6 @@ REPORTED_K = (1, 2, 3, 5, 10, 15, 20, 30)  # the table's rows (frames since the 
 RUNS = ("memory", "sight", "chance")
 
 
-def found_vehicles(boxes, scores, gt_boxes, gt_valid) -> np.ndarray:
-    """bool [N]: which of a frame's N vehicle boxes ``gt_boxes`` [N, 5] (``gt_valid`` [N]) a detection
-    (``boxes`` [M, 5], ``scores`` [M], at the operating score already) matches at :data:`MATCH_IOU`."""
-    found = np.zeros(len(gt_valid), bool)
-    index = np.nonzero(gt_valid)[0]
-    matched = metrics.match_detections(boxes, scores, gt_boxes[index], [MATCH_IOU])[0]
-    found[index[matched[matched >= 0]]] = True
-    return found
-
-
-def horizon(found: dict, in_view, followed, standing, num_resamples: int = 1000) -> dict:
-    """The shares of followed vehicles found k frames after the last seen one, by each run. found: {run:
-    bool [D, K, N]} (frame last seen + k, k = 1..K); in_view: bool [D, K, N]; followed: bool [D, N];
-    standing: bool [D, K, N]. Returns {"standing" | "moving" | "all": {"boxes": [K], run: [K],
-    f"{run}_interval95": [K, 2]}} (shares in [0, 1]; NaN for a k without a box); intervals resample whole
-    drives."""
-    counted = in_view & followed[:, None, :]
-    result = {}
-    for name, subset in (("standing", standing), ("moving", ~standing), ("all", np.ones_like(standing))):
-        boxes = (counted & subset).sum(-1)  # [D, K]
-        entry = {"boxes": boxes.sum(0).tolist()}
-        for run, found_by_run in found.items():
-            hits = (counted & subset & found_by_run).sum(-1)
-
-            def share(weights, hits=hits):  # weights [n, D] -> [n, K]
-                with np.errstate(invalid="ignore", divide="ignore"):
-                    return (weights @ hits) / (weights @ boxes)
-
-            entry[run] = share(np.ones((1, len(boxes))))[0].tolist()
-            low, high = metrics.bootstrap_interval(share, len(boxes), num_resamples)
-            entry[f"{run}_interval95"] = np.stack([low, high], -1).tolist()
-        result[name] = entry
-    return result
-
-
 def main(argv):
     cfg = launch.run_config(argv, FLAGS.workdir)
     if cfg.model.detection_input != "latent":
@@ -136,7 +101,9 @@ def main(argv):
         return np.array(
             [
                 [
-                    found_vehicles(*dets[drive_of(i)][k], boxes[i, last_seen + k], valid[i, last_seen + k])
+                    metrics.found_boxes(
+                        *dets[drive_of(i)][k], boxes[i, last_seen + k], valid[i, last_seen + k], MATCH_IOU
+                    )
                     for k in range(len(dets[i]))
                 ]
                 for i in range(len(dets))
@@ -150,7 +117,9 @@ def main(argv):
     town_xy = geo.ego_to_town(boxes[..., :2], pose[..., None, :2], geo.pose_yaw(pose)[..., None])
     moved = np.linalg.norm(town_xy[:, last_seen + 1 :] - town_xy[:, last_seen, None], axis=-1)
     after = slice(last_seen + 1, None)
-    result = horizon({run: f[:, 1:] for run, f in found.items()}, valid[:, after], followed, moved < STANDING_M)
+    result = metrics.kept_shares(
+        {run: f[:, 1:] for run, f in found.items()}, valid[:, after], followed, moved < STANDING_M
+    )
     result = dict(
         workdir=os.path.abspath(FLAGS.workdir),
         checkpoint_step=step,

@@ -1,9 +1,9 @@
-"""The memory horizon's counting (``experiments/memory_horizon.py``) against loops and hand-made frames."""
+"""The memory horizon's counting (``metrics.found_boxes``, ``metrics.kept_shares``; ``experiments/memory_horizon.py``)
+against loops and hand-made frames."""
 
 import numpy as np
-from helpers import load_experiment
 
-memory_horizon = load_experiment("memory_horizon")
+from e2e_percep_jax import metrics
 
 
 def test_a_vehicle_is_found_only_by_a_detection_on_its_valid_box():
@@ -11,9 +11,9 @@ def test_a_vehicle_is_found_only_by_a_detection_on_its_valid_box():
     valid = np.array([True, True, False])
     # on the first box; on the third (outside the view); far from every box
     boxes = np.array([[5.0, 0.0, 0.0, 4.5, 2.0], [15.0, 0.0, 0.0, 4.5, 2.0], [-8.0, -8.0, 0.0, 4.5, 2.0]])
-    found = memory_horizon.found_vehicles(boxes, np.array([0.9, 0.8, 0.7]), gt, valid)
+    found = metrics.found_boxes(boxes, np.array([0.9, 0.8, 0.7]), gt, valid, 0.1)
     np.testing.assert_array_equal(found, [True, False, False])
-    none = memory_horizon.found_vehicles(np.zeros((0, 5)), np.zeros(0), gt, valid)
+    none = metrics.found_boxes(np.zeros((0, 5)), np.zeros(0), gt, valid, 0.1)
     np.testing.assert_array_equal(none, [False, False, False])
 
 
@@ -39,7 +39,7 @@ def test_the_shares_equal_a_box_by_box_count():
     followed = rng.random((d, n)) < 0.6
     in_view[:, 2] = False  # a k without a box: NaN
     found = {"memory": hidden, "sight": seen}
-    result = memory_horizon.horizon(found, in_view, followed, standing, num_resamples=50)
+    result = metrics.kept_shares(found, in_view, followed, standing, num_resamples=50)
     for name, subset in (("standing", standing), ("moving", ~standing), ("all", np.ones_like(standing))):
         for run, found_by_run in found.items():
             np.testing.assert_allclose(result[name][run], _looped(found_by_run, in_view, followed, subset))
@@ -55,7 +55,7 @@ def test_drives_that_all_agree_give_an_interval_of_one_point():
     hidden, seen, in_view, standing = (np.repeat(x, 8, axis=0) for x in one)
     followed = np.ones((8, n), bool)
     found = {"memory": hidden, "sight": seen}
-    result = memory_horizon.horizon(found, in_view, followed, standing, num_resamples=100)
+    result = metrics.kept_shares(found, in_view, followed, standing, num_resamples=100)
     for name in ("standing", "moving", "all"):
         for run in ("memory", "sight"):
             low, high = np.array(result[name][f"{run}_interval95"]).T
