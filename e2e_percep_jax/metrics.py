@@ -357,6 +357,16 @@ class DetectionAccumulator:
         }
 
 
+def found_boxes(boxes, scores, gt_boxes, gt_valid, iou: float) -> np.ndarray:
+    """bool [N]: which of a frame's N vehicle boxes ``gt_boxes`` [N, 5] (``gt_valid`` [N]) a detection
+    (``boxes`` [M, 5], ``scores`` [M]) matches at ``iou`` (:func:`match_detections`)."""
+    found = np.zeros(len(gt_valid), bool)
+    index = np.nonzero(gt_valid)[0]
+    matched = match_detections(boxes, scores, gt_boxes[index], [iou])[0]
+    found[index[matched[matched >= 0]]] = True
+    return found
+
+
 class MemoryAccumulator:
     """What a perceiver keeps of the vehicles it found, frame by frame, per drive.
 
@@ -380,12 +390,9 @@ class MemoryAccumulator:
         """Frame ``frame`` (from the drive's start) of drive ``drive``: arguments as
         :meth:`DetectionAccumulator.add_frame`'s, the ground truths in their vehicle slots."""
         gt_valid = np.asarray(gt_valid, dtype=bool)
-        slots = np.nonzero(gt_valid)[0]
         scores = np.asarray(pred_scores, dtype=np.float64)
         keep = scores >= self.score_threshold
-        matched = match_detections(_as_boxes(pred_boxes)[keep], scores[keep], _as_boxes(gt_boxes)[slots], (self.iou,))
-        found = np.zeros(len(gt_valid), bool)
-        found[slots[matched[0][matched[0] >= 0]]] = True
+        found = found_boxes(_as_boxes(pred_boxes)[keep], scores[keep], _as_boxes(gt_boxes), gt_valid, self.iou)
         last = self._last_found.setdefault(drive, np.full(len(gt_valid), -(10**9)))
         counts = self._counts.setdefault(drive, np.zeros(len(self.COUNTS), np.int64))
         remembered = gt_valid & (np.asarray(gt_group) == GROUPS.index("remembered"))
@@ -405,16 +412,6 @@ class MemoryAccumulator:
             low, high = bootstrap_interval(lambda w: ratio(w, a, b), len(counts), num_resamples, seed)
             out[f"{name}_interval95"] = [float(low), float(high)]
         return out
-
-
-def found_boxes(boxes, scores, gt_boxes, gt_valid, iou: float) -> np.ndarray:
-    """bool [N]: which of a frame's N vehicle boxes ``gt_boxes`` [N, 5] (``gt_valid`` [N]) a detection
-    (``boxes`` [M, 5], ``scores`` [M]) matches at ``iou`` (:func:`match_detections`)."""
-    found = np.zeros(len(gt_valid), bool)
-    index = np.nonzero(gt_valid)[0]
-    matched = match_detections(boxes, scores, gt_boxes[index], [iou])[0]
-    found[index[matched[matched >= 0]]] = True
-    return found
 
 
 def kept_shares(found: dict, in_view, followed, standing, num_resamples: int = 1000) -> dict:
