@@ -34,8 +34,10 @@ POSE_HEADS = ("belief", "regression", "reference")
 POSE_FILTERS = ("histogram", "none")
 # What the PIXOR decoder reads: latent, the latent sample z = [z1, z2] alone (the paper); latent_and_features,
 # z beside the frame's encoder features [2F], as the belief head reads them (the single-frame detector reads
-# the features alone).
-DETECTION_INPUTS = ("latent", "latent_and_features")
+# the features alone); grid, the bird-eye grid alone (latent "bev"): z is zeroed for it, so the trunk's maps coarser
+# than the grid are learned constants (where vehicles stand around the ego) and only the grid's cells say where
+# they are now, which the grid keeps where the sensors cannot see.
+DETECTION_INPUTS = ("latent", "latent_and_features", "grid")
 # The latent: vector, the paper's z1 and z2; bev, the vector beside a stochastic bird-eye grid carried from frame
 # to frame, warped by the ego's motion (bev_latent.py), which the PIXOR, lidar and roadmap decoders read.
 LATENTS = ("vector", "bev")
@@ -338,6 +340,8 @@ def validate(cfg: Config) -> Config:
         raise ValueError(f"--model.detection_input={cfg.model.detection_input!r}: choose one of {DETECTION_INPUTS}")
     if cfg.model.latent not in LATENTS:
         raise ValueError(f"--model.latent={cfg.model.latent!r}: choose one of {LATENTS}")
+    if cfg.model.detection_input == "grid" and cfg.model.latent != "bev":
+        raise ValueError("--model.detection_input=grid reads the bird-eye grid: needs --model.latent=bev")
     g = cfg.model.grid_cells
     if cfg.model.latent == "bev" and (g < 4 or g > r // 2 or g & (g - 1)):
         raise ValueError(f"--model.grid_cells={g}: must be a power of two in [4, data.image_size / 2 = {r // 2}]")

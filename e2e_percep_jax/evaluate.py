@@ -384,20 +384,22 @@ def evaluate(
     """Runs the online evaluation of ``perceiver`` with ``params`` under ``cfg`` and writes the report into
     ``out_dir``; returns the metrics dict (also written to metrics.json).
 
-    ``perceiver``: anything hashable with the inference API's ``init(batch_size)`` and ``step(params,
-    state, camera, lidar, action, key=None, start_pose=None) -> (state, outputs)`` (state: any pytree the
-    perceiver carries; outputs: a :class:`~e2e_percep_jax.api.PerceiverOutputs`), and optionally
+    What is evaluated: ``perceiver``, anything hashable with the inference API's ``init(batch_size)`` and
+    ``step(params, state, camera, lidar, action, key=None, start_pose=None) -> (state, outputs)`` (state: any
+    pytree the perceiver carries; outputs: a :class:`~e2e_percep_jax.api.PerceiverOutputs`), and optionally
     ``pose_nll(state, pose)`` and ``pose_coverage(state, pose)`` (default: the filtered model, with the
-    motion model of the run in ``workdir``, or the exact bicycle without one: :func:`api.run_perceiver`).
-    ``video_frames``: frames of world 0 in drive.mp4 (0: no video); ``num_examples``: frames in
-    examples.png; ``detect``: the candidates, score floor and NMS (:class:`detection.Settings`).
-    ``heads``: see :func:`make_chunk_fn`. ``host_fn(d)``, called once per drive d before it starts (the
-    pose drives 0..E-1, then detection's E..E+D-1), returns a function ``(boxes [M, 5], scores [M],
-    pose_pred [5], pose [5]) -> (boxes, scores, pose_pred)`` that post-processes each of that drive's
-    frames in order, after NMS and before scoring (pose: the frame's true ego pose; e.g. a tracker, or dead
-    reckoning in place of the predicted pose). ``label`` names what is evaluated in the report (default:
-    the model variant); ``workdir`` and ``checkpoint_step`` say where the params came from. ``log`` gets
-    one progress line per chunk.
+    motion model of the run in ``workdir``, or the exact bicycle without one: :func:`api.run_perceiver`);
+    ``sample``: latents sampled, not their means; ``detect``: the candidates, score floor and NMS
+    (:class:`detection.Settings`); ``heads``: see :func:`make_chunk_fn`; ``host_fn(d)``, called once per
+    drive d before it starts (the pose drives 0..E-1, then detection's E..E+D-1), returns a function
+    ``(boxes [M, 5], scores [M], pose_pred [5], pose [5]) -> (boxes, scores, pose_pred)`` that
+    post-processes each of that drive's frames in order, after NMS and before scoring (pose: the frame's true
+    ego pose; e.g. a tracker, or dead reckoning in place of the predicted pose).
+
+    What is written: ``video_frames`` frames of world 0 in drive.mp4 (0: no video), ``num_examples`` frames
+    in examples.png; ``label`` names what is evaluated in the report (default: the model variant);
+    ``workdir`` and ``checkpoint_step`` say where the params came from. ``log`` gets one progress line per
+    chunk.
     """
     config_lib.validate(cfg)
     ev = cfg.eval
@@ -421,75 +423,23 @@ def evaluate(
     if num_det:
         log(f"eval: detection's {num_det} drives chosen of {max(ev.detection_pool, num_det)} candidates")
     progress = _Progress(ev.num_frames + num_det * ev.detection_frames, log)
-
-    hosts = None if host_fn is None else [host_fn(w) for w in range(e)]
-    det_acc = metrics_lib.DetectionAccumulator(IOU_THRESHOLDS)
-    memory_acc = metrics_lib.MemoryAccumulator(ev.score_threshold)
-    pose_acc = metrics_lib.PoseErrorAccumulator()
-    saturated = 0
-    # Per pose drive and frame: true and estimated poses, the belief's NLL of the truth and its 95 % regions'
-    # coverage, copied out of the chunks' buffers (flat memory).
-    drives_true, drives_pred = np.zeros((e, per_world.max(), 5)), np.zeros((e, per_world.max(), 5))
-    nll, cover = np.zeros((e, per_world.max())), np.zeros((e, per_world.max(), 2), bool)
-    pictures = report.Pictures(
-        town,
-        out_dir,
-        drives_true,
-        drives_pred,
-        video_frames=video_frames,
-        num_examples=num_examples,
-        score_threshold=ev.score_threshold,
-    )
-
-    def detections(out, t, w, host):
-        nonlocal saturated
-        saturated += bool(out["saturated"][t, w])
-        boxes, scores = detection.frame_detections(
-            out["cand_boxes"][t, w], out["cand_scores"][t, w], detect.score_floor, detect.nms_iou
-        )
-        return (boxes, scores, None) if host is None else host(boxes, scores, out["pose_pred"][t, w], out["pose"][t, w])
-
-    def score(out, t, w, boxes, scores, drive, frame):
-        truth = out["boxes"][t, w], out["boxes_valid"][t, w], out["boxes_group"][t, w]
-        det_acc.add_frame(boxes, scores, *truth, drive=drive)
-        memory_acc.add_frame(boxes, scores, *truth, drive=drive, frame=frame)
+    scores = _Scores(cfg, town, out_dir, per_world, detect, video_frames=video_frames, num_examples=num_examples)
 
     t0 = time.perf_counter()
-    chunks = _drive_chunks(program, params, perceiver, start_keys(cfg), town, cfg, per_world.max(), sample_root)
-    for out, rows in chunks:
-        pose_pred = np.array(out["pose_pred"])  # writable: a host_fn may replace poses
-        for t, f in rows:
-            for w in np.nonzero(f < per_world)[0]:
-                boxes, scores, pose = detections(out, t, w, None if hosts is None else hosts[w])
-                pose_pred[t, w] = pose_pred[t, w] if pose is None else pose
-                if not num_det:
-                    score(out, t, w, boxes, scores, w, f)
-                drives_true[w, f], drives_pred[w, f] = out["pose"][t, w], pose_pred[t, w]
-                nll[w, f], cover[w, f] = out["pose_nll"][t, w], out["pose_cover"][t, w]
-                pictures.add(out, t, w, f, boxes, scores)
-            valid = f < per_world
-            pose_acc.add(metrics_lib.pose_errors(pose_pred[t][valid], out["pose"][t][valid]), f)
-        progress.chunk(sum(int(np.sum(f < per_world)) for _, f in rows), "pose drives")
+    hosts = None if host_fn is None else [host_fn(w) for w in range(e)]
+    for out, rows in _drive_chunks(
+        program, params, perceiver, start_keys(cfg), town, cfg, per_world.max(), sample_root
+    ):
+        progress.chunk(scores.pose_chunk(out, rows, hosts, with_boxes=not num_det), "pose drives")
     det_hosts = {}  # detection drive -> its host function, made as its group starts
     for out, rows, drives in _detection_drives(program, params, perceiver, det_keys, town, cfg, sample_root):
         if host_fn is not None and drives[0] not in det_hosts:
             det_hosts.update({d: host_fn(e + d) for d in drives})
-        for t, f in rows:
-            for w, d in enumerate(drives):
-                boxes, scores, _ = detections(out, t, w, det_hosts.get(d))
-                score(out, t, w, boxes, scores, d, f)
-        progress.chunk(len(rows) * len(drives), f"detection drives {drives[0] + 1}-{drives[-1] + 1}")
+        scored = scores.detection_chunk(out, rows, drives, det_hosts)
+        progress.chunk(scored, f"detection drives {drives[0] + 1}-{drives[-1] + 1}")
     seconds = time.perf_counter() - t0
-    examples = pictures.close()
-    metrics = _metrics(
-        cfg,
-        det_acc,
-        pose_acc,
-        [d[:n] for d, n in zip(drives_true, per_world)],
-        [d[:n] for d, n in zip(drives_pred, per_world)],
-        [d[:n] for d, n in zip(cover, per_world)] if getattr(perceiver, "pose_coverage", None) else None,
-        float(np.mean(np.concatenate([d[:n] for d, n in zip(nll, per_world)]), dtype=np.float64)),
-    )
+
+    examples = scores.pictures.close()
     num_frames = int(per_world.sum()) + num_det * ev.detection_frames
     metrics = {
         "label": label or cfg.model.variant,
@@ -503,27 +453,9 @@ def evaluate(
         "frames_per_world": int(per_world.max()),
         "seconds": seconds,
         "frames_per_s": num_frames / max(seconds, 1e-9),
-        **metrics,
+        **scores.metrics(bool(getattr(perceiver, "pose_coverage", None)), num_frames, det_remembered),
         "examples": examples,
     }
-    metrics["detection"].update(
-        score_threshold=ev.score_threshold,
-        score_floor=detect.score_floor,
-        nms_iou=detect.nms_iou,
-        top_k=detect.top_k,
-        dedup_cell_m=detection.DEDUP_CELL_M,
-        topk_saturated_frac=saturated / max(num_frames, 1),
-        # of the remembered boxes, those whose vehicle was found in the 3 s before, and of those the share
-        # found now: memory apart from the scene's false positives (metrics.MemoryAccumulator)
-        memory=dict(memory_acc.results(BOOTSTRAP_RESAMPLES), iou=memory_acc.iou),
-        drives=dict(
-            set="detection" if num_det else "pose",
-            num=num_det or e,
-            frames=ev.detection_frames if num_det else int(per_world.max()),
-            pool=max(ev.detection_pool, num_det) if num_det else None,
-            remembered_boxes_chosen=None if det_remembered is None else [int(v) for v in det_remembered],
-        ),
-    )
     metrics["pose"].update(
         known_start=ev.known_start,
         pose_filter=cfg.model.pose_filter,
@@ -533,7 +465,7 @@ def evaluate(
             ev.known_start and ev.town_seed != cfg.world.town_seed and getattr(perceiver, "lidar_odometry", False)
         ),
     )
-    report.write(out_dir, metrics, det_acc.results())
+    report.write(out_dir, metrics, scores.det.results())
     log(
         f"eval: wrote {out_dir}: AP@0.5 {report.fmt(metrics['detection']['ap']['0.5']['all'], True)}, "
         f"location error {report.fmt(metrics['pose']['location_m']['mean'], digits=2)} m, "
@@ -542,60 +474,149 @@ def evaluate(
     return metrics
 
 
-def _metrics(cfg: Config, det_acc, pose_acc, drives_true, drives_pred, cover, nll_mean: float) -> dict:
-    """metrics.json's detection, pose and baseline sections from the accumulated drives (lists per pose drive;
-    ``cover``: bool [frames, 2] per drive, or None for a perceiver without a belief)."""
-    results, intervals = det_acc.results(), det_acc.intervals(BOOTSTRAP_RESAMPLES)
-    key = lambda t: f"{t:g}"
-    span = lambda lo_hi: [summary.defined(float(v)) for v in lo_hi]
-    true_poses = np.concatenate(drives_true)
-    # Baseline: a constant pose, the mean of the drives' true poses, and no boxes (AP 0).
-    constant = metrics_lib.mean_pose(true_poses)
-    base_acc = metrics_lib.PoseErrorAccumulator()
-    base_acc.add(metrics_lib.pose_errors(np.broadcast_to(constant, true_poses.shape), true_poses), 0)
-    subsets = metrics_lib.SUBSETS
-    return {
-        "detection": {
-            "iou_thresholds": list(IOU_THRESHOLDS),
-            "groups": list(metrics_lib.GROUPS),
-            "remember_frames": metrics_lib.REMEMBER_FRAMES,
-            "num_gt": det_acc.num_gt(),
-            "num_drives_with_boxes": det_acc.num_drives(),
-            "ap": {key(t): {s: summary.defined(results[t][s].ap) for s in subsets} for t in IOU_THRESHOLDS},
-            "ap_interval95": {key(t): {s: span(intervals[t][s]) for s in subsets} for t in IOU_THRESHOLDS},
-            # at the operating score: precision over all boxes, and each subset's recall (the share of its boxes
-            # found, which, unlike a small group's AP, no false positive elsewhere in the scene pulls down)
-            "at_threshold": {
-                key(t): dict(
-                    precision=metrics_lib.at_threshold(results[t]["all"], cfg.eval.score_threshold)[0],
-                    recall={s: metrics_lib.at_threshold(results[t][s], cfg.eval.score_threshold)[1] for s in subsets},
-                )
-                for t in IOU_THRESHOLDS
+class _Scores:
+    """The host side of one evaluation, fed chunk by chunk: each frame's detections filtered (NMS) and
+    post-processed by its drive's host function, then scored against the true boxes, over all boxes and by
+    group (``det``), and for what a perceiver keeps of the vehicles it found (``memory``); the pose drives'
+    true and estimated poses, errors, the belief's NLL of the truth and its 95 % regions' coverage; the
+    pictures. ``per_world`` [E]: each pose drive's frames to score."""
+
+    def __init__(self, cfg: Config, town, out_dir: str, per_world, detect, *, video_frames: int, num_examples: int):
+        e, n = len(per_world), per_world.max()
+        self.cfg, self.per_world, self.detect = cfg, per_world, detect
+        self.det = metrics_lib.DetectionAccumulator(IOU_THRESHOLDS)
+        self.memory = metrics_lib.MemoryAccumulator(cfg.eval.score_threshold)
+        self.pose = metrics_lib.PoseErrorAccumulator()
+        self.saturated = 0  # frames whose top-k candidates were all above the score floor
+        # Per pose drive and frame, copied out of the chunks' buffers (flat memory)
+        self.true, self.pred = np.zeros((e, n, 5)), np.zeros((e, n, 5))
+        self.nll, self.cover = np.zeros((e, n)), np.zeros((e, n, 2), bool)
+        self.pictures = report.Pictures(
+            town,
+            out_dir,
+            self.true,
+            self.pred,
+            video_frames=video_frames,
+            num_examples=num_examples,
+            score_threshold=cfg.eval.score_threshold,
+        )
+
+    def _detections(self, out, t, w, host):
+        """Frame t of world w's boxes and scores after NMS and ``host``, and the pose ``host`` replaces (None
+        for none)."""
+        self.saturated += bool(out["saturated"][t, w])
+        boxes, scores = detection.frame_detections(
+            out["cand_boxes"][t, w], out["cand_scores"][t, w], self.detect.score_floor, self.detect.nms_iou
+        )
+        return (boxes, scores, None) if host is None else host(boxes, scores, out["pose_pred"][t, w], out["pose"][t, w])
+
+    def _score_boxes(self, out, t, w, boxes, scores, drive, frame):
+        truth = out["boxes"][t, w], out["boxes_valid"][t, w], out["boxes_group"][t, w]
+        self.det.add_frame(boxes, scores, *truth, drive=drive)
+        self.memory.add_frame(boxes, scores, *truth, drive=drive, frame=frame)
+
+    def pose_chunk(self, out, rows, hosts, with_boxes: bool) -> int:
+        """A chunk of the pose drives (``hosts``: per drive, or None); their boxes are scored ``with_boxes``
+        (detection has no drives of its own). Returns the frames scored."""
+        pose_pred = np.array(out["pose_pred"])  # writable: a host function may replace poses
+        for t, f in rows:
+            for w in np.nonzero(f < self.per_world)[0]:
+                boxes, scores, pose = self._detections(out, t, w, None if hosts is None else hosts[w])
+                pose_pred[t, w] = pose_pred[t, w] if pose is None else pose
+                if with_boxes:
+                    self._score_boxes(out, t, w, boxes, scores, w, f)
+                self.true[w, f], self.pred[w, f] = out["pose"][t, w], pose_pred[t, w]
+                self.nll[w, f], self.cover[w, f] = out["pose_nll"][t, w], out["pose_cover"][t, w]
+                self.pictures.add(out, t, w, f, boxes, scores)
+            valid = f < self.per_world
+            self.pose.add(metrics_lib.pose_errors(pose_pred[t][valid], out["pose"][t][valid]), f)
+        return sum(int(np.sum(f < self.per_world)) for _, f in rows)
+
+    def detection_chunk(self, out, rows, drives, hosts: dict) -> int:
+        """A chunk of detection's drives ``drives`` (its first worlds; ``hosts``: by drive). Returns the frames
+        scored."""
+        for t, f in rows:
+            for w, d in enumerate(drives):
+                boxes, scores, _ = self._detections(out, t, w, hosts.get(d))
+                self._score_boxes(out, t, w, boxes, scores, d, f)
+        return len(rows) * len(drives)
+
+    def metrics(self, has_cover: bool, num_frames: int, remembered_chosen) -> dict:
+        """metrics.json's detection, pose and baseline sections (``has_cover``: whether the perceiver has a
+        belief whose regions were counted; ``remembered_chosen``: the remembered boxes of each detection drive
+        chosen, None without detection drives)."""
+        ev, detect = self.cfg.eval, self.detect
+        scored = lambda values: [v[:n] for v, n in zip(values, self.per_world)]
+        drives_true, drives_pred = scored(self.true), scored(self.pred)
+        cover = scored(self.cover) if has_cover else None
+        results, intervals = self.det.results(), self.det.intervals(BOOTSTRAP_RESAMPLES)
+        key = lambda t: f"{t:g}"
+        span = lambda lo_hi: [summary.defined(float(v)) for v in lo_hi]
+        true_poses = np.concatenate(drives_true)
+        # Baseline: a constant pose, the mean of the drives' true poses, and no boxes (AP 0).
+        constant = metrics_lib.mean_pose(true_poses)
+        base_acc = metrics_lib.PoseErrorAccumulator()
+        base_acc.add(metrics_lib.pose_errors(np.broadcast_to(constant, true_poses.shape), true_poses), 0)
+        subsets, num_det = metrics_lib.SUBSETS, ev.detection_drives
+        return {
+            "detection": {
+                "iou_thresholds": list(IOU_THRESHOLDS),
+                "groups": list(metrics_lib.GROUPS),
+                "remember_frames": metrics_lib.REMEMBER_FRAMES,
+                "num_gt": self.det.num_gt(),
+                "num_drives_with_boxes": self.det.num_drives(),
+                "ap": {key(t): {s: summary.defined(results[t][s].ap) for s in subsets} for t in IOU_THRESHOLDS},
+                "ap_interval95": {key(t): {s: span(intervals[t][s]) for s in subsets} for t in IOU_THRESHOLDS},
+                # at the operating score: precision over all boxes, and each subset's recall (the share of its
+                # boxes found, which, unlike a small group's AP, no false positive elsewhere in the scene pulls
+                # down)
+                "at_threshold": {
+                    key(t): dict(
+                        precision=metrics_lib.at_threshold(results[t]["all"], ev.score_threshold)[0],
+                        recall={s: metrics_lib.at_threshold(results[t][s], ev.score_threshold)[1] for s in subsets},
+                    )
+                    for t in IOU_THRESHOLDS
+                },
+                "pr_curves": {
+                    key(t): {s: metrics_lib.curve_summary(results[t][s]) for s in subsets} for t in IOU_THRESHOLDS
+                },
+                "score_threshold": ev.score_threshold,
+                "score_floor": detect.score_floor,
+                "nms_iou": detect.nms_iou,
+                "top_k": detect.top_k,
+                "dedup_cell_m": detection.DEDUP_CELL_M,
+                "topk_saturated_frac": self.saturated / max(num_frames, 1),
+                # of the remembered boxes, those whose vehicle was found in the 3 s before, and of those the
+                # share found now: memory apart from the scene's false positives (metrics.MemoryAccumulator)
+                "memory": dict(self.memory.results(BOOTSTRAP_RESAMPLES), iou=self.memory.iou),
+                "drives": dict(
+                    set="detection" if num_det else "pose",
+                    num=num_det or ev.num_worlds,
+                    frames=ev.detection_frames if num_det else int(self.per_world.max()),
+                    pool=max(ev.detection_pool, num_det) if num_det else None,
+                    remembered_boxes_chosen=None if remembered_chosen is None else [int(v) for v in remembered_chosen],
+                ),
             },
-            "pr_curves": {
-                key(t): {s: metrics_lib.curve_summary(results[t][s]) for s in subsets} for t in IOU_THRESHOLDS
+            "pose": dict(
+                metrics_lib.pose_summary(self.pose),
+                **metrics_lib.drive_pose_summary(drives_true, drives_pred),
+                nll_mean=summary.defined(float(np.mean(np.concatenate(scored(self.nll)), dtype=np.float64))),
+                # the share of frames whose true cell (place) and (heading bin, cell) (place_heading)
+                # lie in the belief's 95 % region: about 0.95 for a calibrated belief
+                coverage95=dict(zip(("place", "place_heading"), np.concatenate(cover).mean(0).tolist()))
+                if cover is not None
+                else None,
+                interval95={
+                    k: [span(v) for v in lo_hi] if np.ndim(lo_hi[0]) else span(lo_hi)
+                    for k, lo_hi in metrics_lib.drive_pose_intervals(
+                        drives_true, drives_pred, cover, self.pose.step_bin_edges, BOOTSTRAP_RESAMPLES
+                    ).items()
+                },
+            ),
+            "baseline": {
+                "description": "constant pose = mean of the drive's true poses (circular mean heading); no boxes",
+                "mean_pose": [float(v) for v in constant],
+                "pose": metrics_lib.pose_summary(base_acc),
+                "ap": {key(t): 0.0 for t in IOU_THRESHOLDS},
             },
-        },
-        "pose": dict(
-            metrics_lib.pose_summary(pose_acc),
-            **metrics_lib.drive_pose_summary(drives_true, drives_pred),
-            nll_mean=summary.defined(nll_mean),
-            # the share of frames whose true cell (place) and (heading bin, cell) (place_heading)
-            # lie in the belief's 95 % region: about 0.95 for a calibrated belief
-            coverage95=dict(zip(("place", "place_heading"), np.concatenate(cover).mean(0).tolist()))
-            if cover is not None
-            else None,
-            interval95={
-                k: [span(v) for v in lo_hi] if np.ndim(lo_hi[0]) else span(lo_hi)
-                for k, lo_hi in metrics_lib.drive_pose_intervals(
-                    drives_true, drives_pred, cover, pose_acc.step_bin_edges, BOOTSTRAP_RESAMPLES
-                ).items()
-            },
-        ),
-        "baseline": {
-            "description": "constant pose = mean of the drive's true poses (circular mean heading); no boxes",
-            "mean_pose": [float(v) for v in constant],
-            "pose": metrics_lib.pose_summary(base_acc),
-            "ap": {key(t): 0.0 for t in IOU_THRESHOLDS},
-        },
-    }
+        }

@@ -18,8 +18,8 @@ detections of another drive at the same frame (drive d + 1's for drive d), which
 only where vehicles usually stand would find. Prints a table and writes JSON to ``--out`` (default
 ``<workdir>/memory_horizon.json``).
 
-The run's detection decoder must read the latent alone: one that reads the frame's features
-(``--model.detection_input=latent_and_features``) would see through the hiding.
+The run's detection decoder must read the latent (``--model.detection_input`` latent or grid): one that reads
+the frame's features (``latent_and_features``) would see through the hiding.
 """
 
 import json
@@ -54,7 +54,7 @@ RUNS = ("memory", "sight", "chance")
 
 def main(argv):
     cfg = launch.run_config(argv, FLAGS.workdir)
-    if cfg.model.detection_input != "latent":
+    if cfg.model.detection_input == "latent_and_features":
         raise app.UsageError(
             f"--workdir={FLAGS.workdir}: its detection decoder reads the frame's features "
             f"(--model.detection_input={cfg.model.detection_input}), which would see through the hiding"

@@ -109,6 +109,9 @@ CASES = {
     "train grid_update without the grid": Case(
         "train", ["--model.grid_update=lidar_gated"], "--model.grid_update='lidar_gated' updates the bird-eye grid"
     ),
+    "train detection from the grid without the grid": Case(
+        "train", ["--model.detection_input=grid"], "--model.detection_input=grid reads the bird-eye grid"
+    ),
     "train grid_cells not a size the trunk passes": Case(
         "train", ["--model.latent=bev", "--model.grid_cells=12"], "--model.grid_cells=12: must be a power of two in"
     ),

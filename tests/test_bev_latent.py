@@ -224,3 +224,24 @@ def test_a_gated_grid_keeps_its_prior_in_every_cell_the_lidar_cannot_see():
     np.testing.assert_allclose(
         out["q_grid_loc"][:, 0][:, seen], plain["q_grid_loc"][:, 0][:, seen], rtol=1e-5, atol=1e-6
     )
+
+
+def test_the_pixor_decoder_reads_the_grid_alone_when_asked(params):
+    """``detection_input="grid"``: the PIXOR maps are the latent decoder's (same parameters) at z = 0, so no z
+    moves them and the grid does; the lidar and roadmap decoders still read z beside the grid."""
+    grid_only = config_lib.replace(CFG, model=dict(detection_input="grid"))
+    m, g = CFG.model, CFG.model.grid_cells
+    rng = np.random.default_rng(0)
+    z1, z2 = (rng.normal(size=(2, d)).astype(np.float32) for d in (m.z1_dim, m.z2_dim))
+    grid = rng.normal(size=(2, g, g, m.grid_channels)).astype(np.float32)
+    filtered = {"z1": z1, "z2": z2, "features": None, "grid": grid}
+    got = model.decode(params, filtered, grid_only)
+    zeros = model.decode(params, dict(filtered, z1=0 * z1, z2=0 * z2), CFG)
+    np.testing.assert_allclose(got["det_logit"], zeros["det_logit"], rtol=1e-5, atol=1e-6)
+    other_z = model.decode(params, dict(filtered, z1=-z1, z2=-z2), grid_only)
+    np.testing.assert_array_equal(other_z["det_logit"], got["det_logit"])
+    assert not np.allclose(other_z["lidar"], got["lidar"], atol=1e-3)
+    other_grid = model.decode(params, dict(filtered, grid=-grid), grid_only)
+    assert not np.allclose(other_grid["det_logit"], got["det_logit"], atol=1e-3)
+    with pytest.raises(ValueError, match="--model.detection_input=grid"):
+        config_lib.validate(config_lib.replace(TINY, model=dict(detection_input="grid")))
