@@ -415,9 +415,9 @@ class PerceptionModel(nn.Module):
     def decode(self, z, features=None, grid=None):
         """Latent [N, Z] (and the frame's features [N, 2F], read by the PIXOR decoder with
         ``detection_input="latent_and_features"``; the bird-eye grid [N, G, G, C], read by the bird-eye
-        decoders: PIXOR, lidar and roadmap, PIXOR without z with ``detection_input="grid"``) -> dict: built image means [N, R, R, 3], det_logit / det_cls
-        [N, R, R, 1] (logit / probability), det_reg [N, R, R, 6], and with a regression pose head
-        pose_normalised [N, 5] (:func:`normalise_pose` units)."""
+        decoders: PIXOR, lidar and roadmap, PIXOR without z with ``detection_input="grid"``) -> dict: built
+        image means [N, R, R, 3], det_logit / det_cls [N, R, R, 1] (logit / probability), det_reg
+        [N, R, R, 6], and with a regression pose head pose_normalised [N, 5] (:func:`normalise_pose` units)."""
         out = {k: dec(z, None if k == "camera" else grid) for k, dec in self.image_decoders.items()}
         detection_input = z
         if self.cfg.detection_input == "latent_and_features":
