@@ -304,6 +304,14 @@ def _detection_drives(program, params, perceiver, keys, town, cfg: Config, sampl
             yield out, rows, drives
 
 
+def _frame_boxes(out, t, w, detect: detection.Settings):
+    """(boxes [M, 5], scores [M]) of frame t of world w in a chunk's outputs: its candidates after the score
+    floor and NMS (``detection.frame_detections``), as every evaluation and recording scores them."""
+    return detection.frame_detections(
+        out["cand_boxes"][t, w], out["cand_scores"][t, w], detect.score_floor, detect.nms_iou
+    )
+
+
 class RecordedFrame(NamedTuple):
     """One frame of a drive as :func:`record_detections` keeps it (NumPy): detections (after NMS) boxes
     [M, 5] and scores [M]; the frame's true ego pose [5]; the true boxes [G, 5], boxes_valid [G] and
@@ -333,11 +341,8 @@ def record_detections(cfg: Config, params, perceiver, detect: detection.Settings
     for out, rows, drives in _detection_drives(program, params, perceiver, keys, town, cfg, sample_root):
         for t, _ in rows:
             for w, d in enumerate(drives):
-                boxes, scores = detection.frame_detections(
-                    out["cand_boxes"][t, w], out["cand_scores"][t, w], detect.score_floor, detect.nms_iou
-                )
                 truth = (out[k][t, w] for k in ("pose", "boxes", "boxes_valid", "boxes_group"))
-                frames[d].append(RecordedFrame(boxes, scores, *truth))
+                frames[d].append(RecordedFrame(*_frame_boxes(out, t, w, detect), *truth))
         progress.chunk(len(rows) * len(drives), f"recorded drives {drives[0] + 1}-{drives[-1] + 1}")
     return frames
 
@@ -505,9 +510,7 @@ class _Scores:
         """Frame t of world w's boxes and scores after NMS and ``host``, and the pose ``host`` replaces (None
         for none)."""
         self.saturated += bool(out["saturated"][t, w])
-        boxes, scores = detection.frame_detections(
-            out["cand_boxes"][t, w], out["cand_scores"][t, w], self.detect.score_floor, self.detect.nms_iou
-        )
+        boxes, scores = _frame_boxes(out, t, w, self.detect)
         return (boxes, scores, None) if host is None else host(boxes, scores, out["pose_pred"][t, w], out["pose"][t, w])
 
     def _score_boxes(self, out, t, w, boxes, scores, drive, frame):

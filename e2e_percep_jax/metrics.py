@@ -376,15 +376,25 @@ class MemoryAccumulator:
     For every remembered box this counts whether its vehicle was found in one of the REMEMBER_FRAMES frames
     before (``found_before``), whether it is found now, and both (``kept``). ``kept / found_before`` is
     memory measured apart from the scene's false positives, which pull a small group's AP down whatever it
-    keeps (:class:`DetectionAccumulator`). Each drive's frames must come in order, and its boxes in the same
-    vehicle slots every frame (the frame contract's order).
+    keeps (:class:`DetectionAccumulator`). A vehicle slipping behind another is often lost while a sliver of
+    it is still seen, before memory is asked for; so the same is counted from the last frame a sensor saw it
+    in view: found then (``found_last_seen``), and found then and now (``kept_last_seen``), which is what
+    ``experiments/memory_horizon.py`` follows. Each drive's frames must come in order, and its boxes in the
+    same vehicle slots every frame (the frame contract's order).
     """
 
-    COUNTS = ("remembered", "found_before", "found_now", "kept")
+    COUNTS = ("remembered", "found_before", "found_now", "kept", "found_last_seen", "kept_last_seen")
+    SHARES = {  # name: (count, of count)
+        "share_found_before": ("found_before", "remembered"),
+        "share_kept": ("kept", "found_before"),
+        "share_found_last_seen": ("found_last_seen", "remembered"),
+        "share_kept_last_seen": ("kept_last_seen", "found_last_seen"),
+    }
 
     def __init__(self, score_threshold: float, iou: float = 0.1):
         self.score_threshold, self.iou = float(score_threshold), float(iou)
-        self._last_found, self._counts = {}, {}  # per drive: frame each slot was last found; COUNTS
+        # per drive: the frame each slot was last found; whether it was found the last frame a sensor saw it
+        self._last_found, self._found_when_seen, self._counts = {}, {}, {}
 
     def add_frame(self, pred_boxes, pred_scores, gt_boxes, gt_valid, gt_group, drive: int, frame: int):
         """Frame ``frame`` (from the drive's start) of drive ``drive``: arguments as
@@ -394,22 +404,30 @@ class MemoryAccumulator:
         keep = scores >= self.score_threshold
         found = found_boxes(_as_boxes(pred_boxes)[keep], scores[keep], _as_boxes(gt_boxes), gt_valid, self.iou)
         last = self._last_found.setdefault(drive, np.full(len(gt_valid), -(10**9)))
+        when_seen = self._found_when_seen.setdefault(drive, np.zeros(len(gt_valid), bool))
         counts = self._counts.setdefault(drive, np.zeros(len(self.COUNTS), np.int64))
-        remembered = gt_valid & (np.asarray(gt_group) == GROUPS.index("remembered"))
+        group = np.asarray(gt_group)
+        remembered = gt_valid & (group == GROUPS.index("remembered"))
         before = remembered & (frame - last <= REMEMBER_FRAMES)
-        counts += [remembered.sum(), before.sum(), (remembered & found).sum(), (before & found).sum()]
+        last_seen = remembered & when_seen
+        counts += [
+            r.sum() for r in (remembered, before, remembered & found, before & found, last_seen, last_seen & found)
+        ]
         last[found] = frame
+        seen = np.isin(group, [GROUPS.index("lidar"), GROUPS.index("camera_only")])  # out of view: found False
+        when_seen[seen] = found[seen]
 
     def results(self, num_resamples: int = 1000, seed: int = 0) -> dict:
-        """The counts over all drives, the shares ``found_before`` (of the remembered boxes) and ``kept`` (of
-        those found before), each with its 95 % bootstrap interval over whole drives."""
+        """The counts over all drives and the :data:`SHARES` (``share_kept``: of the vehicles found before, the
+        share found now), each with its 95 % bootstrap interval over whole drives."""
         counts = np.stack(list(self._counts.values())) if self._counts else np.zeros((1, len(self.COUNTS)), np.int64)
         total = dict(zip(self.COUNTS, (int(v) for v in counts.sum(0))))
-        ratio = lambda w, a, b: (w @ counts[:, a]) / np.maximum(w @ counts[:, b], 1)  # [n] shares of resamples
-        share = lambda a, b: total[self.COUNTS[a]] / max(total[self.COUNTS[b]], 1)
-        out = dict(total, share_found_before=share(1, 0), share_kept=share(3, 1))
-        for name, (a, b) in (("share_found_before", (1, 0)), ("share_kept", (3, 1))):
-            low, high = bootstrap_interval(lambda w: ratio(w, a, b), len(counts), num_resamples, seed)
+        column = {name: counts[:, i] for i, name in enumerate(self.COUNTS)}
+        out = dict(total)
+        for name, (a, b) in self.SHARES.items():
+            out[name] = total[a] / max(total[b], 1)
+            ratio = lambda w, a=a, b=b: (w @ column[a]) / np.maximum(w @ column[b], 1)  # [n] shares of resamples
+            low, high = bootstrap_interval(ratio, len(counts), num_resamples, seed)
             out[f"{name}_interval95"] = [float(low), float(high)]
         return out
 

@@ -90,7 +90,20 @@ def _memory_lines(memory, seconds: float) -> list:
         f"{interval('share_found_before')} belong to a vehicle found (a detection at the operating threshold, "
         f"IoU {memory['iou']:g}) in the {seconds:g} s before; of those, **{fmt(memory['share_kept'], True)}** "
         f"{interval('share_kept')} are found now (what the perceiver kept).",
+        *_last_seen_line(memory, interval),
         "",
+    ]
+
+
+def _last_seen_line(memory, interval) -> list:
+    """The same, counted from the last frame a sensor saw the vehicle (none for an evaluation made before it
+    was counted)."""
+    if "share_found_last_seen" not in memory:
+        return []
+    return [
+        f"From the last frame a sensor saw it: {fmt(memory['share_found_last_seen'], True)} "
+        f"{interval('share_found_last_seen')} found then; of those, **{fmt(memory['share_kept_last_seen'], True)}** "
+        f"{interval('share_kept_last_seen')} found now.",
     ]
 
 

@@ -394,6 +394,7 @@ def test_end_to_end_report_files(memory_run):
     memory = det["memory"]
     assert memory["remembered"] == det["num_gt"]["remembered"]
     assert memory["kept"] <= min(memory["found_before"], memory["found_now"]) <= memory["remembered"]
+    assert memory["kept_last_seen"] <= min(memory["found_last_seen"], memory["kept"])  # last seen: within 30 frames
     for thr, subsets in det["ap"].items():
         for subset, ap in subsets.items():
             low, high = det["ap_interval95"][thr][subset]

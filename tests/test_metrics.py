@@ -395,9 +395,29 @@ def test_memory_counts_a_remembered_box_as_found_before_only_if_its_vehicle_was_
         group = np.array([hidden, lidar, hidden, hidden])
         acc.add_frame(np.reshape(detected, (-1, 5)), scores, np.array([a, b, c, d]), valid, group, drive=0, frame=k)
     out = acc.results(num_resamples=20)
-    assert [out[k] for k in acc.COUNTS] == [40, 30, 5, 5]
+    assert [out[k] for k in acc.COUNTS] == [40, 30, 5, 5, 30, 5]  # A and D were found when last seen, C not
     assert out["share_found_before"] == 30 / 40 and out["share_kept"] == 5 / 30
+    assert out["share_found_last_seen"] == 30 / 40 and out["share_kept_last_seen"] == 5 / 30
     np.testing.assert_allclose(out["share_kept_interval95"], [5 / 30, 5 / 30])
+
+
+def test_memory_counts_from_the_last_frame_a_sensor_saw_the_vehicle():
+    """A car slipping behind another: seen and detected (frames 0-4), seen but lost (5-9: a sliver in view),
+    remembered (10-19) and detected again at 10 and 11. All 10 remembered boxes were found before and 2 are
+    kept, but none was found the last frame it was seen, so none counts as kept from there. A second car is
+    seen by the camera alone and detected (0-9), then remembered and detected (10-19): found when last seen,
+    kept in all its 10 frames. One drive: each interval is its own value."""
+    lidar, camera, remembered = (metrics.GROUPS.index(g) for g in ("lidar", "camera_only", "remembered"))
+    acc = metrics.MemoryAccumulator(score_threshold=0.5)
+    a, b = [8.0, 3.0, 0.0, 4.5, 1.9], [-6.0, -6.0, 0.0, 4.5, 1.9]
+    for k in range(20):
+        detected = ([a] if k < 5 or k in (10, 11) else []) + [b]
+        group = np.array([lidar if k < 10 else remembered, camera if k < 10 else remembered])
+        acc.add_frame(np.reshape(detected, (-1, 5)), [0.9] * len(detected), np.array([a, b]), [True, True], group, 0, k)
+    out = acc.results(num_resamples=20)
+    assert [out[k] for k in acc.COUNTS] == [20, 20, 12, 12, 10, 10]
+    assert out["share_kept"] == 12 / 20 and out["share_found_last_seen"] == 10 / 20
+    assert out["share_kept_last_seen"] == 1.0
 
 
 def test_memory_forgets_a_find_older_than_the_remembered_window():
@@ -413,4 +433,4 @@ def test_memory_forgets_a_find_older_than_the_remembered_window():
                 car if shown else np.zeros((0, 5)), [0.9] if shown else [], car, [True], [remembered], drive, k
             )
     out = acc.results(num_resamples=20)
-    assert [out[k] for k in acc.COUNTS] == [80, metrics.REMEMBER_FRAMES, 1, 0]
+    assert [out[k] for k in acc.COUNTS] == [80, metrics.REMEMBER_FRAMES, 1, 0, 0, 0]
