@@ -44,8 +44,10 @@ LATENTS = ("vector", "bev")
 # How the bird-eye grid's posterior updates a cell: learned, q reads the warped prior and the frame and may write
 # anything; lidar_gated, q moves from the prior only as far as the lidar sees the cell (the share of its pixels
 # that no nearer return shadows, bev_latent.lidar_visibility), so a cell behind an obstacle keeps its prior, as
-# an occupancy grid keeps what it cannot observe.
-GRID_UPDATES = ("learned", "lidar_gated")
+# an occupancy grid keeps what it cannot observe; lidar_fused, q is a per-cell observation Gaussian multiplied
+# into the prior (a Kalman update), its precision scaled by that same share: a cell the lidar cannot see keeps
+# its prior, and a view the network is unsure of (a sliver of a car) moves the cell only as far as it is sure.
+GRID_UPDATES = ("learned", "lidar_gated", "lidar_fused")
 DEFAULT_TOWN_SEED = 0
 
 

@@ -379,22 +379,40 @@ class MemoryAccumulator:
     keeps (:class:`DetectionAccumulator`). A vehicle slipping behind another is often lost while a sliver of
     it is still seen, before memory is asked for; so the same is counted from the last frame a sensor saw it
     in view: found then (``found_last_seen``), and found then and now (``kept_last_seen``), which is what
-    ``experiments/memory_horizon.py`` follows. Each drive's frames must come in order, and its boxes in the
-    same vehicle slots every frame (the frame contract's order).
+    ``experiments/memory_horizon.py`` follows. The last frame a sensor saw it may be one where the camera alone
+    saw a sliver (``last_seen_camera_only``), which a grid gated by the lidar does not update from; so the same
+    is counted from the last frame the lidar saw it in the drive (``found_last_lidar``, ``kept_last_lidar``).
+    Each drive's frames must come in order, and its boxes in the same vehicle slots every frame (the frame
+    contract's order).
     """
 
-    COUNTS = ("remembered", "found_before", "found_now", "kept", "found_last_seen", "kept_last_seen")
+    COUNTS = (
+        "remembered",
+        "found_before",
+        "found_now",
+        "kept",
+        "found_last_seen",
+        "kept_last_seen",
+        "last_seen_camera_only",
+        "found_last_lidar",
+        "kept_last_lidar",
+    )
     SHARES = {  # name: (count, of count)
         "share_found_before": ("found_before", "remembered"),
         "share_kept": ("kept", "found_before"),
         "share_found_last_seen": ("found_last_seen", "remembered"),
         "share_kept_last_seen": ("kept_last_seen", "found_last_seen"),
+        "share_last_seen_camera_only": ("last_seen_camera_only", "remembered"),
+        "share_found_last_lidar": ("found_last_lidar", "remembered"),
+        "share_kept_last_lidar": ("kept_last_lidar", "found_last_lidar"),
     }
 
     def __init__(self, score_threshold: float, iou: float = 0.1):
         self.score_threshold, self.iou = float(score_threshold), float(iou)
-        # per drive: the frame each slot was last found; whether it was found the last frame a sensor saw it
-        self._last_found, self._found_when_seen, self._counts = {}, {}, {}
+        # per drive and slot: the frame it was last found; whether it was found the last frame a sensor saw it,
+        # and the last frame the lidar saw it; whether the camera alone saw it that last frame
+        self._last_found, self._found_when_seen, self._found_when_lidar, self._camera_last = {}, {}, {}, {}
+        self._counts = {}
 
     def add_frame(self, pred_boxes, pred_scores, gt_boxes, gt_valid, gt_group, drive: int, frame: int):
         """Frame ``frame`` (from the drive's start) of drive ``drive``: arguments as
@@ -404,18 +422,26 @@ class MemoryAccumulator:
         keep = scores >= self.score_threshold
         found = found_boxes(_as_boxes(pred_boxes)[keep], scores[keep], _as_boxes(gt_boxes), gt_valid, self.iou)
         last = self._last_found.setdefault(drive, np.full(len(gt_valid), -(10**9)))
-        when_seen = self._found_when_seen.setdefault(drive, np.zeros(len(gt_valid), bool))
+        when_seen, when_lidar, camera_last = (
+            store.setdefault(drive, np.zeros(len(gt_valid), bool))
+            for store in (self._found_when_seen, self._found_when_lidar, self._camera_last)
+        )
         counts = self._counts.setdefault(drive, np.zeros(len(self.COUNTS), np.int64))
         group = np.asarray(gt_group)
         remembered = gt_valid & (group == GROUPS.index("remembered"))
         before = remembered & (frame - last <= REMEMBER_FRAMES)
-        last_seen = remembered & when_seen
+        last_seen, last_lidar = remembered & when_seen, remembered & when_lidar
         counts += [
-            r.sum() for r in (remembered, before, remembered & found, before & found, last_seen, last_seen & found)
+            r.sum()
+            for r in (
+                *(remembered, before, remembered & found, before & found, last_seen, last_seen & found),
+                *(remembered & camera_last, last_lidar, last_lidar & found),
+            )
         ]
         last[found] = frame
-        seen = np.isin(group, [GROUPS.index("lidar"), GROUPS.index("camera_only")])  # out of view: found False
-        when_seen[seen] = found[seen]
+        lidar, camera = group == GROUPS.index("lidar"), group == GROUPS.index("camera_only")
+        seen = lidar | camera  # out of view: found False
+        when_seen[seen], when_lidar[lidar], camera_last[seen] = found[seen], found[lidar], camera[seen]
 
     def results(self, num_resamples: int = 1000, seed: int = 0) -> dict:
         """The counts over all drives and the :data:`SHARES` (``share_kept``: of the vehicles found before, the

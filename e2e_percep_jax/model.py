@@ -279,6 +279,16 @@ def gated_update(prior, posterior, share_seen):
     return p_loc + share_seen * (q_loc - p_loc), p_scale * (q_scale / p_scale) ** share_seen
 
 
+def fused_update(prior, observation, share_seen):
+    """The product of the Gaussian ``prior`` (loc, scale) and the Gaussian ``observation`` raised to the power
+    ``share_seen`` in [0, 1] (broadcast), normalised: a Kalman update whose observation precision the share
+    scales. 0 gives the prior exactly, 1 the precision-weighted mean of the two; the scale never grows."""
+    (p_loc, p_scale), (o_loc, o_scale) = prior, observation
+    precision_ratio = share_seen * jnp.square(p_scale / o_scale)  # the observation's precision over the prior's
+    gain = precision_ratio / (1.0 + precision_ratio)
+    return p_loc + gain * (o_loc - p_loc), p_scale * jax.lax.rsqrt(1.0 + precision_ratio)
+
+
 def _unless_seen(seen, posterior, prior):
     """The posterior's (loc, scale) where ``seen`` (broadcast), the prior's elsewhere (a frame not observed)."""
     return tuple(jnp.where(seen, q, p) for q, p in zip(posterior, prior))
@@ -325,7 +335,7 @@ class PerceptionModel(nn.Module):
         encoded = {"features": jnp.concatenate([camera_features, lidar_features], -1)}
         if self.cfg.latent == "bev":
             encoded["lidar_map"] = lidar_maps[self.cfg.grid_cells]
-        if self.cfg.grid_update == "lidar_gated":
+        if self.cfg.grid_update in ("lidar_gated", "lidar_fused"):
             encoded["lidar_seen"] = bev_latent.lidar_visibility(lidar, self.cfg.grid_cells)
         return encoded
 
@@ -353,8 +363,9 @@ class PerceptionModel(nn.Module):
         """The bird-eye grid's filtering step: the earlier sample warped by the motion the ego-motion head
         predicts (its gradient stopped: the head learns from the true motion alone), then the prior and the
         posterior per cell (with ``grid_update="lidar_gated"``, moved from the prior only as far as the lidar
-        sees the cell: :func:`gated_update`; the prior where ``seen`` [N], if given, is False). Returns (grid
-        sample [N, G, G, C], outputs)."""
+        sees the cell: :func:`gated_update`; with ``"lidar_fused"``, the prior times the cell's observation
+        Gaussian, weighted by the same share: :func:`fused_update`; the prior where ``seen`` [N], if given, is
+        False). Returns (grid sample [N, G, G, C], outputs)."""
         first = state.first[:, None, None, None]
         inputs = [encoded["features"], state.z1, state.z2, prev_action]
         motion = self.motion_head(jnp.concatenate(inputs, -1)) * bev_latent.MOTION_UNIT
@@ -365,8 +376,9 @@ class PerceptionModel(nn.Module):
         p_loc, p_scale = jnp.where(first, 0.0, p_loc), jnp.where(first, 1.0, p_scale)  # N(0, I) on first frames
         lifted = self.camera_lift(encoded["features"]).reshape(warped.shape)
         q_loc, q_scale = self.q_grid(warped, inside, encoded["lidar_map"], lifted)
-        if "lidar_seen" in encoded:  # --model.grid_update=lidar_gated: from the prior as far as the lidar sees
-            q_loc, q_scale = gated_update((p_loc, p_scale), (q_loc, q_scale), encoded["lidar_seen"])
+        if "lidar_seen" in encoded:  # from the prior only as far as the lidar sees the cell
+            update = fused_update if self.cfg.grid_update == "lidar_fused" else gated_update
+            q_loc, q_scale = update((p_loc, p_scale), (q_loc, q_scale), encoded["lidar_seen"])
         if seen is not None:
             q_loc, q_scale = _unless_seen(seen[:, None, None, None], (q_loc, q_scale), (p_loc, p_scale))
         grid = _sample(q_loc, q_scale, key)

@@ -104,6 +104,20 @@ def _last_seen_line(memory, interval) -> list:
         f"From the last frame a sensor saw it: {fmt(memory['share_found_last_seen'], True)} "
         f"{interval('share_found_last_seen')} found then; of those, **{fmt(memory['share_kept_last_seen'], True)}** "
         f"{interval('share_kept_last_seen')} found now.",
+        *_last_lidar_line(memory, interval),
+    ]
+
+
+def _last_lidar_line(memory, interval) -> list:
+    """The same, counted from the last frame the lidar saw the vehicle (none for an evaluation made before)."""
+    if "share_found_last_lidar" not in memory:
+        return []
+    return [
+        f"The camera alone saw {fmt(memory['share_last_seen_camera_only'], True)} "
+        f"{interval('share_last_seen_camera_only')} of them the last frame they were seen. From the last frame "
+        f"the lidar saw it: {fmt(memory['share_found_last_lidar'], True)} {interval('share_found_last_lidar')} "
+        f"found then; of those, **{fmt(memory['share_kept_last_lidar'], True)}** "
+        f"{interval('share_kept_last_lidar')} found now.",
     ]
 
 

@@ -202,11 +202,30 @@ def test_the_gated_update_moves_from_the_prior_by_the_share_seen():
         np.testing.assert_allclose(model.gated_update(prior, posterior, share), (loc, scale), rtol=1e-6)
 
 
+def test_the_fused_update_is_the_normalised_product_of_the_prior_and_the_weighted_observation():
+    """Against the densities themselves: log N(x; fused) - log N(x; prior) - share * log N(x; observation) is
+    the same at every x (the product, normalised); no share gives the prior bit for bit, and the scale never
+    grows."""
+    rng = np.random.default_rng(0)
+    prior = (rng.normal(size=6).astype(np.float32), rng.uniform(0.1, 3.0, 6).astype(np.float32))
+    observation = (rng.normal(size=6).astype(np.float32), rng.uniform(0.1, 3.0, 6).astype(np.float32))
+    share = np.array([0.0, 0.1, 0.5, 1.0, 0.3, 1.0])
+    loc, scale = (np.asarray(v, np.float64) for v in model.fused_update(prior, observation, share))
+    x = np.linspace(-5.0, 5.0, 41)[:, None]
+    log_normal = lambda loc, scale: -0.5 * ((x - loc) / scale) ** 2 - np.log(scale)
+    gap = log_normal(loc, scale) - log_normal(*prior) - share * log_normal(*observation)  # [x, 6]
+    np.testing.assert_allclose(gap - gap[:1], 0.0, atol=1e-4)
+    np.testing.assert_array_equal(np.asarray(model.fused_update(prior, observation, 0.0)), np.asarray(prior))
+    assert np.all(scale <= prior[1] + 1e-7)
+
+
 @pytest.mark.slow
-def test_a_gated_grid_keeps_its_prior_in_every_cell_the_lidar_cannot_see():
-    """With ``grid_update="lidar_gated"`` the posterior of a cell behind a wall is its prior exactly (KL zero), in
-    front of it the learned posterior (the same as the ungated model's, whose parameters are the same)."""
-    gated = config_lib.replace(CFG, model=dict(grid_update="lidar_gated"))
+@pytest.mark.parametrize("grid_update", ["lidar_gated", "lidar_fused"])
+def test_a_gated_grid_keeps_its_prior_in_every_cell_the_lidar_cannot_see(grid_update):
+    """With ``grid_update="lidar_gated"`` (or ``"lidar_fused"``) the posterior of a cell behind a wall is its
+    prior exactly (KL zero); in a cell the lidar sees whole, it is the learned posterior of the ungated model
+    (whose parameters are the same), or its product with the prior."""
+    gated = config_lib.replace(CFG, model=dict(grid_update=grid_update))
     params = model.init_params(jax.random.PRNGKey(0), gated)
     batch = synthetic_batch(0, gated)
     r = gated.data.image_size
@@ -221,9 +240,10 @@ def test_a_gated_grid_keeps_its_prior_in_every_cell_the_lidar_cannot_see():
         q, p = np.asarray(out[f"q_grid_{name}"])[:, 1:], np.asarray(out[f"p_grid_{name}"])[:, 1:]
         np.testing.assert_array_equal(q[:, :, behind], p[:, :, behind])
     seen = np.asarray(bev_latent.lidar_visibility(lidar[:1, 0], g))[0, ..., 0] == 1.0
-    np.testing.assert_allclose(
-        out["q_grid_loc"][:, 0][:, seen], plain["q_grid_loc"][:, 0][:, seen], rtol=1e-5, atol=1e-6
-    )
+    expected = plain["q_grid_loc"][:, 0]
+    if grid_update == "lidar_fused":  # a first frame's prior is N(0, I)
+        expected = model.fused_update((0.0, 1.0), (plain["q_grid_loc"][:, 0], plain["q_grid_scale"][:, 0]), 1.0)[0]
+    np.testing.assert_allclose(out["q_grid_loc"][:, 0][:, seen], np.asarray(expected)[:, seen], rtol=1e-5, atol=1e-6)
 
 
 def test_the_pixor_decoder_reads_the_grid_alone_when_asked(params):

@@ -395,6 +395,8 @@ def test_end_to_end_report_files(memory_run):
     assert memory["remembered"] == det["num_gt"]["remembered"]
     assert memory["kept"] <= min(memory["found_before"], memory["found_now"]) <= memory["remembered"]
     assert memory["kept_last_seen"] <= min(memory["found_last_seen"], memory["kept"])  # last seen: within 30 frames
+    assert memory["kept_last_lidar"] <= min(memory["found_last_lidar"], memory["found_now"])
+    assert memory["last_seen_camera_only"] <= memory["remembered"]
     for thr, subsets in det["ap"].items():
         for subset, ap in subsets.items():
             low, high = det["ap_interval95"][thr][subset]

@@ -395,7 +395,7 @@ def test_memory_counts_a_remembered_box_as_found_before_only_if_its_vehicle_was_
         group = np.array([hidden, lidar, hidden, hidden])
         acc.add_frame(np.reshape(detected, (-1, 5)), scores, np.array([a, b, c, d]), valid, group, drive=0, frame=k)
     out = acc.results(num_resamples=20)
-    assert [out[k] for k in acc.COUNTS] == [40, 30, 5, 5, 30, 5]  # A and D were found when last seen, C not
+    assert [out[k] for k in acc.COUNTS] == [40, 30, 5, 5, 30, 5, 0, 30, 5]  # A, D found when last seen, C not
     assert out["share_found_before"] == 30 / 40 and out["share_kept"] == 5 / 30
     assert out["share_found_last_seen"] == 30 / 40 and out["share_kept_last_seen"] == 5 / 30
     np.testing.assert_allclose(out["share_kept_interval95"], [5 / 30, 5 / 30])
@@ -415,9 +415,36 @@ def test_memory_counts_from_the_last_frame_a_sensor_saw_the_vehicle():
         group = np.array([lidar if k < 10 else remembered, camera if k < 10 else remembered])
         acc.add_frame(np.reshape(detected, (-1, 5)), [0.9] * len(detected), np.array([a, b]), [True, True], group, 0, k)
     out = acc.results(num_resamples=20)
-    assert [out[k] for k in acc.COUNTS] == [20, 20, 12, 12, 10, 10]
+    assert [out[k] for k in acc.COUNTS] == [20, 20, 12, 12, 10, 10, 10, 0, 0]  # the lidar never saw the second
     assert out["share_kept"] == 12 / 20 and out["share_found_last_seen"] == 10 / 20
     assert out["share_kept_last_seen"] == 1.0
+
+
+def test_memory_counts_from_the_last_frame_the_lidar_saw_the_vehicle():
+    """Two cars leave the lidar's view for the camera's, then are hidden. A: seen by the lidar and detected
+    (frames 0-4), seen by the camera alone and lost (5-9), remembered (10-19) and detected again at 10-12: found
+    the last frame the lidar saw it, not the last frame a sensor did. C: seen by the lidar but detected only at
+    0-3, then seen by the camera alone and detected (5-9), remembered and detected throughout (10-19): found the
+    last frame a sensor saw it, not the last frame the lidar did. The camera alone saw both last."""
+    lidar, camera, remembered = (metrics.GROUPS.index(g) for g in ("lidar", "camera_only", "remembered"))
+    acc = metrics.MemoryAccumulator(score_threshold=0.5)
+    a, c = [8.0, 3.0, 0.0, 4.5, 1.9], [-6.0, -6.0, 0.0, 4.5, 1.9]
+    for k in range(20):
+        detected = ([a] if k < 5 or k in (10, 11, 12) else []) + ([c] if k != 4 else [])
+        hidden = lidar if k < 5 else camera if k < 10 else remembered
+        acc.add_frame(
+            np.reshape(detected, (-1, 5)),
+            [0.9] * len(detected),
+            np.array([a, c]),
+            [True, True],
+            np.array([hidden, hidden]),
+            0,
+            k,
+        )
+    out = acc.results(num_resamples=20)
+    assert [out[k] for k in acc.COUNTS] == [20, 20, 13, 13, 10, 10, 20, 10, 3]
+    assert out["share_last_seen_camera_only"] == 1.0 and out["share_found_last_lidar"] == 10 / 20
+    assert out["share_kept_last_lidar"] == 3 / 10
 
 
 def test_memory_forgets_a_find_older_than_the_remembered_window():
@@ -433,4 +460,4 @@ def test_memory_forgets_a_find_older_than_the_remembered_window():
                 car if shown else np.zeros((0, 5)), [0.9] if shown else [], car, [True], [remembered], drive, k
             )
     out = acc.results(num_resamples=20)
-    assert [out[k] for k in acc.COUNTS] == [80, metrics.REMEMBER_FRAMES, 1, 0, 0, 0]
+    assert [out[k] for k in acc.COUNTS] == [80, metrics.REMEMBER_FRAMES, 1] + [0] * 6
