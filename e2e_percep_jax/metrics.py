@@ -434,9 +434,16 @@ class MemoryAccumulator:
         counts += [
             r.sum()
             for r in (
-                *(remembered, before, remembered & found, before & found, last_seen, last_seen & found),
-                *(remembered & camera_last, last_lidar, last_lidar & found),
-            )
+                remembered,
+                before,
+                remembered & found,
+                before & found,
+                last_seen,
+                last_seen & found,
+                remembered & camera_last,
+                last_lidar,
+                last_lidar & found,
+            )  # in the order of COUNTS
         ]
         last[found] = frame
         lidar, camera = group == GROUPS.index("lidar"), group == GROUPS.index("camera_only")

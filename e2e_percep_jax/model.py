@@ -289,6 +289,10 @@ def fused_update(prior, observation, share_seen):
     return p_loc + gain * (o_loc - p_loc), p_scale * jax.lax.rsqrt(1.0 + precision_ratio)
 
 
+# The grid updates that read the share of each cell the lidar sees (config.GRID_UPDATES), and how.
+LIDAR_UPDATES = {"lidar_gated": gated_update, "lidar_fused": fused_update}
+
+
 def _unless_seen(seen, posterior, prior):
     """The posterior's (loc, scale) where ``seen`` (broadcast), the prior's elsewhere (a frame not observed)."""
     return tuple(jnp.where(seen, q, p) for q, p in zip(posterior, prior))
@@ -335,7 +339,7 @@ class PerceptionModel(nn.Module):
         encoded = {"features": jnp.concatenate([camera_features, lidar_features], -1)}
         if self.cfg.latent == "bev":
             encoded["lidar_map"] = lidar_maps[self.cfg.grid_cells]
-        if self.cfg.grid_update in ("lidar_gated", "lidar_fused"):
+        if self.cfg.grid_update in LIDAR_UPDATES:
             encoded["lidar_seen"] = bev_latent.lidar_visibility(lidar, self.cfg.grid_cells)
         return encoded
 
@@ -377,7 +381,7 @@ class PerceptionModel(nn.Module):
         lifted = self.camera_lift(encoded["features"]).reshape(warped.shape)
         q_loc, q_scale = self.q_grid(warped, inside, encoded["lidar_map"], lifted)
         if "lidar_seen" in encoded:  # from the prior only as far as the lidar sees the cell
-            update = fused_update if self.cfg.grid_update == "lidar_fused" else gated_update
+            update = LIDAR_UPDATES[self.cfg.grid_update]
             q_loc, q_scale = update((p_loc, p_scale), (q_loc, q_scale), encoded["lidar_seen"])
         if seen is not None:
             q_loc, q_scale = _unless_seen(seen[:, None, None, None], (q_loc, q_scale), (p_loc, p_scale))
