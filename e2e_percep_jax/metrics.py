@@ -382,6 +382,9 @@ class MemoryAccumulator:
     ``experiments/memory_horizon.py`` follows. The last frame a sensor saw it may be one where the camera alone
     saw a sliver (``last_seen_camera_only``), which a grid gated by the lidar does not update from; so the same
     is counted from the last frame the lidar saw it in the drive (``found_last_lidar``, ``kept_last_lidar``).
+    A vehicle not found then may still have had a box under the operating threshold: ``scored_last_lidar``
+    counts those matched then by a detection at any score the caller passes (the evaluation's floor,
+    ``detection.SCORE_FLOOR``), which tells a decoder that scores a partly seen car low from one that has lost it.
     Each drive's frames must come in order, and its boxes in the same vehicle slots every frame (the frame
     contract's order).
     """
@@ -396,6 +399,7 @@ class MemoryAccumulator:
         "last_seen_camera_only",
         "found_last_lidar",
         "kept_last_lidar",
+        "scored_last_lidar",
     )
     SHARES = {  # name: (count, of count)
         "share_found_before": ("found_before", "remembered"),
@@ -405,13 +409,16 @@ class MemoryAccumulator:
         "share_last_seen_camera_only": ("last_seen_camera_only", "remembered"),
         "share_found_last_lidar": ("found_last_lidar", "remembered"),
         "share_kept_last_lidar": ("kept_last_lidar", "found_last_lidar"),
+        "share_scored_last_lidar": ("scored_last_lidar", "remembered"),
     }
 
     def __init__(self, score_threshold: float, iou: float = 0.1):
         self.score_threshold, self.iou = float(score_threshold), float(iou)
         # per drive and slot: the frame it was last found; whether it was found the last frame a sensor saw it,
-        # and the last frame the lidar saw it; whether the camera alone saw it that last frame
+        # and the last frame the lidar saw it (at the threshold, and at any score); whether the camera alone saw
+        # it that last frame
         self._last_found, self._found_when_seen, self._found_when_lidar, self._camera_last = {}, {}, {}, {}
+        self._scored_when_lidar = {}
         self._counts = {}
 
     def add_frame(self, pred_boxes, pred_scores, gt_boxes, gt_valid, gt_group, drive: int, frame: int):
@@ -421,10 +428,11 @@ class MemoryAccumulator:
         scores = np.asarray(pred_scores, dtype=np.float64)
         keep = scores >= self.score_threshold
         found = found_boxes(_as_boxes(pred_boxes)[keep], scores[keep], _as_boxes(gt_boxes), gt_valid, self.iou)
+        scored = found_boxes(_as_boxes(pred_boxes), scores, _as_boxes(gt_boxes), gt_valid, self.iou)
         last = self._last_found.setdefault(drive, np.full(len(gt_valid), -(10**9)))
-        when_seen, when_lidar, camera_last = (
+        when_seen, when_lidar, camera_last, scored_when_lidar = (
             store.setdefault(drive, np.zeros(len(gt_valid), bool))
-            for store in (self._found_when_seen, self._found_when_lidar, self._camera_last)
+            for store in (self._found_when_seen, self._found_when_lidar, self._camera_last, self._scored_when_lidar)
         )
         counts = self._counts.setdefault(drive, np.zeros(len(self.COUNTS), np.int64))
         group = np.asarray(gt_group)
@@ -443,12 +451,14 @@ class MemoryAccumulator:
                 remembered & camera_last,
                 last_lidar,
                 last_lidar & found,
+                remembered & scored_when_lidar,
             )  # in the order of COUNTS
         ]
         last[found] = frame
         lidar, camera = group == GROUPS.index("lidar"), group == GROUPS.index("camera_only")
         seen = lidar | camera  # out of view: found False
         when_seen[seen], when_lidar[lidar], camera_last[seen] = found[seen], found[lidar], camera[seen]
+        scored_when_lidar[lidar] = scored[lidar]
 
     def results(self, num_resamples: int = 1000, seed: int = 0) -> dict:
         """The counts over all drives and the :data:`SHARES` (``share_kept``: of the vehicles found before, the

@@ -109,16 +109,23 @@ def _last_seen_line(memory, interval) -> list:
 
 
 def _last_lidar_line(memory, interval) -> list:
-    """The same, counted from the last frame the lidar saw the vehicle (none for an evaluation made before)."""
+    """The same, counted from the last frame the lidar saw the vehicle, and the share matched then at any score
+    the evaluation keeps (none for an evaluation made before each was counted)."""
     if "share_found_last_lidar" not in memory:
         return []
-    return [
+    line = (
         f"The camera alone saw {fmt(memory['share_last_seen_camera_only'], True)} "
         f"{interval('share_last_seen_camera_only')} of them the last frame they were seen. From the last frame "
         f"the lidar saw it: {fmt(memory['share_found_last_lidar'], True)} {interval('share_found_last_lidar')} "
         f"found then; of those, **{fmt(memory['share_kept_last_lidar'], True)}** "
-        f"{interval('share_kept_last_lidar')} found now.",
-    ]
+        f"{interval('share_kept_last_lidar')} found now."
+    )
+    if "share_scored_last_lidar" in memory:
+        line += (
+            f" At any score the evaluation keeps, {fmt(memory['share_scored_last_lidar'], True)} "
+            f"{interval('share_scored_last_lidar')} were matched then (the rest, the decoder had lost by then)."
+        )
+    return [line]
 
 
 def fmt(v, pct=False, digits=1):

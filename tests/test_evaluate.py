@@ -396,6 +396,7 @@ def test_end_to_end_report_files(memory_run):
     assert memory["kept"] <= min(memory["found_before"], memory["found_now"]) <= memory["remembered"]
     assert memory["kept_last_seen"] <= min(memory["found_last_seen"], memory["kept"])  # last seen: within 30 frames
     assert memory["kept_last_lidar"] <= min(memory["found_last_lidar"], memory["found_now"])
+    assert memory["found_last_lidar"] <= memory["scored_last_lidar"] <= memory["remembered"]  # the floor is lower
     assert memory["last_seen_camera_only"] <= memory["remembered"]
     for thr, subsets in det["ap"].items():
         for subset, ap in subsets.items():

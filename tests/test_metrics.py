@@ -382,7 +382,8 @@ def test_memory_counts_a_remembered_box_as_found_before_only_if_its_vehicle_was_
     only at 0.3, under the threshold, then remembered (10-19), then gone. D: detected (0.9) while seen
     (0-9), then remembered and still detected (0.6) for 5 frames (10-14), then gone. Of the 40 remembered
     boxes, A's 25 and D's 5 were found before (the last find while seen, frame 9, lies within 30 frames of
-    all of them), C's 10 were not; D's 5 are kept: 5 of 30. One drive: each interval is its own value."""
+    all of them), C's 10 were not; D's 5 are kept: 5 of 30. At any score, C's last frame in the lidar's view
+    matched too: all 40 were scored then. One drive: each interval is its own value."""
     lidar, remembered = metrics.GROUPS.index("lidar"), metrics.GROUPS.index("remembered")
     acc = metrics.MemoryAccumulator(score_threshold=0.5)
     for k in range(35):
@@ -395,7 +396,7 @@ def test_memory_counts_a_remembered_box_as_found_before_only_if_its_vehicle_was_
         group = np.array([hidden, lidar, hidden, hidden])
         acc.add_frame(np.reshape(detected, (-1, 5)), scores, np.array([a, b, c, d]), valid, group, drive=0, frame=k)
     out = acc.results(num_resamples=20)
-    assert [out[k] for k in acc.COUNTS] == [40, 30, 5, 5, 30, 5, 0, 30, 5]  # A, D found when last seen, C not
+    assert [out[k] for k in acc.COUNTS] == [40, 30, 5, 5, 30, 5, 0, 30, 5, 40]  # A, D found when last seen, C not
     assert out["share_found_before"] == 30 / 40 and out["share_kept"] == 5 / 30
     assert out["share_found_last_seen"] == 30 / 40 and out["share_kept_last_seen"] == 5 / 30
     np.testing.assert_allclose(out["share_kept_interval95"], [5 / 30, 5 / 30])
@@ -415,7 +416,7 @@ def test_memory_counts_from_the_last_frame_a_sensor_saw_the_vehicle():
         group = np.array([lidar if k < 10 else remembered, camera if k < 10 else remembered])
         acc.add_frame(np.reshape(detected, (-1, 5)), [0.9] * len(detected), np.array([a, b]), [True, True], group, 0, k)
     out = acc.results(num_resamples=20)
-    assert [out[k] for k in acc.COUNTS] == [20, 20, 12, 12, 10, 10, 10, 0, 0]  # the lidar never saw the second
+    assert [out[k] for k in acc.COUNTS] == [20, 20, 12, 12, 10, 10, 10, 0, 0, 0]  # the lidar never saw the second
     assert out["share_kept"] == 12 / 20 and out["share_found_last_seen"] == 10 / 20
     assert out["share_kept_last_seen"] == 1.0
 
@@ -424,17 +425,19 @@ def test_memory_counts_from_the_last_frame_the_lidar_saw_the_vehicle():
     """Two cars leave the lidar's view for the camera's, then are hidden. A: seen by the lidar and detected
     (frames 0-4), seen by the camera alone and lost (5-9), remembered (10-19) and detected again at 10-12: found
     the last frame the lidar saw it, not the last frame a sensor did. C: seen by the lidar but detected only at
-    0-3, then seen by the camera alone and detected (5-9), remembered and detected throughout (10-19): found the
-    last frame a sensor saw it, not the last frame the lidar did. The camera alone saw both last."""
+    0-3 (at frame 4, the lidar's last, only under the threshold), then seen by the camera alone and detected
+    (5-9), remembered and detected throughout (10-19): found the last frame a sensor saw it, not the last frame
+    the lidar did, yet scored then. The camera alone saw both last."""
     lidar, camera, remembered = (metrics.GROUPS.index(g) for g in ("lidar", "camera_only", "remembered"))
     acc = metrics.MemoryAccumulator(score_threshold=0.5)
     a, c = [8.0, 3.0, 0.0, 4.5, 1.9], [-6.0, -6.0, 0.0, 4.5, 1.9]
     for k in range(20):
-        detected = ([a] if k < 5 or k in (10, 11, 12) else []) + ([c] if k != 4 else [])
+        detected = ([a] if k < 5 or k in (10, 11, 12) else []) + [c]
+        scores = [0.9] * (len(detected) - 1) + [0.3 if k == 4 else 0.9]
         hidden = lidar if k < 5 else camera if k < 10 else remembered
         acc.add_frame(
             np.reshape(detected, (-1, 5)),
-            [0.9] * len(detected),
+            scores,
             np.array([a, c]),
             [True, True],
             np.array([hidden, hidden]),
@@ -442,9 +445,9 @@ def test_memory_counts_from_the_last_frame_the_lidar_saw_the_vehicle():
             k,
         )
     out = acc.results(num_resamples=20)
-    assert [out[k] for k in acc.COUNTS] == [20, 20, 13, 13, 10, 10, 20, 10, 3]
+    assert [out[k] for k in acc.COUNTS] == [20, 20, 13, 13, 10, 10, 20, 10, 3, 20]
     assert out["share_last_seen_camera_only"] == 1.0 and out["share_found_last_lidar"] == 10 / 20
-    assert out["share_kept_last_lidar"] == 3 / 10
+    assert out["share_kept_last_lidar"] == 3 / 10 and out["share_scored_last_lidar"] == 1.0
 
 
 def test_memory_forgets_a_find_older_than_the_remembered_window():
@@ -460,4 +463,4 @@ def test_memory_forgets_a_find_older_than_the_remembered_window():
                 car if shown else np.zeros((0, 5)), [0.9] if shown else [], car, [True], [remembered], drive, k
             )
     out = acc.results(num_resamples=20)
-    assert [out[k] for k in acc.COUNTS] == [80, metrics.REMEMBER_FRAMES, 1] + [0] * 6
+    assert [out[k] for k in acc.COUNTS] == [80, metrics.REMEMBER_FRAMES, 1] + [0] * 7
