@@ -266,23 +266,19 @@ def fit_spread(cfg: Config, model: MotionModel, num_worlds: int = 8, num_frames:
     """``model`` with the odometry's spread: ``num_worlds`` lidar drives of the training town from a key of
     their own, followed from their true starts by the odometry (``ego_motion.follow``: with the scans when
     ``model`` has the matcher's noise), its location and heading errors against the distance the car drove
-    (:func:`spread_law`); and the spread over those drives of the share by which the distance the odometry
-    drove misses the true one (the prior of its error covariance's distance scale)."""
+    (:func:`spread_law`)."""
     key = jax.random.fold_in(jax.random.PRNGKey(CALIBRATION_SEED), 2)
     pose, speed, command, lidar = lidar_drives(cfg, cfg.world.town_seed, key, num_worlds, num_frames)
     start, prev_action = start_and_commands(pose, speed, command)
-    followed = jax.jit(ego_motion.follow, static_argnums=0)(model, start, prev_action, lidar)[0]
+    followed, _ = jax.jit(ego_motion.follow, static_argnums=0)(model, start, prev_action, lidar)
     pose, followed = np.asarray(pose, np.float64), np.asarray(followed, np.float64)
     step_m = np.linalg.norm(np.diff(pose[:, :, :2], axis=1), axis=-1)
     travelled_m = np.concatenate([np.zeros((num_worlds, 1)), np.cumsum(step_m, 1)], 1).ravel()
     location_m = np.linalg.norm(followed[..., :2] - pose[..., :2], axis=-1).ravel()
     heading_rad = np.abs(wrap_angle(np.arctan2(followed[..., 3], followed[..., 2]) - pose[..., 2])).ravel()
     location, heading = spread_law(travelled_m, location_m, 2), spread_law(travelled_m, heading_rad, 1)
-    driven_m = np.sum(np.linalg.norm(np.diff(followed[:, :, :2], axis=1), axis=-1), 1)
-    true_m = travelled_m.reshape(num_worlds, -1)[:, -1]
     return dataclasses.replace(
         model,
-        distance_scale_std=float(np.sqrt(np.mean((true_m / driven_m - 1.0) ** 2))),
         odometry_location_std_at_100m_m=location[0],
         odometry_location_growth=location[1],
         odometry_heading_std_at_100m_rad=heading[0],

@@ -15,10 +15,6 @@ search on a narrow one. A likelihood field is robust by construction: a return w
 Walls along the road pin the heading and the lateral offset; only corners and cross streets pin the
 distance along the road, so the matcher's heading is much better than its distance (BUILD_NOTES, "Odometry
 from the sensors"). Pure JAX, one stream; ``jax.vmap`` it over streams.
-
-:func:`step` runs the odometry: the commands through the motion model, the heading and the drive's steering
-offset and gain corrected by a Kalman filter on each keyframe's match, and the covariance of the whole error
-(location, heading, correction, distance scale) carried beside it, for the gains the filter used.
 """
 
 import flax.struct
@@ -133,10 +129,6 @@ class OdometryState:
         wheelbase) and yaw gain error (a share): the model's yaw change ``dyaw`` over a distance ``ds``
         becomes ``dyaw + ds * bias + dyaw * gain_error``;
     covariance: float32 [B, 2, 2], the correction's;
-    error_covariance: float32 [B, 7, 7], the covariance of the odometry's error (true minus estimate) in
-        :data:`ERROR_STATE`, carried through every step and match as a linear Gaussian
-        (:func:`propagate_error`, :func:`match_error`): how far the odometry may have strayed (its (bias,
-        gain) block is ``covariance``);
     pose: float32 [B, 5], the odometry's pose after the last frame (x m, y m, cos, sin, speed m/s);
     travelled_m: float32 [B], the distance the motion model drove since the drive's start (what the
         odometry's spread grows with: :func:`spread`).
@@ -150,7 +142,6 @@ class OdometryState:
     model_yaw_rad: jax.Array
     correction: jax.Array
     covariance: jax.Array
-    error_covariance: jax.Array
     pose: jax.Array
     travelled_m: jax.Array
 
@@ -172,7 +163,6 @@ def init_state(batch_size: int) -> OdometryState:
         model_yaw_rad=zeros,
         correction=jnp.zeros((batch_size, 2), jnp.float32),
         covariance=jnp.zeros((batch_size, 2, 2), jnp.float32),
-        error_covariance=jnp.zeros((batch_size, len(ERROR_STATE), len(ERROR_STATE)), jnp.float32),
         pose=jnp.zeros((batch_size, 5), jnp.float32),
         travelled_m=zeros,
     )
@@ -193,100 +183,35 @@ def kalman_update(correction, covariance, h, white_var, scan_var, innovation):
     the heading change's derivative by it, plus the model's own errors), c the correction [B, 2] (covariance
     [B, 2, 2]); the measurement is e plus noise of variance ``scan_var`` [B], ``innovation`` [B] the matched
     minus the predicted heading change. Returns (correction, covariance, the heading's correction [B],
-    innovation variance [B], the heading's gain [B], the correction's gain [B, 2])."""
+    innovation variance [B])."""
     ph = jnp.einsum("bij,bj->bi", covariance, h)
     heading_var = jnp.einsum("bi,bi->b", h, ph) + white_var
     innovation_var = heading_var + scan_var
     gain = ph / innovation_var[:, None]
-    turn_gain = heading_var / innovation_var
     return (
         correction + gain * innovation[:, None],
         covariance - gain[:, :, None] * ph[:, None, :],
-        turn_gain * innovation,
+        heading_var / innovation_var * innovation,
         innovation_var,
-        turn_gain,
-        gain,
     )
-
-
-# The odometry's error, true minus estimate, as a linear Gaussian over these components: the location (m,
-# town axes), the heading (rad), the errors of the correction's curvature bias (1/m) and yaw gain (a share),
-# the error of the distance the motion model drives (a share of it: the wheels' scale and the speed the
-# commands predict), and the heading at the keyframe (rad), which the matched heading change is measured from.
-ERROR_STATE = ("x_m", "y_m", "yaw_rad", "bias_1pm", "gain", "distance_scale", "keyframe_yaw_rad")
-_X, _Y, _YAW, _BIAS, _GAIN, _SCALE, _KEY = range(len(ERROR_STATE))
-# A matched heading change measures the heading's error since the keyframe.
-_MATCH_ROW = np.eye(len(ERROR_STATE))[_YAW] - np.eye(len(ERROR_STATE))[_KEY]
-
-
-def initial_error_covariance(model: MotionModel, batch_size: int):
-    """The error's covariance [B, 7, 7] at a known start: the pose exact, the correction and the distance
-    scale as their spreads over training drives."""
-    variance = np.zeros(len(ERROR_STATE), np.float32)
-    variance[[_BIAS, _GAIN, _SCALE]] = model.yaw_bias_std_1pm**2, model.yaw_gain_std**2, model.distance_scale_std**2
-    return jnp.broadcast_to(jnp.diag(jnp.asarray(variance)), (batch_size,) + variance.shape * 2)
-
-
-def propagate_error(error_covariance, model: MotionModel, ds, model_dyaw, yaw):
-    """The error's covariance [B, 7, 7] after a step of ``ds`` [B] m, the motion model's own yaw change
-    ``model_dyaw`` [B] rad, along heading ``yaw`` [B] rad: the heading's error grows by the correction's
-    errors times what they multiply plus the model's own noise, and the location's by the heading's error
-    across the step and the distance's along it."""
-    b, n = ds.shape[0], len(ERROR_STATE)
-    cos, sin = jnp.cos(yaw), jnp.sin(yaw)
-    f = jnp.broadcast_to(jnp.eye(n), (b, n, n))
-    for row, col, value in (
-        (_YAW, _BIAS, ds),
-        (_YAW, _GAIN, model_dyaw),
-        (_X, _YAW, -ds * sin),
-        (_Y, _YAW, ds * cos),
-        (_X, _SCALE, ds * cos),
-        (_Y, _SCALE, ds * sin),
-    ):
-        f = f.at[:, row, col].set(value)
-    noise = jnp.zeros((b, n)).at[:, _YAW].set(model.yaw_noise_rad2pm * ds)
-    noise = noise.at[:, _X].set(model.position_noise_m2pm * ds).at[:, _Y].set(model.position_noise_m2pm * ds)
-    return f @ error_covariance @ jnp.swapaxes(f, 1, 2) + jax.vmap(jnp.diag)(noise)
-
-
-def match_error(error_covariance, turn_gain, correction_gain, scan_var):
-    """The error's covariance [B, 7, 7] after a match corrected the heading by ``turn_gain`` [B] and the
-    correction by ``correction_gain`` [B, 2] times the innovation, of measurement noise ``scan_var`` [B]
-    (Joseph's form, right for any gain: the location is left uncorrected, though its error correlates with
-    the heading's)."""
-    b, n = turn_gain.shape[0], len(ERROR_STATE)
-    gain = jnp.zeros((b, n)).at[:, _YAW].set(turn_gain).at[:, _BIAS : _GAIN + 1].set(correction_gain)
-    keep = jnp.eye(n) - gain[:, :, None] * jnp.asarray(_MATCH_ROW, jnp.float32)[None, None, :]
-    return keep @ error_covariance @ jnp.swapaxes(keep, 1, 2) + scan_var[:, None, None] * (
-        gain[:, :, None] * gain[:, None, :]
-    )
-
-
-def new_keyframe_error(error_covariance):
-    """The error's covariance [B, 7, 7] once the current heading becomes the keyframe's."""
-    clone = np.eye(len(ERROR_STATE), dtype=np.float32)
-    clone[_KEY] = clone[_YAW]
-    return jnp.asarray(clone) @ error_covariance @ jnp.asarray(clone.T)
 
 
 def _update(state: OdometryState, model: MotionModel, lidar, pose):
     """The keyframe's match against ``lidar`` through :func:`kalman_update`: (correction, covariance, heading
-    change [B] to add to ``pose``, the heading's gain [B], the correction's gain [B, 2], the match's noise
-    variance [B]). Scans with fewer than MIN_RETURNS returns, and matches off the prediction by more than GATE
-    standard deviations, change nothing (their gains are 0)."""
+    change [B] to add to ``pose``). Scans with fewer than MIN_RETURNS returns, and matches off the
+    prediction by more than GATE standard deviations, change nothing."""
     pose3, key3 = _xy_yaw(pose), state.keyframe_pose
     predicted = jnp.concatenate(
         [geo.town_to_ego(pose3[:, :2], key3[:, :2], key3[:, 2]), geo.wrap_angle(pose3[:, 2:] - key3[:, 2:])], -1
     )
     measured, num_returns = jax.vmap(match)(state.keyframe_points, state.keyframe_weight, lidar, predicted)
     innovation = geo.wrap_angle(measured[:, 2] - predicted[:, 2])
-    scan_var = model.scan_yaw_noise_rad**2 / jnp.maximum(num_returns, 1.0)
-    correction, covariance, turn, innovation_var, turn_gain, gain = kalman_update(
+    correction, covariance, turn, innovation_var = kalman_update(
         state.correction,
         state.covariance,
         jnp.stack([state.distance_m, state.model_yaw_rad], -1),
         model.yaw_noise_rad2pm * state.distance_m,  # the model's own per-step errors, summed
-        scan_var,
+        model.scan_yaw_noise_rad**2 / jnp.maximum(num_returns, 1.0),
         innovation,
     )
     used = (num_returns >= MIN_RETURNS) & (innovation**2 < GATE**2 * innovation_var)
@@ -294,9 +219,6 @@ def _update(state: OdometryState, model: MotionModel, lidar, pose):
         jnp.where(used[:, None], correction, state.correction),
         jnp.where(used[:, None, None], covariance, state.covariance),
         jnp.where(used, turn, 0.0),
-        jnp.where(used, turn_gain, 0.0),
-        jnp.where(used[:, None], gain, 0.0),
-        scan_var,
     )
 
 
@@ -311,17 +233,11 @@ def step(state: OdometryState, model: MotionModel, actuator, command, pose, lida
     actuator, v_new, ds, model_dyaw = motion_lib.drive(model, actuator, command, pose[:, 4])
     dyaw = model_dyaw + ds * state.correction[:, 0] + model_dyaw * state.correction[:, 1]
     xy = pose[:, :2] + motion_lib.centre_move(ds, dyaw, yaw[:, None])[:, 0]
-    error_covariance = jnp.where(
-        first[:, None, None],
-        initial_error_covariance(model, first.shape[0]),
-        propagate_error(state.error_covariance, model, ds, model_dyaw, yaw + 0.5 * dyaw),
-    )
     yaw = yaw + dyaw
     state = state.replace(
         keyframe_age=state.keyframe_age + 1,
         distance_m=state.distance_m + ds,
         model_yaw_rad=state.model_yaw_rad + model_dyaw,
-        error_covariance=error_covariance,
         travelled_m=jnp.where(first, 0.0, state.travelled_m + ds),
     )
     moved = jnp.concatenate([xy, jnp.stack([jnp.cos(yaw), jnp.sin(yaw), v_new], -1)], -1)
@@ -330,13 +246,11 @@ def step(state: OdometryState, model: MotionModel, actuator, command, pose, lida
         return state.replace(pose=pose), actuator, pose
     due = (state.keyframe_age >= KEYFRAME_FRAMES) & ~first
     # (matched only on frames where some stream is due: streams that start together match together)
-    zeros = jnp.zeros_like(state.distance_m)
-    correction, covariance, turn, turn_gain, gain, scan_var = jax.lax.cond(
+    correction, covariance, turn = jax.lax.cond(
         jnp.any(due),
         lambda: _update(state, model, lidar, pose),
-        lambda: (state.correction, state.covariance, zeros, zeros, jnp.zeros_like(state.correction), zeros),
+        lambda: (state.correction, state.covariance, jnp.zeros_like(state.distance_m)),
     )
-    error_covariance = match_error(error_covariance, jnp.where(due, turn_gain, 0.0), gain * due[:, None], scan_var)
     yaw = geo.pose_yaw(pose) + jnp.where(due, turn, 0.0)
     pose = jnp.concatenate([pose[:, :2], jnp.stack([jnp.cos(yaw), jnp.sin(yaw), pose[:, 4]], -1)], -1)
     renew = due | first
@@ -353,7 +267,6 @@ def step(state: OdometryState, model: MotionModel, actuator, command, pose, lida
         covariance=jnp.where(
             first[:, None, None], prior_covariance(model), jnp.where(due[:, None, None], covariance, state.covariance)
         ),
-        error_covariance=jnp.where(rows(error_covariance), new_keyframe_error(error_covariance), error_covariance),
         pose=pose,
         travelled_m=state.travelled_m,
     )
@@ -378,9 +291,8 @@ def spread(model: MotionModel, travelled_m):
 def follow(model: MotionModel, start_pose, prev_action, lidar):
     """The odometry along B recorded drives from their true first poses: :func:`step` frame by frame in one
     ``lax.scan``. start_pose [B, 5]; prev_action [B, T, 2], frame t's commands (applied from t-1 to t; frame
-    0's only set the actuators); lidar [B, T, R, R, 3], or None for dead reckoning. Returns the poses [B, T, 5],
-    the drive's estimated correction [B, T, 2] (curvature bias 1/m, gain error) and the error's covariance
-    [B, T, 7, 7] (:data:`ERROR_STATE`) after each frame."""
+    0's only set the actuators); lidar [B, T, R, R, 3], or None for dead reckoning. Returns the poses [B, T, 5]
+    and the drive's estimated correction [B, T, 2] (curvature bias 1/m, gain error) after each frame."""
     b = start_pose.shape[0]
 
     def body(carry, x):
@@ -388,9 +300,9 @@ def follow(model: MotionModel, start_pose, prev_action, lidar):
         action, frame_lidar = x
         actuator = jnp.where(first[:, None], action, actuator)
         state, actuator, pose = step(state, model, actuator, action, pose, frame_lidar, first, start_pose)
-        return (state, actuator, pose, jnp.zeros_like(first)), (pose, state.correction, state.error_covariance)
+        return (state, actuator, pose, jnp.zeros_like(first)), (pose, state.correction)
 
     time_major = lambda x: None if x is None else jnp.swapaxes(x, 0, 1)
     init = (init_state(b), jnp.zeros((b, 2)), start_pose, jnp.ones((b,), bool))
-    outputs = jax.lax.scan(body, init, (time_major(prev_action), time_major(lidar)))[1]
-    return tuple(time_major(x) for x in outputs)
+    pose, correction = jax.lax.scan(body, init, (time_major(prev_action), time_major(lidar)))[1]
+    return time_major(pose), time_major(correction)

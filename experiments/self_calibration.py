@@ -50,7 +50,7 @@ def main(argv):
     # the plants calibration.drives' worlds were reset with (its keys, its reset)
     plant = jax.vmap(lambda k: world.reset(k, town, cfg.world).ego_plant)(jax.random.split(key, FLAGS.drives))
     start, prev_action = calibration.start_and_commands(pose, speed, command)
-    correction = jax.jit(ego_motion.follow, static_argnums=0)(model, start, prev_action, lidar)[1]
+    _, correction = jax.jit(ego_motion.follow, static_argnums=0)(model, start, prev_action, lidar)
     estimate = np.asarray(correction[..., 0], np.float64)  # [W, T] curvature bias (1/m)
     v = np.asarray(speed, np.float64)
     v2 = np.sum(v**3, 1) / np.maximum(np.sum(v, 1), 1e-9)  # v^2 weighted by the distance driven

@@ -54,8 +54,6 @@ class MotionModel:
     yaw_gain_std: float = 0.0
     yaw_noise_rad2pm: float = 0.0
     scan_yaw_noise_rad: float = 0.0
-    # The spread over drives of the share by which the distance the model drives misses the true one.
-    distance_scale_std: float = 0.0
     # How far the odometry (the commands, with the scans when fitted) strays from a known start: its error's
     # std per axis (m) and in heading (rad) at 100 m driven, and how each grows with distance (a power law
     # fitted to the 95 % quantiles on training drives). 0: not fitted; the odometry's belief is then a point.
