@@ -357,14 +357,17 @@ class DetectionAccumulator:
         }
 
 
-def found_boxes(boxes, scores, gt_boxes, gt_valid, iou: float) -> np.ndarray:
-    """bool [N]: which of a frame's N vehicle boxes ``gt_boxes`` [N, 5] (``gt_valid`` [N]) a detection
-    (``boxes`` [M, 5], ``scores`` [M]) matches at ``iou`` (:func:`match_detections`)."""
-    found = np.zeros(len(gt_valid), bool)
+def matched_scores(boxes, scores, gt_boxes, gt_valid, iou: float) -> np.ndarray:
+    """float64 [N]: for each of a frame's N vehicle boxes ``gt_boxes`` [N, 5] (``gt_valid`` [N]), the score of
+    the detection (``boxes`` [M, 5], ``scores`` [M]) matched to it at ``iou`` (:func:`match_detections`), -inf
+    where none is (and for padding). The matching visits detections by decreasing score, so the boxes matched
+    by a detection scoring at least s are those a matching of only the detections scoring at least s finds:
+    one matching answers every operating score."""
+    best = np.full(len(gt_valid), -np.inf)
     index = np.nonzero(gt_valid)[0]
     matched = match_detections(boxes, scores, gt_boxes[index], [iou])[0]
-    found[index[matched[matched >= 0]]] = True
-    return found
+    best[index[matched[matched >= 0]]] = np.asarray(scores, np.float64)[matched >= 0]
+    return best
 
 
 class MemoryAccumulator:
@@ -425,10 +428,8 @@ class MemoryAccumulator:
         """Frame ``frame`` (from the drive's start) of drive ``drive``: arguments as
         :meth:`DetectionAccumulator.add_frame`'s, the ground truths in their vehicle slots."""
         gt_valid = np.asarray(gt_valid, dtype=bool)
-        scores = np.asarray(pred_scores, dtype=np.float64)
-        keep = scores >= self.score_threshold
-        found = found_boxes(_as_boxes(pred_boxes)[keep], scores[keep], _as_boxes(gt_boxes), gt_valid, self.iou)
-        scored = found_boxes(_as_boxes(pred_boxes), scores, _as_boxes(gt_boxes), gt_valid, self.iou)
+        score = matched_scores(_as_boxes(pred_boxes), pred_scores, _as_boxes(gt_boxes), gt_valid, self.iou)
+        found, scored = score >= self.score_threshold, score > -np.inf
         last = self._last_found.setdefault(drive, np.full(len(gt_valid), -(10**9)))
         when_seen, when_lidar, camera_last, scored_when_lidar = (
             store.setdefault(drive, np.zeros(len(gt_valid), bool))

@@ -101,9 +101,10 @@ def main(argv):
         return np.array(
             [
                 [
-                    metrics.found_boxes(
+                    metrics.matched_scores(
                         *dets[drive_of(i)][k], boxes[i, last_seen + k], valid[i, last_seen + k], MATCH_IOU
                     )
+                    > -np.inf
                     for k in range(len(dets[i]))
                 ]
                 for i in range(len(dets))

@@ -1,4 +1,4 @@
-"""The memory horizon's counting (``metrics.found_boxes``, ``metrics.kept_shares``; ``experiments/memory_horizon.py``)
+"""The memory horizon's counting (``metrics.matched_scores``, ``metrics.kept_shares``; ``experiments/memory_horizon.py``)
 against loops and hand-made frames."""
 
 import numpy as np
@@ -11,10 +11,31 @@ def test_a_vehicle_is_found_only_by_a_detection_on_its_valid_box():
     valid = np.array([True, True, False])
     # on the first box; on the third (outside the view); far from every box
     boxes = np.array([[5.0, 0.0, 0.0, 4.5, 2.0], [15.0, 0.0, 0.0, 4.5, 2.0], [-8.0, -8.0, 0.0, 4.5, 2.0]])
-    found = metrics.found_boxes(boxes, np.array([0.9, 0.8, 0.7]), gt, valid, 0.1)
-    np.testing.assert_array_equal(found, [True, False, False])
-    none = metrics.found_boxes(np.zeros((0, 5)), np.zeros(0), gt, valid, 0.1)
-    np.testing.assert_array_equal(none, [False, False, False])
+    found = metrics.matched_scores(boxes, np.array([0.9, 0.8, 0.7]), gt, valid, 0.1)
+    np.testing.assert_array_equal(found, [0.9, -np.inf, -np.inf])
+    none = metrics.matched_scores(np.zeros((0, 5)), np.zeros(0), gt, valid, 0.1)
+    np.testing.assert_array_equal(none, [-np.inf] * 3)
+
+
+def test_one_matching_answers_every_operating_score():
+    """On random crowded frames, the boxes whose matched score reaches s are those that matching only the
+    detections scoring at least s finds, for every s (what lets the evaluation match a frame once)."""
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        n, m = rng.integers(1, 8), rng.integers(0, 12)
+        gt = np.column_stack(
+            [rng.uniform(-6, 6, (n, 2)), rng.uniform(-np.pi, np.pi, n), np.full(n, 4.5), np.full(n, 2.0)]
+        )
+        near = gt[rng.integers(0, n, m)] + np.column_stack(
+            [rng.normal(0, 1.5, (m, 2)), rng.normal(0, 0.3, m), np.zeros((m, 2))]
+        )
+        scores = rng.choice([0.2, 0.5, 0.5, 0.7, 0.9], m)  # ties included
+        valid = rng.uniform(size=n) < 0.8
+        best = metrics.matched_scores(near, scores, gt, valid, 0.1)
+        for s in (0.0, 0.2, 0.5, 0.6, 0.9, 1.0):
+            keep = scores >= s
+            alone = metrics.matched_scores(near[keep], scores[keep], gt, valid, 0.1) > -np.inf
+            np.testing.assert_array_equal(best >= s, alone)
 
 
 def _looped(found, in_view, followed, subset):
