@@ -110,6 +110,7 @@ class Perceiver:
         key=None,
         start_pose=None,
         measure: bool = True,
+        lidar_scan=None,
     ) -> tuple[model_lib.FilterState, PerceiverOutputs]:
         """Filters one frame of B streams and decodes it.
 
@@ -122,8 +123,9 @@ class Perceiver:
         their belief at this pose; it then follows the commands through the motion model and, with
         ``measure`` (the town the model was trained on), the place measurements as in the global protocol.
         ``measure=False`` (a town the model has not seen) is an odometry: the commands through the motion
-        model, their heading corrected by the lidar's scans when the model has the scan matcher's fitted noise
-        (:attr:`lidar_odometry`, :mod:`e2e_percep_jax.ego_motion`).
+        model, their heading corrected by the lidar's scans ``lidar_scan`` float32 [B, 360] (the frame
+        contract's: ranges m a degree) when the model has the scan matcher's fitted noise
+        (:attr:`lidar_odometry`, :mod:`e2e_percep_jax.ego_motion`); nothing else reads ``lidar_scan``.
         """
         camera, lidar, action = jnp.asarray(camera), jnp.asarray(lidar), jnp.asarray(action)
         first = state.first if isinstance(state, model_lib.FilterState) else None
@@ -134,6 +136,11 @@ class Perceiver:
         if start_pose is not None:
             start_pose = jnp.asarray(start_pose)
             _check("start_pose", start_pose, (b, 5), jnp.float32)
+        if start_pose is not None and not measure and self.lidar_odometry:
+            if lidar_scan is None:
+                raise ValueError("lidar_scan: measure=False follows the lidar's scans; pass the frame's lidar_scan")
+            lidar_scan = jnp.asarray(lidar_scan)
+            _check("lidar_scan", lidar_scan, (b, ego_motion.SCAN_AZIMUTHS), jnp.float32)
         self._check_state(state, b)
         latent_state, latent = model_lib.filter_step(params, state, camera, lidar, action, key, self.cfg)
         z = jnp.concatenate([latent["z1"], latent["z2"]], -1)
@@ -155,7 +162,7 @@ class Perceiver:
                 self.motion_model,
                 start_pose=start_pose,
                 measure=measure,
-                lidar=lidar,
+                scan=lidar_scan,
             )
         else:  # the frame's head alone: its own distribution is the belief
             pose_state, pose = pose_belief.head_state(head, grid, state.pose.odometry), pose_belief.decode(head, grid)

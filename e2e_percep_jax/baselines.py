@@ -160,7 +160,7 @@ class SingleFramePerceiver:
     def init(self, batch_size: int) -> None:
         return None
 
-    def step(self, params, state, camera, lidar, action, key=None, start_pose=None, measure=True):
+    def step(self, params, state, camera, lidar, action, key=None, start_pose=None, measure=True, lidar_scan=None):
         """(state, :class:`PerceiverOutputs` with det_cls, det_reg and pose); ``action``, ``key``,
         ``start_pose`` and ``measure`` are unused."""
         out = {} if self.head is None else predict(params, camera, lidar, self.cfg, self.head)
@@ -325,7 +325,7 @@ class CommandOdometry:
             scans=ego_motion.init_state(batch_size),
         )
 
-    def step(self, params, state, camera, lidar, action, key=None, start_pose=None, measure=True):
+    def step(self, params, state, camera, lidar, action, key=None, start_pose=None, measure=True, lidar_scan=None):
         if start_pose is None:
             raise ValueError("dead reckoning starts from the true pose: evaluate it with --eval.known_start")
         # (the first commands of a drive set the actuators, as in the pose belief's filter)
@@ -337,7 +337,7 @@ class CommandOdometry:
             actuator,
             action,
             state.pose,
-            lidar if self.scans else None,
+            lidar_scan if self.scans else None,
             first,
             start_pose,
         )

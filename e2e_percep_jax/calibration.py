@@ -34,17 +34,17 @@ HORIZONS = (10, 30, 100, 300)  # steps
 MIN_SPEED_MPS = 1.0  # slower steps are left out of the fits (curvature is ill-defined when standing)
 
 
-@functools.partial(jax.jit, static_argnames=("world_cfg", "warmup_steps", "num_worlds", "num_steps", "image_size"))
-def drives(key, town, world_cfg: WorldConfig, warmup_steps: int, num_worlds: int, num_steps: int, image_size: int = 0):
+@functools.partial(jax.jit, static_argnames=("world_cfg", "warmup_steps", "num_worlds", "num_steps", "scans"))
+def drives(key, town, world_cfg: WorldConfig, warmup_steps: int, num_worlds: int, num_steps: int, scans: bool = False):
     """``num_worlds`` drives of ``num_steps`` steps after ``warmup_steps``, reset from ``key``; per step: the
     ego's (x m, y m, yaw rad) [W, T, 3], speed [W, T], the commands applied from it to the next [W, T, 2]
-    and, with ``image_size``, its lidar image [W, T, R, R, 3] (else None)."""
+    and, with ``scans``, its lidar scan [W, T, A] (``sensors.render_scan``; else None)."""
 
     def one(k):
         def body(s, _):
             after = world.step(s, town)
-            lidar = sensors.observe_lidar(s, town, image_size) if image_size else None
-            return after, (s.veh_box[world.EGO, :3], s.veh_speed_mps[world.EGO], after.ego_action, lidar)
+            scan = sensors.observe_scan(s, town) if scans else None
+            return after, (s.veh_box[world.EGO, :3], s.veh_speed_mps[world.EGO], after.ego_action, scan)
 
         # (one loop through the warm-up and the drive: the world's step is compiled once, not twice)
         drive = jax.lax.scan(body, world.reset(k, town, world_cfg), None, length=warmup_steps + num_steps)[1]
@@ -188,11 +188,11 @@ def _with_yaw_spread(model: MotionModel, drives: dict, ds, dyaw) -> MotionModel:
 
 
 def lidar_drives(cfg: Config, town_seed: int, key, num_worlds: int, num_frames: int):
-    """:func:`drives` of town ``town_seed`` under ``cfg``'s world, with its lidar images, on the first
+    """:func:`drives` of town ``town_seed`` under ``cfg``'s world, with its lidar scans, on the first
     local device."""
     with jax.default_device(jax.local_devices()[0]):
         town = town_lib.build_town(town_seed)
-        return drives(key, town, cfg.world, cfg.data.warmup_steps, num_worlds, num_frames, cfg.data.image_size)
+        return drives(key, town, cfg.world, cfg.data.warmup_steps, num_worlds, num_frames, scans=True)
 
 
 def scan_errors(cfg: Config, model: MotionModel, town_seed: int, key, num_worlds: int = 4, num_frames: int = 300):
@@ -200,7 +200,7 @@ def scan_errors(cfg: Config, model: MotionModel, town_seed: int, key, num_worlds
     ``key``): every ``ego_motion.KEYFRAME_FRAMES`` frames, the matched heading change minus the true one,
     searched around the motion ``model``'s own prediction from the true pose. Returns (errors [M] rad,
     the fewer of each pair's returns [M])."""
-    pose, speed, command, lidar = lidar_drives(cfg, town_seed, key, num_worlds, num_frames)
+    pose, speed, command, scan = lidar_drives(cfg, town_seed, key, num_worlds, num_frames)
     k = ego_motion.KEYFRAME_FRAMES
     starts = np.arange(0, num_frames - k, k)
     predicted = []
@@ -212,8 +212,7 @@ def scan_errors(cfg: Config, model: MotionModel, town_seed: int, key, num_worlds
         predicted.append(jnp.concatenate([local[:, :2], jnp.arctan2(local[:, 3:4], local[:, 2:3])], -1))
     predicted = jnp.stack(predicted, 1).reshape(-1, 3)
     pairs = lambda x, offset: x[:, starts + offset].reshape((-1,) + x.shape[2:])
-    points, weight = jax.vmap(ego_motion.scan_points)(pairs(lidar, 0))
-    measured, num_returns = jax.jit(jax.vmap(ego_motion.match))(points, weight, pairs(lidar, k), predicted)
+    measured, num_returns = jax.jit(jax.vmap(ego_motion.match))(pairs(scan, 0), pairs(scan, k), predicted)
     yaw = np.asarray(pose[..., 2])
     true = wrap_angle(yaw[:, starts + k] - yaw[:, starts]).reshape(-1)
     return wrap_angle(np.asarray(measured[:, 2]) - true), np.asarray(num_returns)
@@ -228,7 +227,7 @@ def fit_scans(cfg: Config, model: MotionModel) -> MotionModel:
     error, num_returns = scan_errors(cfg, model, cfg.world.town_seed, key)
     kept = num_returns >= ego_motion.MIN_RETURNS
     spread = 1.4826 * np.median(np.abs(error[kept]) * np.sqrt(num_returns[kept]))
-    return dataclasses.replace(model, scan_yaw_noise_rad=float(spread))
+    return dataclasses.replace(model, scan_heading_noise_rad=float(spread))
 
 
 # The odometry's spread: errors in distance bins of these edges (m driven from the known start), each bin's
@@ -268,9 +267,9 @@ def fit_spread(cfg: Config, model: MotionModel, num_worlds: int = 8, num_frames:
     ``model`` has the matcher's noise), its location and heading errors against the distance the car drove
     (:func:`spread_law`)."""
     key = jax.random.fold_in(jax.random.PRNGKey(CALIBRATION_SEED), 2)
-    pose, speed, command, lidar = lidar_drives(cfg, cfg.world.town_seed, key, num_worlds, num_frames)
+    pose, speed, command, scan = lidar_drives(cfg, cfg.world.town_seed, key, num_worlds, num_frames)
     start, prev_action = start_and_commands(pose, speed, command)
-    followed, _ = jax.jit(ego_motion.follow, static_argnums=0)(model, start, prev_action, lidar)
+    followed, _ = jax.jit(ego_motion.follow, static_argnums=0)(model, start, prev_action, scan)
     pose, followed = np.asarray(pose, np.float64), np.asarray(followed, np.float64)
     step_m = np.linalg.norm(np.diff(pose[:, :, :2], axis=1), axis=-1)
     travelled_m = np.concatenate([np.zeros((num_worlds, 1)), np.cumsum(step_m, 1)], 1).ravel()

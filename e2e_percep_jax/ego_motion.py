@@ -1,115 +1,88 @@
-"""The ego's motion measured by its lidar: a scan matcher on the frame contract's bird-eye lidar images.
+"""The ego's motion measured by its lidar: a scan matcher on the frame contract's lidar scans.
 
-The lidar image's green channel holds the returns from 0.25-3.1 m above the ground: the sides of buildings
-and vehicles. Its red channel (ground returns) is left out: the rings a beam draws on flat ground sit at
-fixed ranges from the sensor and move with the car, so they would pull every match towards standing still.
+A scan (``lidar_scan``, ``sim.sensors.render_scan``) gives, per degree of azimuth, the horizontal range of the
+lidar's nearest return above the ground band: the sides of buildings and vehicles out to the lidar's 50 m,
+exact to float precision (the world's lidar has no range noise).
 
 :func:`match` finds the rigid motion (dx m, dy m, dyaw rad) of the car between a reference scan and the
 current one, in the reference frame's ego axes (x ahead, y left): a reference return at ego point p lies
-at ``R(-dyaw) (p - (dx, dy))`` in the current frame. It maximises the mean of the current scan's returns,
-blurred into a likelihood field, at the reference returns moved by the motion: a grid search around a
-prior motion (the motion model's prediction) on a wide blur, then successive halvings of a 3 x 3 x 3
-search on a narrow one. A likelihood field is robust by construction: a return with nothing near it
-(a vehicle that moved, a wall only one scan sees) adds nothing, whatever the motion.
+at ``R(-dyaw) (p - (dx, dy))`` in the current frame. Point-to-line ICP: each reference return, moved by the
+motion, against the line through its two nearest returns of the current scan, by Gauss-Newton on the three
+parameters. Each return's weight fades with its distance to the line (Cauchy's weight: a moving car's
+returns, or a wall only one scan sees, add little), and a weak Gaussian prior centred on the motion model's
+prediction holds what the walls do not pin: along a street, the distance, which moving cars would otherwise
+pull.
 
 Walls along the road pin the heading and the lateral offset; only corners and cross streets pin the
-distance along the road, so the matcher's heading is much better than its distance (BUILD_NOTES, "Odometry
-from the sensors"). Pure JAX, one stream; ``jax.vmap`` it over streams.
+distance along the road, so the odometry takes the matcher's heading alone (BUILD_NOTES, "Odometry from
+the lidar on towns never seen"). Pure JAX, one stream; ``jax.vmap`` it over streams.
 """
 
 import flax.struct
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from e2e_percep_jax.sim import geometry as geo
 from e2e_percep_jax.sim import motion as motion_lib
 from e2e_percep_jax.sim.motion import MotionModel
 
-MAX_POINTS = 512  # reference returns matched (a 64 x 64 scan has ~40-400 green pixels)
-COARSE_BLUR_PX = 2.0
-FINE_BLUR_PX = 1.0
-# The narrow field is sampled this many times finer than the image: bilinear interpolation between samples
-# a pixel apart understates a blurred return's value off the sample points by ~8 %, which locks the match
-# onto whole-pixel motions (in turns it measured 0.75 of the heading change). Odd, so that a sample lies on
-# every pixel's centre: with an even factor a return's peak falls between two equal samples, and the score
-# is flat over a sample's width.
-FINE_UPSAMPLE = 5
-# Coarse grid around the prior (m, m, rad): the prior's error over a keyframe interval stays well inside it.
-COARSE_HALF_SPAN = (1.0, 0.5, 0.04)
-COARSE_STEPS = (9, 5, 9)
-REFINE_ROUNDS = 6
-# The odometry matches a scan against the one KEYFRAME_FRAMES frames before (over one frame the heading
-# change is below the matcher's error; over 20 too few returns stay in view). A scan with fewer returns than
-# MIN_RETURNS is not matched (on training drives 63 % of such matches were off by more than 0.015 rad);
-# a match further than GATE standard deviations from the prediction is left out.
+SCAN_AZIMUTHS = 360  # the frame contract's lidar_scan: a range a degree (sim.sensors.LIDAR_NUM_AZIMUTHS)
+ITERATIONS = 20
+# A reference return further than this from its nearest current return is left out: 2 m at the first
+# iteration (the prior's error over a keyframe interval), shrinking by a quarter each iteration to 0.3 m.
+TRIM_START_M, TRIM_SHRINK, TRIM_FLOOR_M = 2.0, 0.75, 0.3
+MAX_SEGMENT_M = 3.0  # two current returns further apart span a gap, not a surface: no line through them
+RESIDUAL_M = 0.1  # a return's distance to its line that counts as much as the prior's PRIOR_STD
+ROBUST_M = 0.2  # Cauchy's scale: a return this far from its line weighs half
+PRIOR_STD = (0.1, 0.1, 0.02)  # m, m, rad: the prior's spread around the motion model's prediction
+# The odometry matches a scan against the one KEYFRAME_FRAMES frames before (chosen when the matcher read the
+# lidar image, whose heading error exceeded a frame's heading change; kept since). A scan with fewer returns
+# than MIN_RETURNS is not matched. A match further from the prediction than both GATE standard deviations and
+# GATE_FLOOR_RAD is left out: in a turn the motion model errs by more than its fitted noise says (a few per
+# cent of a 0.2 rad turn), and without the floor a precise match would be gated out at every turn, leaving
+# the heading to the model exactly where it errs most; the matcher's own failures lie beyond the floor.
 KEYFRAME_FRAMES = 5
 MIN_RETURNS = 30
 GATE = 3.0
+GATE_FLOOR_RAD = 0.05
 
 
-def returns(lidar):
-    """Whether each pixel of lidar images uint8 [..., R, R, 3] holds a return from 0.25-3.1 m: float32 [..., R, R]."""
-    return (lidar[..., 1] > 0).astype(jnp.float32)
+def scan_points(scan):
+    """A scan [A] (ranges m, 0: no return) as ego-frame points [A, 2] and whether each is a return [A]."""
+    return scan[..., None] * jnp.asarray(geo.azimuth_directions(scan.shape[-1])), scan > 0
 
 
-def _blur(image, sigma_px: float):
-    """image [R, R] convolved with a Gaussian of ``sigma_px`` pixels (separable; zeros beyond the edge)."""
-    half = int(np.ceil(3 * sigma_px))
-    taps = np.exp(-(np.arange(-half, half + 1) ** 2) / (2 * sigma_px**2))
-    taps = jnp.asarray(taps / taps.sum(), jnp.float32)
-    along = lambda x: jnp.convolve(x, taps, mode="same")
-    return jax.vmap(along, 1, 1)(jax.vmap(along)(image))
+def match(reference, scan, prior):
+    """The car's motion (dx m, dy m, dyaw rad) [3] from the ``reference`` scan [A] to ``scan`` [A] (ranges m,
+    :func:`scan_points`), searched from ``prior`` [3]; and the fewer of the two scans' returns [] (float32:
+    the match's error shrinks about as one over its square root)."""
+    points, weight = scan_points(reference)
+    current, returned = scan_points(scan)
+    prior_precision = jnp.asarray(PRIOR_STD, jnp.float32) ** -2
+    moved = lambda motion: geo.town_to_ego(points, motion[:2], motion[2])
 
+    def gauss_newton(i, motion):
+        trim_m = jnp.maximum(TRIM_FLOOR_M, TRIM_START_M * TRIM_SHRINK**i)
+        q = moved(motion)
+        # |q - c|^2 as a product: no [A, A, 2] difference is materialised
+        square_m2 = jnp.sum(q**2, -1)[:, None] - 2.0 * q @ current.T + jnp.sum(current**2, -1)[None]
+        square_m2 = jnp.where(returned[None], square_m2, jnp.inf)
+        first = jnp.argmin(square_m2, axis=1)  # [A]: two argmins, several times faster than top_k on XLA:CPU
+        second = jnp.argmin(jnp.where(jnp.arange(square_m2.shape[1]) == first[:, None], jnp.inf, square_m2), axis=1)
+        a, b = current[first], current[second]
+        length = jnp.linalg.norm(b - a, axis=-1)
+        normal = jnp.stack([a[:, 1] - b[:, 1], b[:, 0] - a[:, 0]], -1) / jnp.maximum(length, 1e-6)[:, None]
+        residual = lambda m: jnp.sum(normal * (moved(m) - a), -1)  # [A] m, to the line through a and b
+        r, jac = residual(motion), jax.jacfwd(residual)(motion)
+        near = jnp.linalg.norm(q - a, axis=-1) < trim_m
+        w = weight & near & (length > 1e-4) & (length < MAX_SEGMENT_M)
+        w = w / (1.0 + (r / ROBUST_M) ** 2) / RESIDUAL_M**2
+        hessian = jnp.einsum("p,pi,pj->ij", w, jac, jac) + jnp.diag(prior_precision)
+        gradient = jnp.einsum("p,pi,p->i", w, jac, r) + prior_precision * (motion - prior)
+        return motion - jnp.linalg.solve(hessian, gradient)
 
-def scan_points(lidar):
-    """A lidar image's returns (:func:`returns`) as ego-frame points: (points [MAX_POINTS, 2] m at their
-    pixels' centres, weights [MAX_POINTS]: 1 for a return, 0 for padding), from an image [R, R, 3]."""
-    flat = returns(lidar).reshape(-1)
-    index = jnp.nonzero(flat > 0, size=MAX_POINTS, fill_value=0)[0]
-    centres = geo.bev_pixel_centres(lidar.shape[-2]).reshape(-1, 2)
-    weight = (jnp.arange(MAX_POINTS) < jnp.sum(flat)).astype(jnp.float32)
-    return centres[index], weight
-
-
-def _field(scan, sigma_px: float, upsample: int):
-    """The likelihood field of a scan [R, R]: its returns blurred by ``sigma_px`` pixels, sampled ``upsample``
-    times per pixel and axis ([upsample R, upsample R])."""
-    fine = jnp.repeat(jnp.repeat(scan, upsample, 0), upsample, 1)
-    return _blur(fine, sigma_px * upsample) if sigma_px > 0 else fine
-
-
-def _score(field, points, weight, motion, image_size: int):
-    """Mean of the likelihood ``field`` (:func:`_field`) at the points moved by ``motion``."""
-    upsample = field.shape[0] // image_size
-    # (sample s of the field is centred on s + 0.5 in units of 1 / upsample pixel)
-    rowcol = geo.ego_to_bev_px(geo.town_to_ego(points, motion[:2], motion[2]), image_size) * upsample - 0.5
-    values = jax.scipy.ndimage.map_coordinates(field, [rowcol[:, 0], rowcol[:, 1]], order=1, mode="constant")
-    return jnp.sum(weight * values) / jnp.maximum(jnp.sum(weight), 1.0)
-
-
-def _offsets(half_span, steps):
-    axes = [np.linspace(-h, h, n) for h, n in zip(half_span, steps)]
-    return jnp.asarray(np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3), jnp.float32)
-
-
-def match(points, weight, lidar, prior):
-    """The car's motion (dx m, dy m, dyaw rad) [3] from a reference scan (:func:`scan_points`' ``points``,
-    ``weight``) to the scan of lidar image ``lidar`` (uint8 [R, R, 3]), searched around ``prior`` [3]; and
-    the fewer of the two scans' returns [] (float32: the match's error shrinks about as one over its square
-    root)."""
-    r = lidar.shape[-2]
-    scan = returns(lidar)
-    best = lambda field, candidates: candidates[
-        jnp.argmax(jax.vmap(lambda m: _score(field, points, weight, m, r))(candidates))
-    ]
-    motion = best(_field(scan, COARSE_BLUR_PX, 1), prior + _offsets(COARSE_HALF_SPAN, COARSE_STEPS))
-    fine = _field(scan, FINE_BLUR_PX, FINE_UPSAMPLE)
-    step = np.array(COARSE_HALF_SPAN) / (np.array(COARSE_STEPS) - 1)  # the coarse grid's spacing
-    for _ in range(REFINE_ROUNDS):
-        motion = best(fine, motion + _offsets(step, (3, 3, 3)))
-        step = step / 2
-    return motion, jnp.minimum(jnp.sum(weight), jnp.sum(scan))
+    motion = jax.lax.fori_loop(0, ITERATIONS, gauss_newton, prior)
+    return motion, jnp.minimum(jnp.sum(weight), jnp.sum(returned)).astype(jnp.float32)
 
 
 # ----------------------------------------------------------------------------- the self-calibrating odometry
@@ -119,8 +92,7 @@ def match(points, weight, lidar, prior):
 class OdometryState:
     """The lidar odometry's state of B streams (a pytree), beside the pose it moves.
 
-    keyframe_points, keyframe_weight: float32 [B, MAX_POINTS, 2], [B, MAX_POINTS], the returns of the
-        last scan matched against, the keyframe (:func:`scan_points`);
+    keyframe_scan: float32 [B, SCAN_AZIMUTHS], the last scan matched against, the keyframe (ranges m);
     keyframe_pose: float32 [B, 3], the odometry's pose (x m, y m, yaw rad, town frame) at the keyframe;
     keyframe_age: int32 [B], frames since the keyframe;
     distance_m, model_yaw_rad: float32 [B], the motion model's distance and its own yaw change since the
@@ -134,8 +106,7 @@ class OdometryState:
         odometry's spread grows with: :func:`spread`).
     """
 
-    keyframe_points: jax.Array
-    keyframe_weight: jax.Array
+    keyframe_scan: jax.Array
     keyframe_pose: jax.Array
     keyframe_age: jax.Array
     distance_m: jax.Array
@@ -155,8 +126,7 @@ def init_state(batch_size: int) -> OdometryState:
     """Before a drive's first frame (which sets the keyframe and the correction's prior)."""
     zeros = jnp.zeros((batch_size,), jnp.float32)
     return OdometryState(
-        keyframe_points=jnp.zeros((batch_size, MAX_POINTS, 2), jnp.float32),
-        keyframe_weight=jnp.zeros((batch_size, MAX_POINTS), jnp.float32),
+        keyframe_scan=jnp.zeros((batch_size, SCAN_AZIMUTHS), jnp.float32),
         keyframe_pose=jnp.zeros((batch_size, 3), jnp.float32),
         keyframe_age=jnp.zeros((batch_size,), jnp.int32),
         distance_m=zeros,
@@ -170,7 +140,7 @@ def init_state(batch_size: int) -> OdometryState:
 
 def uses_scans(model: MotionModel) -> bool:
     """Whether ``model`` has the scan matcher's fitted noise (:func:`e2e_percep_jax.calibration.fit_scans`)."""
-    return model.scan_yaw_noise_rad > 0
+    return model.scan_heading_noise_rad > 0
 
 
 def _xy_yaw(pose):
@@ -196,25 +166,25 @@ def kalman_update(correction, covariance, h, white_var, scan_var, innovation):
     )
 
 
-def _update(state: OdometryState, model: MotionModel, lidar, pose):
-    """The keyframe's match against ``lidar`` through :func:`kalman_update`: (correction, covariance, heading
+def _update(state: OdometryState, model: MotionModel, scan, pose):
+    """The keyframe's match against ``scan`` through :func:`kalman_update`: (correction, covariance, heading
     change [B] to add to ``pose``). Scans with fewer than MIN_RETURNS returns, and matches off the
-    prediction by more than GATE standard deviations, change nothing."""
+    prediction by more than GATE standard deviations and GATE_FLOOR_RAD, change nothing."""
     pose3, key3 = _xy_yaw(pose), state.keyframe_pose
     predicted = jnp.concatenate(
         [geo.town_to_ego(pose3[:, :2], key3[:, :2], key3[:, 2]), geo.wrap_angle(pose3[:, 2:] - key3[:, 2:])], -1
     )
-    measured, num_returns = jax.vmap(match)(state.keyframe_points, state.keyframe_weight, lidar, predicted)
+    measured, num_returns = jax.vmap(match)(state.keyframe_scan, scan, predicted)
     innovation = geo.wrap_angle(measured[:, 2] - predicted[:, 2])
     correction, covariance, turn, innovation_var = kalman_update(
         state.correction,
         state.covariance,
         jnp.stack([state.distance_m, state.model_yaw_rad], -1),
         model.yaw_noise_rad2pm * state.distance_m,  # the model's own per-step errors, summed
-        model.scan_yaw_noise_rad**2 / jnp.maximum(num_returns, 1.0),
+        model.scan_heading_noise_rad**2 / jnp.maximum(num_returns, 1.0),
         innovation,
     )
-    used = (num_returns >= MIN_RETURNS) & (innovation**2 < GATE**2 * innovation_var)
+    used = (num_returns >= MIN_RETURNS) & (innovation**2 < jnp.maximum(GATE**2 * innovation_var, GATE_FLOOR_RAD**2))
     return (
         jnp.where(used[:, None], correction, state.correction),
         jnp.where(used[:, None, None], covariance, state.covariance),
@@ -222,13 +192,13 @@ def _update(state: OdometryState, model: MotionModel, lidar, pose):
     )
 
 
-def step(state: OdometryState, model: MotionModel, actuator, command, pose, lidar, first, start_pose):
+def step(state: OdometryState, model: MotionModel, actuator, command, pose, scan, first, start_pose):
     """One frame of B streams: (odometry state, actuators after, pose [B, 5] after). The pose moves by
     ``command`` [B, 2] from actuators ``actuator`` [B, 2] through ``model``, its yaw change corrected by the
     drive's estimated steering offset and gain (:class:`OdometryState`); every KEYFRAME_FRAMES frames the
-    scan of ``lidar`` [B, R, R, 3] is matched against the keyframe's, which corrects the heading and the
+    lidar scan ``scan`` [B, SCAN_AZIMUTHS] is matched against the keyframe's, which corrects the heading and the
     estimate, and becomes the keyframe. Rows with ``first`` [B] start at ``start_pose`` [B, 5]. Without the
-    matcher's fitted noise (:func:`uses_scans`), or ``lidar`` None, this is dead reckoning on the commands."""
+    matcher's fitted noise (:func:`uses_scans`), or ``scan`` None, this is dead reckoning on the commands."""
     yaw = geo.pose_yaw(pose)
     actuator, v_new, ds, model_dyaw = motion_lib.drive(model, actuator, command, pose[:, 4])
     dyaw = model_dyaw + ds * state.correction[:, 0] + model_dyaw * state.correction[:, 1]
@@ -242,23 +212,21 @@ def step(state: OdometryState, model: MotionModel, actuator, command, pose, lida
     )
     moved = jnp.concatenate([xy, jnp.stack([jnp.cos(yaw), jnp.sin(yaw), v_new], -1)], -1)
     pose = jnp.where(first[:, None], start_pose, moved)
-    if lidar is None or not uses_scans(model):
+    if scan is None or not uses_scans(model):
         return state.replace(pose=pose), actuator, pose
     due = (state.keyframe_age >= KEYFRAME_FRAMES) & ~first
     # (matched only on frames where some stream is due: streams that start together match together)
     correction, covariance, turn = jax.lax.cond(
         jnp.any(due),
-        lambda: _update(state, model, lidar, pose),
+        lambda: _update(state, model, scan, pose),
         lambda: (state.correction, state.covariance, jnp.zeros_like(state.distance_m)),
     )
     yaw = geo.pose_yaw(pose) + jnp.where(due, turn, 0.0)
     pose = jnp.concatenate([pose[:, :2], jnp.stack([jnp.cos(yaw), jnp.sin(yaw), pose[:, 4]], -1)], -1)
     renew = due | first
     rows = lambda x: renew.reshape(renew.shape + (1,) * (x.ndim - 1))
-    points, weight = jax.vmap(scan_points)(lidar)
     state = OdometryState(
-        keyframe_points=jnp.where(rows(points), points, state.keyframe_points),
-        keyframe_weight=jnp.where(rows(weight), weight, state.keyframe_weight),
+        keyframe_scan=jnp.where(rows(scan), scan, state.keyframe_scan),
         keyframe_pose=jnp.where(rows(pose[:, :3]), _xy_yaw(pose), state.keyframe_pose),
         keyframe_age=jnp.where(renew, 0, state.keyframe_age),
         distance_m=jnp.where(renew, 0.0, state.distance_m),
@@ -288,21 +256,21 @@ def spread(model: MotionModel, travelled_m):
     )
 
 
-def follow(model: MotionModel, start_pose, prev_action, lidar):
+def follow(model: MotionModel, start_pose, prev_action, scans):
     """The odometry along B recorded drives from their true first poses: :func:`step` frame by frame in one
     ``lax.scan``. start_pose [B, 5]; prev_action [B, T, 2], frame t's commands (applied from t-1 to t; frame
-    0's only set the actuators); lidar [B, T, R, R, 3], or None for dead reckoning. Returns the poses [B, T, 5]
+    0's only set the actuators); scans [B, T, SCAN_AZIMUTHS] (the lidar's), or None for dead reckoning. Returns the poses [B, T, 5]
     and the drive's estimated correction [B, T, 2] (curvature bias 1/m, gain error) after each frame."""
     b = start_pose.shape[0]
 
     def body(carry, x):
         state, actuator, pose, first = carry
-        action, frame_lidar = x
+        action, scan = x
         actuator = jnp.where(first[:, None], action, actuator)
-        state, actuator, pose = step(state, model, actuator, action, pose, frame_lidar, first, start_pose)
+        state, actuator, pose = step(state, model, actuator, action, pose, scan, first, start_pose)
         return (state, actuator, pose, jnp.zeros_like(first)), (pose, state.correction)
 
     time_major = lambda x: None if x is None else jnp.swapaxes(x, 0, 1)
     init = (init_state(b), jnp.zeros((b, 2)), start_pose, jnp.ones((b,), bool))
-    pose, correction = jax.lax.scan(body, init, (time_major(prev_action), time_major(lidar)))[1]
+    pose, correction = jax.lax.scan(body, init, (time_major(prev_action), time_major(scans)))[1]
     return time_major(pose), time_major(correction)

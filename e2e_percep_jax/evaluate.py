@@ -183,7 +183,11 @@ def make_chunk_fn(cfg: Config, town, perceiver, sample: bool, detect: detection.
     def perceive(params, pstate, frame, prev_action, key):
         # Known start measures places only in the town the model was trained on (it cannot name others').
         known = (
-            {"start_pose": frame["pose"], "measure": cfg.eval.town_seed == cfg.world.town_seed}
+            {
+                "start_pose": frame["pose"],
+                "measure": cfg.eval.town_seed == cfg.world.town_seed,
+                "lidar_scan": frame["lidar_scan"],
+            }
             if cfg.eval.known_start
             else {}
         )
@@ -390,7 +394,8 @@ def evaluate(
     ``out_dir``; returns the metrics dict (also written to metrics.json).
 
     What is evaluated: ``perceiver``, anything hashable with the inference API's ``init(batch_size)`` and
-    ``step(params, state, camera, lidar, action, key=None, start_pose=None) -> (state, outputs)`` (state: any
+    ``step(params, state, camera, lidar, action, key=None, start_pose=None, measure=True, lidar_scan=None) ->
+    (state, outputs)`` (state: any
     pytree the perceiver carries; outputs: a :class:`~e2e_percep_jax.api.PerceiverOutputs`), and optionally
     ``pose_nll(state, pose)`` and ``pose_coverage(state, pose)`` (default: the filtered model, with the
     motion model of the run in ``workdir``, or the exact bicycle without one: :func:`api.run_perceiver`);
@@ -461,14 +466,17 @@ def evaluate(
         **scores.metrics(bool(getattr(perceiver, "pose_coverage", None)), num_frames, det_remembered),
         "examples": examples,
     }
+    # (from a known start on a town the model has not seen: whether the lidar's scans corrected the pose)
+    lidar_odometry = bool(
+        ev.known_start and ev.town_seed != cfg.world.town_seed and getattr(perceiver, "lidar_odometry", False)
+    )
     metrics["pose"].update(
         known_start=ev.known_start,
         pose_filter=cfg.model.pose_filter,
         filter_settings=pose_belief.default_settings() if filtered else None,
-        # (from a known start on a town the model has not seen: whether the lidar's scans corrected the pose)
-        lidar_odometry=bool(
-            ev.known_start and ev.town_seed != cfg.world.town_seed and getattr(perceiver, "lidar_odometry", False)
-        ),
+        lidar_odometry=lidar_odometry,
+        # what the odometry matched (evaluations before 2026-11-30 matched the bird-eye lidar image)
+        scan_matcher="lidar scan" if lidar_odometry else None,
     )
     report.write(out_dir, metrics, scores.det.results())
     log(

@@ -332,7 +332,7 @@ def filter_step(
     *,
     start_pose=None,
     measure: bool = True,
-    lidar=None,
+    scan=None,
     floor: float = MEASUREMENT_FLOOR,
     power: float = MEASUREMENT_POWER,
     speed_gain: float = SPEED_GAIN,
@@ -353,7 +353,7 @@ def filter_step(
 
     ``measure=False`` (known start only: an odometry for a town the head does not know) takes no
     measurement; the pose is the odometry's (:func:`ego_motion.step`: the commands through the motion model,
-    with the scans of ``lidar`` [B, R, R, 3] correcting the heading when the model has the matcher's fitted
+    with the lidar's scans ``scan`` [B, 360] (the frame contract's ``lidar_scan``) correcting the heading when the model has the matcher's fitted
     noise), and the belief a Gaussian around it whose spread grows with the distance driven as the
     odometry's errors did on training drives (:func:`spread_at`, :func:`ego_motion.spread`), or a point
     (:func:`start_at`) when the model has no fitted spread (a histogram moved without measurements spreads
@@ -370,7 +370,7 @@ def filter_step(
     )
     if start_pose is not None and not measure:
         odometry, _, pose = ego_motion.step(
-            state.odometry, model, actuator, prev_action, state.odometry.pose, lidar, first, start_pose
+            state.odometry, model, actuator, prev_action, state.odometry.pose, scan, first, start_pose
         )
         if ego_motion.spreads(model):
             belief, offset = spread_at(pose, *ego_motion.spread(model, odometry.travelled_m), grid)

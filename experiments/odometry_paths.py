@@ -33,15 +33,15 @@ def main(argv):
     cfg = launch.run_config(argv, FLAGS.workdir)
     model = calibration.ensure_scans(cfg, FLAGS.workdir)
     town = town_lib.build_town(FLAGS.town_seed)
-    pose, speed, command, lidar = calibration.drives(
-        jax.random.PRNGKey(FLAGS.seed), town, cfg.world, cfg.data.warmup_steps, 1, FLAGS.frames, cfg.data.image_size
+    pose, speed, command, scans = calibration.drives(
+        jax.random.PRNGKey(FLAGS.seed), town, cfg.world, cfg.data.warmup_steps, 1, FLAGS.frames, scans=True
     )
     start, prev_action = calibration.start_and_commands(pose, speed, command)
     pose = pose[0]
     paths = [(np.asarray(pose[:, :2]), pictures.VISIBLE_RGB)]
     for name, scans, colour in (
         ("dead reckoning", None, DEAD_RECKONING_RGB),
-        ("lidar odometry", lidar, pictures.ESTIMATE_RGB),
+        ("lidar odometry", scans, pictures.ESTIMATE_RGB),
     ):
         estimate = np.asarray(jax.jit(ego_motion.follow, static_argnums=0)(model, start, prev_action, scans)[0][0])
         paths.append((estimate[:, :2], colour))

@@ -44,13 +44,13 @@ def main(argv):
     model = calibration.ensure_scans(cfg, FLAGS.workdir)
     town = town_lib.build_town(FLAGS.town_seed)
     key = jax.random.PRNGKey(FLAGS.seed)
-    pose, speed, command, lidar = calibration.drives(
-        key, town, cfg.world, cfg.data.warmup_steps, FLAGS.drives, FLAGS.frames, cfg.data.image_size
+    pose, speed, command, scans = calibration.drives(
+        key, town, cfg.world, cfg.data.warmup_steps, FLAGS.drives, FLAGS.frames, scans=True
     )
     # the plants calibration.drives' worlds were reset with (its keys, its reset)
     plant = jax.vmap(lambda k: world.reset(k, town, cfg.world).ego_plant)(jax.random.split(key, FLAGS.drives))
     start, prev_action = calibration.start_and_commands(pose, speed, command)
-    _, correction = jax.jit(ego_motion.follow, static_argnums=0)(model, start, prev_action, lidar)
+    _, correction = jax.jit(ego_motion.follow, static_argnums=0)(model, start, prev_action, scans)
     estimate = np.asarray(correction[..., 0], np.float64)  # [W, T] curvature bias (1/m)
     v = np.asarray(speed, np.float64)
     v2 = np.sum(v**3, 1) / np.maximum(np.sum(v, 1), 1e-9)  # v^2 weighted by the distance driven

@@ -71,6 +71,7 @@ def frame_contract(image_size, num_boxes):
     return {
         "camera": (np.uint8, (r, r, 3)),
         "lidar": (np.uint8, (r, r, 3)),
+        "lidar_scan": (np.float32, (360,)),
         "roadmap": (np.uint8, (r, r, 3)),
         "det_cls": (np.float32, (r, r, 1)),
         "det_reg": (np.float32, (r, r, 6)),
@@ -182,6 +183,7 @@ def run_readme_example(workdir, cfg):
         "lidar": rng.integers(0, 256, (4, r, r, 3), np.uint8),
         "action": rng.uniform([-1.0, -0.3], [1.0, 0.3], (4, 2)).astype(np.float32),
         "start_pose": np.tile(np.float32([10.0, -5.0, 1.0, 0.0, 3.0]), (4, 1)),
+        "lidar_scan": rng.uniform(0.0, 50.0, (4, 360)).astype(np.float32),
     }
     exec(example.replace('"runs/demo"', repr(str(workdir))), names)
     out, state, grid = names["out"], names["state"], pose_belief.grid_of(cfg.model)

@@ -14,8 +14,8 @@ from helpers import ROOT, run_readme_example
 
 import e2e_percep_jax as e2e
 from e2e_percep_jax import config as config_lib
+from e2e_percep_jax import ego_motion, pose_belief
 from e2e_percep_jax import model as model_lib
-from e2e_percep_jax import pose_belief
 from e2e_percep_jax import train as train_lib
 from e2e_percep_jax.sim import batch as batch_lib
 from e2e_percep_jax.sim import pixor, rollout
@@ -150,6 +150,52 @@ def _odometry(start, commands):
         x, y = rear + 1.35 * np.array([np.cos(yaw), np.sin(yaw)])
         poses.append(np.array([x, y, np.cos(yaw), np.sin(yaw), v]))
     return np.stack(poses)
+
+
+@pytest.mark.slow
+def test_the_known_start_off_the_training_town_is_the_lidar_odometry(params):
+    """With a motion model that has the scan matcher's noise, ``measure=False`` moves each stream's pose as
+    ``ego_motion.follow`` moves it from the same start on the same commands and lidar scans (a drive of the
+    world, 30 frames: six matches), which correct the heading away from the commands' alone; without the
+    frame's ``lidar_scan`` the step names the argument it needs."""
+    model = dataclasses.replace(
+        MODEL, yaw_bias_std_1pm=0.002, yaw_gain_std=0.03, yaw_noise_rad2pm=1e-6, scan_heading_noise_rad=0.002
+    )
+    perceiver = e2e.Perceiver(CFG, model)
+    assert perceiver.lidar_odometry
+    town = town_lib.build_town(CFG.world.town_seed)
+    states = jax.jit(batch_lib.warm_up, static_argnames="cfg")(jax.random.PRNGKey(5), town, CFG)
+    _, drive = jax.jit(jax.vmap(lambda s: rollout.drive(s, town, 30, R)))(states)
+    b = drive["pose"].shape[0]
+    prev_action = jnp.concatenate([drive["action"][:, :1], drive["action"][:, :-1]], 1)
+    start = drive["pose"][:, 0]
+    followed, _ = jax.jit(ego_motion.follow, static_argnums=0)(model, start, prev_action, drive["lidar_scan"])
+    reckoned, _ = jax.jit(ego_motion.follow, static_argnums=0)(model, start, prev_action, None)
+    step, state = jax.jit(perceiver.step, static_argnames="measure"), perceiver.init(b)
+    with pytest.raises(ValueError, match="lidar_scan"):
+        step(
+            params,
+            state,
+            drive["camera"][:, 0],
+            drive["lidar"][:, 0],
+            prev_action[:, 0],
+            start_pose=start,
+            measure=False,
+        )
+    for t in range(30):
+        frame = lambda k: drive[k][:, t]
+        state, out = step(
+            params,
+            state,
+            frame("camera"),
+            frame("lidar"),
+            prev_action[:, t],
+            start_pose=start,
+            measure=False,
+            lidar_scan=frame("lidar_scan"),
+        )
+    np.testing.assert_allclose(out.pose, followed[:, -1], rtol=1e-5, atol=1e-4)
+    assert np.abs(np.asarray(followed[:, -1, 2:4] - reckoned[:, -1, 2:4])).max() > 1e-4  # the scans took part
 
 
 @pytest.mark.slow

@@ -51,6 +51,7 @@ def test_frames_are_a_read_only_mapping_of_the_contract(start, drive):
     assert list(frames) == [
         "camera",
         "lidar",
+        "lidar_scan",
         "roadmap",
         "det_cls",
         "det_reg",
@@ -63,6 +64,6 @@ def test_frames_are_a_read_only_mapping_of_the_contract(start, drive):
         "boxes_frames_since_seen",
     ]
     assert frames["camera"] is frames.camera and frames.camera.shape == (NUM_FRAMES, IMAGE_SIZE, IMAGE_SIZE, 3)
-    assert dict(frames).keys() == set(frames) and len(frames) == 12
+    assert dict(frames).keys() == set(frames) and len(frames) == 13
     with pytest.raises(KeyError):
         frames["replace"]  # a dataclass method, not a field

@@ -29,12 +29,14 @@ def _metrics(
     place_frames=None,
     earlier_filter=False,
     commands_only=False,
+    image_matcher=False,
 ):
     """A metrics.json with what the tables read, every AP ``ap`` and the location mean ``location``
     (of checkpoint ``step``, or of the trained run where None), of the `cpu` preset (with ``place_frames``
     where given: another recipe), its belief filtered at today's defaults (``earlier_filter``: from before
     evaluations recorded the filter's settings), on a held-out town from the known start by the lidar
-    odometry (``commands_only``: from before evaluations recorded it)."""
+    odometry (``commands_only``: from before evaluations recorded it; ``image_matcher``: its matcher on the
+    lidar images, from before evaluations recorded what it matched)."""
     cfg = config.replace(
         config.get_config("cpu"), train=dict(seed=seed), eval=dict(town_seed=town, known_start=known_start)
     )
@@ -59,6 +61,8 @@ def _metrics(
         pose["filter_settings"] = pose_belief.default_settings()
     if not commands_only:
         pose["lidar_odometry"] = town != 0 and known_start
+        if pose["lidar_odometry"] and not image_matcher:
+            pose["scan_matcher"] = "lidar scan"
     return {
         "label": label,
         "config": json.loads(cfg.to_json()),
@@ -213,17 +217,27 @@ def test_a_variant_filtered_at_earlier_settings_is_marked(results, tmp_path):
     assert tables.EARLIER_FILTER_NOTE in localisation
 
 
-def test_a_held_out_drift_of_the_commands_alone_is_marked(results, tmp_path):
-    """A variant's held-out known-start evaluation (one seed of two) from before the lidar odometry gets the
-    mark on that town's drift, and the note; with every evaluation by the lidar odometry, neither appears."""
+@pytest.mark.parametrize(
+    "old, mark, note",
+    [
+        ({"commands_only": True}, tables.COMMANDS_ONLY, tables.COMMANDS_ONLY_NOTE),
+        ({"image_matcher": True}, tables.IMAGE_MATCHER, tables.IMAGE_MATCHER_NOTE),
+    ],
+)
+def test_a_held_out_drift_of_an_earlier_odometry_is_marked(results, tmp_path, old, mark, note):
+    """A variant's held-out known-start evaluation (one seed of two) from before the lidar odometry (the
+    commands alone), or from before it matched the lidar's scans (the image), gets its mark on that town's
+    drift, and its note; with every evaluation by today's odometry, neither appears."""
     localisation = tables.render(str(results))["localisation"]
-    assert tables.COMMANDS_ONLY not in localisation and tables.COMMANDS_ONLY_NOTE not in localisation
-    old = _metrics(1, town=7, known_start=True, drift=2.0, commands_only=True)
-    _write_run(tmp_path / "runs" / "place_s1", {"eval_town7_known_start": old})
+    assert mark not in localisation and note not in localisation
+    _write_run(
+        tmp_path / "runs" / "place_s1",
+        {"eval_town7_known_start": _metrics(1, town=7, known_start=True, drift=2.0, **old)},
+    )
     tables.collect("cpu", [str(tmp_path / "runs" / name) for name in ("place_s0", "place_s1")], str(results))
     localisation = tables.render(str(results))["localisation"]
-    assert _row(localisation, "`cpu`")[6] == f"1.00 ± 0.50 / 2.00 ± 0.00{tables.COMMANDS_ONLY}"
-    assert tables.COMMANDS_ONLY_NOTE in localisation
+    assert _row(localisation, "`cpu`")[6] == f"1.00 ± 0.50 / 2.00 ± 0.00{mark}"
+    assert note in localisation
 
 
 def test_learning_curve_reads_each_checkpoints_evaluations(results):

@@ -39,7 +39,7 @@ def warm_up(key, town, cfg: config_lib.Config):
 
 def _drive_on(states, town, cfg: config_lib.Config):
     """(states T+1 steps later, batch of the T+1 frames from ``states``)."""
-    return jax.vmap(lambda s: rollout.drive(s, town, cfg.data.seq_len + 1, cfg.data.image_size))(states)
+    return jax.vmap(lambda s: rollout.drive(s, town, cfg.data.seq_len + 1, cfg.data.image_size, scans=False))(states)
 
 
 def place_points(key, town, num: int):
@@ -56,15 +56,15 @@ def place_points(key, town, num: int):
 
 
 def place_frames(states, key, town, cfg: config_lib.Config) -> dict:
-    """The place stream: P = ``cfg.data.place_frames`` single frames (``sensors.observe``'s dict, [P, ...]),
-    each seen from a :func:`place_points` point, heading along its lane, in the traffic of one of the B
-    worlds ``states`` drawn uniformly (``world.place_ego``)."""
+    """The place stream: P = ``cfg.data.place_frames`` single frames (``sensors.observe``'s dict, without the
+    lidar scan as in the batch's frames, [P, ...]), each seen from a :func:`place_points` point, heading along
+    its lane, in the traffic of one of the B worlds ``states`` drawn uniformly (``world.place_ego``)."""
     k_world, k_points = jax.random.split(key)
     p = cfg.data.place_frames
     lane, arc, speed = place_points(k_points, town, p)
     chosen = jax.tree.map(lambda x: x[jax.random.randint(k_world, (p,), 0, cfg.data.batch_size)], states)
     placed = jax.vmap(world.place_ego, in_axes=(0, None, 0, 0, 0))(chosen, town, lane, arc, speed)
-    return jax.vmap(lambda st: sensors.observe(st, town, cfg.data.image_size))(placed)
+    return jax.vmap(lambda st: sensors.observe(st, town, cfg.data.image_size, scan=False))(placed)
 
 
 def _with_places(frames, states, key, town, cfg: config_lib.Config):

@@ -50,6 +50,13 @@ def rotate_xy(x, y, cos, sin):
     return cos * x - sin * y, sin * x + cos * y
 
 
+def azimuth_directions(num_azimuths: int):
+    """Unit vectors [num_azimuths, 2] (float32, ego frame) of azimuths evenly round from ahead, anticlockwise:
+    the lidar's beams, and the directions of its scan's ranges."""
+    azimuth = 2 * np.pi * np.arange(num_azimuths) / num_azimuths
+    return np.stack([np.cos(azimuth), np.sin(azimuth)], -1).astype(np.float32)
+
+
 def rotate(xy, angle_rad):
     """Rotates points ``[..., 2]`` counter-clockwise by ``angle_rad`` (broadcast to ``[...]``)."""
     xp = array_module(xy, angle_rad)

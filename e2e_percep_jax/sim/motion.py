@@ -50,10 +50,12 @@ class MotionModel:
     # The lidar odometry's (e2e_percep_jax.ego_motion): the spread over drives of each drive's curvature bias
     # and yaw gain error, the yaw error per metre left within a drive, and the scan matcher's heading error
     # (times the square root of the scans' returns). A scan noise of 0: not fitted, no scans used.
+    # (Models saved when the matcher read the lidar image carry its noise as "scan_yaw_noise_rad": `load`
+    # drops it and the spread fitted with it, which `calibration.ensure_scans` then fits for the scans.)
     yaw_bias_std_1pm: float = 0.0
     yaw_gain_std: float = 0.0
     yaw_noise_rad2pm: float = 0.0
-    scan_yaw_noise_rad: float = 0.0
+    scan_heading_noise_rad: float = 0.0
     # How far the odometry (the commands, with the scans when fitted) strays from a known start: its error's
     # std per axis (m) and in heading (rad) at 100 m driven, and how each grows with distance (a power law
     # fitted to the 95 % quantiles on training drives). 0: not fitted; the odometry's belief is then a point.
@@ -77,8 +79,11 @@ class MotionModel:
             raise ValueError(f"{path}: missing; fit it with `python experiments/calibrate.py --workdir={workdir}`")
         try:
             with open(path) as f:
-                return cls(**json.load(f))
-        except (ValueError, TypeError) as e:
+                fields = json.load(f)
+            if fields.pop("scan_yaw_noise_rad", None) is not None:
+                fields = {k: v for k, v in fields.items() if not k.startswith("odometry_")}
+            return cls(**fields)
+        except (ValueError, TypeError, AttributeError) as e:
             raise ValueError(f"{path}: not a motion model ({type(e).__name__}: {e})") from None
 
 

@@ -30,6 +30,9 @@ class Frames(Mapping):
     ``[B, T+1]``). Also a read-only mapping by field name (``frames["camera"]``), as the loss reads it.
 
     camera, lidar, roadmap: uint8 [..., R, R, 3], the ego's views (R = ``data.image_size`` pixels a side);
+    lidar_scan: float32 [..., 360], the lidar's own ranges (m) per degree of azimuth, anticlockwise from
+    ahead: its nearest return above the ground band, 0 where none within its 50 m (``sensors.render_scan``;
+    the lidar odometry's, which the model never reads; None in training batches, which skip it);
     det_cls: float32 [..., R, R, 1], 1 on pixels inside a vehicle's box; det_reg: float32 [..., R, R, 6],
     PIXOR regression targets (units in :mod:`e2e_percep_jax.sim.pixor`); pose: float32 [..., 5], the ego's
     (x m, y m, cos yaw, sin yaw, speed m/s) in the town frame; action: float32 [..., 2], the ego's commands
@@ -45,6 +48,7 @@ class Frames(Mapping):
 
     camera: jax.Array
     lidar: jax.Array
+    lidar_scan: jax.Array
     roadmap: jax.Array
     det_cls: jax.Array
     det_reg: jax.Array
@@ -88,13 +92,15 @@ def advance(state: world.WorldState, town, num_steps) -> world.WorldState:
     return jax.lax.fori_loop(0, num_steps, lambda _, s: world.step(s, town), state)
 
 
-def drive(state: world.WorldState, town, num_frames: int, image_size: int, with_states: bool = False):
+def drive(
+    state: world.WorldState, town, num_frames: int, image_size: int, with_states: bool = False, scans: bool = True
+):
     """Drives ``num_frames`` world steps from ``state``, observing before each step.
 
     Frame t is ``sensors.observe`` of state t plus ``action`` = the ego action applied from t to t+1
     (``ego_action`` of state t+1). Returns (the state after the last step, i.e. the state of the next
-    frame, so drives chain; :class:`Frames` [num_frames, ...]), and with ``with_states`` the world states
-    the frames saw ([num_frames, ...]) as a third element.
+    frame, so drives chain; :class:`Frames` [num_frames, ...], its ``lidar_scan`` None without ``scans``),
+    and with ``with_states`` the world states the frames saw ([num_frames, ...]) as a third element.
 
     The world is stepped first and the sensors observe all recorded states at once: one wide vmapped
     pass instead of one narrow pass per scan step (the same frames, and a few % faster).
@@ -105,7 +111,8 @@ def drive(state: world.WorldState, town, num_frames: int, image_size: int, with_
         return next_state, (state, next_state.ego_action)
 
     last, (states, actions) = jax.lax.scan(body, state, None, length=num_frames)
-    frames = jax.vmap(lambda s: sensors.observe(s, town, image_size))(states)
+    frames = jax.vmap(lambda s: sensors.observe(s, town, image_size, scans))(states)
+    frames.setdefault("lidar_scan", None)
     frames = Frames(**frames, action=actions, boxes_frames_since_seen=frames_since_seen(frames))
     return (last, frames, states) if with_states else (last, frames)
 

@@ -65,6 +65,9 @@ LIDAR_TOP_M = 3.1  # returns between the band and this height are drawn green; h
 # Culling: each sensor sees only the nearest obstacles, so its cost does not grow with the town.
 CAMERA_BUILDINGS, CAMERA_VEHICLES = 20, 12  # nearest inside the camera's view wedge, within its depth
 LIDAR_BUILDINGS, LIDAR_VEHICLES = 16, 16  # nearest overlapping the BEV view (the only returns drawn)
+# The lidar's scan sees out to its range: the nearest obstacles within LIDAR_RANGE_M (the towns hold at most
+# 23 buildings within 50 m of a lane).
+SCAN_BUILDINGS, SCAN_VEHICLES = 32, 16
 HITS_PER_RAY = 4  # nearest boxes kept per horizontal ray (layers of occlusion); a power of two
 
 # Camera palette (RGB 0..255): a daylight street, unlike the roadmap's schematic SEM_COLORS.
@@ -371,8 +374,7 @@ def lidar_returns(obstacles: Obstacles):
     surface within range), the candidates (:class:`Candidates`) and which candidate each beam ends on,
     bool [K, E, A].
     """
-    azimuth = 2 * np.pi * np.arange(LIDAR_NUM_AZIMUTHS) / LIDAR_NUM_AZIMUTHS
-    dir_x, dir_y = jnp.asarray(np.cos(azimuth), jnp.float32), jnp.asarray(np.sin(azimuth), jnp.float32)
+    dir_x, dir_y = jnp.asarray(geo.azimuth_directions(LIDAR_NUM_AZIMUTHS).T)
     cand = cast_rays(obstacles, 0.0, 0.0, dir_x, dir_y, LIDAR_HEIGHT_M)
     slope = jnp.asarray(np.tan(LIDAR_ELEVATION_RAD))[:, None]  # [E, 1]
     depth_k = _candidate_depths(cand, slope, LIDAR_HEIGHT_M)
@@ -422,6 +424,16 @@ def render_lidar(obstacles: Obstacles, image_size):
     picked = jnp.any(ends_on, axis=1)  # [K, A]
     returned = _mark(jnp.where(picked, cand.idx, -1).ravel(), obstacles.box.shape[0]) > 0
     return image, returned
+
+
+def render_scan(obstacles: Obstacles):
+    """The lidar's scan, float32 [LIDAR_NUM_AZIMUTHS]: per azimuth (degree k: k degrees anticlockwise from
+    ahead), the horizontal range (m) of its beams' nearest return at least LIDAR_GROUND_BAND_M above the
+    ground, 0 where no beam of that azimuth returns from an obstacle within range. What a car's lidar
+    reports before any image is drawn: exact ranges, out to LIDAR_RANGE_M (the image keeps only the view)."""
+    x, y, z, has_return = lidar_returns(obstacles)[:4]
+    range_m = jnp.min(jnp.where(has_return & (z >= LIDAR_GROUND_BAND_M), jnp.hypot(x, y), jnp.inf), axis=0)
+    return jnp.where(jnp.isfinite(range_m), range_m, 0.0)
 
 
 # ----------------------------------------------------------------------------- roadmap
@@ -541,23 +553,41 @@ def lidar_obstacles(state: WorldState, town: Town, building_box_ego, vehicle_box
     )
 
 
+def scan_obstacles(state: WorldState, town: Town, building_box_ego, vehicle_box_ego):
+    """The buildings and surrounding vehicles within the lidar's range, nearest first: its scan's."""
+    within = lambda box: jnp.linalg.norm(box[:, :2], axis=-1) - 0.5 * jnp.hypot(box[:, 3], box[:, 4]) <= LIDAR_RANGE_M
+    return _obstacles(
+        building_box_ego,
+        vehicle_box_ego,
+        state,
+        town,
+        within(building_box_ego),
+        within(vehicle_box_ego),
+        SCAN_BUILDINGS,
+        SCAN_VEHICLES,
+    )
+
+
 def _in_ego_frame(state: WorldState, town: Town):
     """(the other vehicles' boxes [N, 5], the buildings' boxes) in the ego frame."""
     ego = state.veh_box[EGO]
     return geo.box_to_ego(state.veh_box[1:], ego[:2], ego[2]), geo.box_to_ego(town.building_box, ego[:2], ego[2])
 
 
-def observe_lidar(state: WorldState, town: Town, image_size: int):
-    """The frame's lidar image alone (:func:`observe`'s ``lidar``), for drives that need no other sensor."""
+def observe_scan(state: WorldState, town: Town):
+    """The frame's lidar scan alone (:func:`observe`'s ``lidar_scan``), for drives that need no other sensor."""
     town = jax.tree.map(jnp.asarray, town)
-    return render_lidar(lidar_obstacles(state, town, *_in_ego_frame(state, town)), image_size)[0]
+    boxes, buildings = _in_ego_frame(state, town)
+    return render_scan(scan_obstacles(state, town, buildings, boxes))
 
 
-def observe(state: WorldState, town: Town, image_size: int):
+def observe(state: WorldState, town: Town, image_size: int, scan: bool = True):
     """One frame of the contract (:class:`rollout.Frames`) except ``action``, which belongs to the transition t -> t+1
     and is added by ``batch.rollout`` from the next state.
 
-    Returns a dict: camera, lidar, roadmap uint8 [R, R, 3]; det_cls float32 [R, R, 1]; det_reg
+    Returns a dict: camera, lidar, roadmap uint8 [R, R, 3]; lidar_scan float32 [LIDAR_NUM_AZIMUTHS] (m,
+    :func:`render_scan`; with ``scan`` only: the lidar odometry's, which training batches skip, as its cast
+    costs as much as the lidar image's); det_cls float32 [R, R, 1]; det_reg
     float32 [R, R, 6]; pose float32 [5]; boxes float32 [N, 5] (ego frame); boxes_valid,
     boxes_lidar_visible (some lidar beam ends on the box), boxes_camera_visible (the camera image shows
     some of it) bool [N], N = surrounding vehicles (``veh_box.shape[0] - 1``), in the world's vehicle order.
@@ -576,7 +606,7 @@ def observe(state: WorldState, town: Town, image_size: int):
         _mark(jnp.where(obstacles.is_vehicle & flags, obstacles.vehicle_index, -1), n) > 0
     )
     det_cls, det_reg = pixor.targets(boxes, image_size)
-    return {
+    frame = {
         "camera": camera,
         "lidar": lidar,
         "roadmap": render_roadmap(town, ego_xy, ego_yaw, ego[3], ego[4], image_size),
@@ -590,3 +620,6 @@ def observe(state: WorldState, town: Town, image_size: int):
         "boxes_lidar_visible": vehicles(seen_by_lidar, returned),
         "boxes_camera_visible": vehicles(seen_by_camera, shown),
     }
+    if scan:
+        frame["lidar_scan"] = render_scan(scan_obstacles(state, town, buildings, boxes))
+    return frame

@@ -43,14 +43,15 @@ def bench_world(town, repeats):
 
 
 def bench_frames(town, repeats):
-    """Full frames/s: ``sensors.observe`` (every contract key) on W world states at once.
+    """Full frames/s: ``sensors.observe`` (every contract key but the lidar scan, which training batches
+    skip: its cost is :func:`bench_frames_parts`' ``lidar_scan``) on W world states at once.
 
     This VM's speed swings by up to 2x from one second to the next, so
     the figure is the median over FRAMES_SECONDS one-second blocks, and the slowest and fastest block's
     medians show the spread."""
     cfg, r = config_lib.get_config("paper"), FLAGS.frames_image_size
     states = _warm_worlds(town, FLAGS.num_worlds, cfg)
-    observe = jax.jit(jax.vmap(lambda s: sensors.observe(s, town, r)))
+    observe = jax.jit(jax.vmap(lambda s: sensors.observe(s, town, r, scan=False)))
     blocks_s = [median_s(lambda: observe(states), repeats) for _ in range(FRAMES_SECONDS)]
     per_s = lambda seconds: FLAGS.num_worlds / seconds
     return {
@@ -64,7 +65,7 @@ def bench_frames(town, repeats):
 
 def bench_frames_parts(town, repeats):
     """Where a frame's time goes: each sensor of ``sensors.observe`` alone, vmapped over W states, as
-    core-microseconds per frame (wall time x cores / frames), so the parts add up to ``frames``."""
+    core-microseconds per frame (wall time x cores / frames), so the parts but ``lidar_scan`` add up to ``frames``."""
     cfg, r = config_lib.get_config("paper"), FLAGS.frames_image_size
     states = _warm_worlds(town, FLAGS.num_worlds, cfg)
     town_j = jax.tree.map(jnp.asarray, town)
@@ -81,6 +82,10 @@ def bench_frames_parts(town, repeats):
         _, boxes, buildings = in_ego_frame(state)
         return sensors.render_lidar(sensors.lidar_obstacles(state, town_j, buildings, boxes), r)
 
+    def lidar_scan(state):
+        _, boxes, buildings = in_ego_frame(state)
+        return sensors.render_scan(sensors.scan_obstacles(state, town_j, buildings, boxes))
+
     def camera(state):
         ego, boxes, buildings = in_ego_frame(state)
         return sensors.render_camera(
@@ -93,6 +98,7 @@ def bench_frames_parts(town, repeats):
 
     parts = {
         "lidar": lidar,
+        "lidar_scan": lidar_scan,
         "camera": camera,
         "roadmap": roadmap,
         "pixor_targets": lambda state: pixor.targets(in_ego_frame(state)[1], r),
