@@ -162,7 +162,7 @@ class SingleFramePerceiver:
 
     def step(self, params, state, camera, lidar, action, key=None, start_pose=None, measure=True, lidar_scan=None):
         """(state, :class:`PerceiverOutputs` with det_cls, det_reg and pose); ``action``, ``key``,
-        ``start_pose`` and ``measure`` are unused."""
+        ``start_pose``, ``measure`` and ``lidar_scan`` are unused."""
         out = {} if self.head is None else predict(params, camera, lidar, self.cfg, self.head)
         b, r = camera.shape[0], self.cfg.data.image_size
         if "pose_normalised" in out:

@@ -259,8 +259,9 @@ def spread(model: MotionModel, travelled_m):
 def follow(model: MotionModel, start_pose, prev_action, scans):
     """The odometry along B recorded drives from their true first poses: :func:`step` frame by frame in one
     ``lax.scan``. start_pose [B, 5]; prev_action [B, T, 2], frame t's commands (applied from t-1 to t; frame
-    0's only set the actuators); scans [B, T, SCAN_AZIMUTHS] (the lidar's), or None for dead reckoning. Returns the poses [B, T, 5]
-    and the drive's estimated correction [B, T, 2] (curvature bias 1/m, gain error) after each frame."""
+    0's only set the actuators); scans [B, T, SCAN_AZIMUTHS] (the lidar's), or None for dead reckoning.
+    Returns the poses [B, T, 5] and the drive's estimated correction [B, T, 2] (curvature bias 1/m, gain
+    error) after each frame."""
     b = start_pose.shape[0]
 
     def body(carry, x):

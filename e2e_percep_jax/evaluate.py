@@ -395,10 +395,10 @@ def evaluate(
 
     What is evaluated: ``perceiver``, anything hashable with the inference API's ``init(batch_size)`` and
     ``step(params, state, camera, lidar, action, key=None, start_pose=None, measure=True, lidar_scan=None) ->
-    (state, outputs)`` (state: any
-    pytree the perceiver carries; outputs: a :class:`~e2e_percep_jax.api.PerceiverOutputs`), and optionally
-    ``pose_nll(state, pose)`` and ``pose_coverage(state, pose)`` (default: the filtered model, with the
-    motion model of the run in ``workdir``, or the exact bicycle without one: :func:`api.run_perceiver`);
+    (state, outputs)`` (state: any pytree the perceiver carries; outputs: a
+    :class:`~e2e_percep_jax.api.PerceiverOutputs`), and optionally ``pose_nll(state, pose)`` and
+    ``pose_coverage(state, pose)`` (default: the filtered model, with the motion model of the run in
+    ``workdir``, or the exact bicycle without one: :func:`api.run_perceiver`);
     ``sample``: latents sampled, not their means; ``detect``: the candidates, score floor and NMS
     (:class:`detection.Settings`); ``heads``: see :func:`make_chunk_fn`; ``host_fn(d)``, called once per
     drive d before it starts (the pose drives 0..E-1, then detection's E..E+D-1), returns a function

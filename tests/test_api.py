@@ -165,7 +165,7 @@ def test_the_known_start_off_the_training_town_is_the_lidar_odometry(params):
     assert perceiver.lidar_odometry
     town = town_lib.build_town(CFG.world.town_seed)
     states = jax.jit(batch_lib.warm_up, static_argnames="cfg")(jax.random.PRNGKey(5), town, CFG)
-    _, drive = jax.jit(jax.vmap(lambda s: rollout.drive(s, town, 30, R)))(states)
+    _, drive = jax.jit(jax.vmap(lambda s: rollout.drive(s, town, 30, R, scans=True)))(states)
     b = drive["pose"].shape[0]
     prev_action = jnp.concatenate([drive["action"][:, :1], drive["action"][:, :-1]], 1)
     start = drive["pose"][:, 0]

@@ -39,7 +39,7 @@ def warm_up(key, town, cfg: config_lib.Config):
 
 def _drive_on(states, town, cfg: config_lib.Config):
     """(states T+1 steps later, batch of the T+1 frames from ``states``)."""
-    return jax.vmap(lambda s: rollout.drive(s, town, cfg.data.seq_len + 1, cfg.data.image_size, scans=False))(states)
+    return jax.vmap(lambda s: rollout.drive(s, town, cfg.data.seq_len + 1, cfg.data.image_size))(states)
 
 
 def place_points(key, town, num: int):

@@ -32,7 +32,7 @@ class Frames(Mapping):
     camera, lidar, roadmap: uint8 [..., R, R, 3], the ego's views (R = ``data.image_size`` pixels a side);
     lidar_scan: float32 [..., 360], the lidar's own ranges (m) per degree of azimuth, anticlockwise from
     ahead: its nearest return above the ground band, 0 where none within its 50 m (``sensors.render_scan``;
-    the lidar odometry's, which the model never reads; None in training batches, which skip it);
+    the lidar odometry's, which the model never reads; None in drives that skip it, as training batches do);
     det_cls: float32 [..., R, R, 1], 1 on pixels inside a vehicle's box; det_reg: float32 [..., R, R, 6],
     PIXOR regression targets (units in :mod:`e2e_percep_jax.sim.pixor`); pose: float32 [..., 5], the ego's
     (x m, y m, cos yaw, sin yaw, speed m/s) in the town frame; action: float32 [..., 2], the ego's commands
@@ -93,13 +93,14 @@ def advance(state: world.WorldState, town, num_steps) -> world.WorldState:
 
 
 def drive(
-    state: world.WorldState, town, num_frames: int, image_size: int, with_states: bool = False, scans: bool = True
+    state: world.WorldState, town, num_frames: int, image_size: int, with_states: bool = False, scans: bool = False
 ):
     """Drives ``num_frames`` world steps from ``state``, observing before each step.
 
     Frame t is ``sensors.observe`` of state t plus ``action`` = the ego action applied from t to t+1
     (``ego_action`` of state t+1). Returns (the state after the last step, i.e. the state of the next
-    frame, so drives chain; :class:`Frames` [num_frames, ...], its ``lidar_scan`` None without ``scans``),
+    frame, so drives chain; :class:`Frames` [num_frames, ...], its ``lidar_scan`` cast only with ``scans``:
+    the lidar odometry's, which no model reads, at a quarter of a frame's cost; else None),
     and with ``with_states`` the world states the frames saw ([num_frames, ...]) as a third element.
 
     The world is stepped first and the sensors observe all recorded states at once: one wide vmapped

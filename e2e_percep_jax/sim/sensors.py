@@ -492,10 +492,14 @@ def _reaches_bev_view(box_ego):
     )
 
 
+def _reach_m(box_ego):
+    """How near boxes [N, 5] (ego frame) may come to the ego: centre distance less the half diagonal [N]."""
+    return jnp.linalg.norm(box_ego[:, :2], axis=-1) - 0.5 * jnp.hypot(box_ego[:, 3], box_ego[:, 4])
+
+
 def _select(box_ego, relevant, k):
     """Indices [k] of the k relevant boxes [N, 5] (ego frame) nearest the ego, and which are relevant."""
-    reach = jnp.linalg.norm(box_ego[:, :2], axis=-1) - 0.5 * jnp.hypot(box_ego[:, 3], box_ego[:, 4])
-    neg, idx = jax.lax.top_k(-jnp.where(relevant, reach, jnp.inf), min(k, box_ego.shape[0]))
+    neg, idx = jax.lax.top_k(-jnp.where(relevant, _reach_m(box_ego), jnp.inf), min(k, box_ego.shape[0]))
     return idx, jnp.isfinite(neg)
 
 
@@ -555,14 +559,13 @@ def lidar_obstacles(state: WorldState, town: Town, building_box_ego, vehicle_box
 
 def scan_obstacles(state: WorldState, town: Town, building_box_ego, vehicle_box_ego):
     """The buildings and surrounding vehicles within the lidar's range, nearest first: its scan's."""
-    within = lambda box: jnp.linalg.norm(box[:, :2], axis=-1) - 0.5 * jnp.hypot(box[:, 3], box[:, 4]) <= LIDAR_RANGE_M
     return _obstacles(
         building_box_ego,
         vehicle_box_ego,
         state,
         town,
-        within(building_box_ego),
-        within(vehicle_box_ego),
+        _reach_m(building_box_ego) <= LIDAR_RANGE_M,
+        _reach_m(vehicle_box_ego) <= LIDAR_RANGE_M,
         SCAN_BUILDINGS,
         SCAN_VEHICLES,
     )
@@ -587,7 +590,7 @@ def observe(state: WorldState, town: Town, image_size: int, scan: bool = True):
 
     Returns a dict: camera, lidar, roadmap uint8 [R, R, 3]; lidar_scan float32 [LIDAR_NUM_AZIMUTHS] (m,
     :func:`render_scan`; with ``scan`` only: the lidar odometry's, which training batches skip, as its cast
-    costs as much as the lidar image's); det_cls float32 [R, R, 1]; det_reg
+    costs three quarters of the lidar image's); det_cls float32 [R, R, 1]; det_reg
     float32 [R, R, 6]; pose float32 [5]; boxes float32 [N, 5] (ego frame); boxes_valid,
     boxes_lidar_visible (some lidar beam ends on the box), boxes_camera_visible (the camera image shows
     some of it) bool [N], N = surrounding vehicles (``veh_box.shape[0] - 1``), in the world's vehicle order.

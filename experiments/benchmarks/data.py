@@ -65,7 +65,8 @@ def bench_frames(town, repeats):
 
 def bench_frames_parts(town, repeats):
     """Where a frame's time goes: each sensor of ``sensors.observe`` alone, vmapped over W states, as
-    core-microseconds per frame (wall time x cores / frames), so the parts but ``lidar_scan`` add up to ``frames``."""
+    core-microseconds per frame (wall time x cores / frames), so the parts but ``lidar_scan`` add up to
+    ``frames``."""
     cfg, r = config_lib.get_config("paper"), FLAGS.frames_image_size
     states = _warm_worlds(town, FLAGS.num_worlds, cfg)
     town_j = jax.tree.map(jnp.asarray, town)
