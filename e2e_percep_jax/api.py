@@ -123,8 +123,8 @@ class Perceiver:
         their belief at this pose; it then follows the commands through the motion model and, with
         ``measure`` (the town the model was trained on), the place measurements as in the global protocol.
         ``measure=False`` (a town the model has not seen) is an odometry: the commands through the motion
-        model, their heading corrected by the lidar's scans ``lidar_scan`` float32 [B, 360] (the frame
-        contract's: ranges m a degree) when the model has the scan matcher's fitted noise
+        model, their heading, speed and distance corrected by the lidar's scans ``lidar_scan`` float32 [B, 360]
+        (the frame contract's: ranges m a degree) when the model has the scan matcher's fitted noise
         (:attr:`lidar_odometry`, :mod:`e2e_percep_jax.ego_motion`); nothing else reads ``lidar_scan``.
         """
         camera, lidar, action = jnp.asarray(camera), jnp.asarray(lidar), jnp.asarray(action)

@@ -17,8 +17,9 @@ Baselines (``BASELINES``), each run in ``<workdir>/<baseline>/``:
   true first pose and speed, the logged commands through the same calibrated motion model
   (:class:`CommandOdometry`, :mod:`e2e_percep_jax.sim.motion`). Evaluated under the known-start protocol.
 - ``lidar_odometry``: no network; dead reckoning's commands with the lidar's scans matched every few frames,
-  which correct the heading and estimate the drive's steering offset and gain on the way
-  (:mod:`e2e_percep_jax.ego_motion`; the matcher's noise fitted on training drives). Known-start protocol.
+  which correct the heading, speed and distance and estimate the drive's steering offset, gain and
+  distance scale on the way (:mod:`e2e_percep_jax.ego_motion`; the matcher's noises fitted on training
+  drives). Known-start protocol.
 - ``wheel_odometry``: no network; ``odometry.DeadReckoner`` from each drive's true first pose, integrating
   wheel-speed and yaw-rate sensors: the true speed and yaw rate with a per-drive wheel-radius error and
   gyro bias, and per-sample noise (:func:`wheel_odometry_host`). Evaluated under the known-start protocol.
@@ -306,8 +307,8 @@ class OdometryState:
 class CommandOdometry:
     """Dead reckoning on the logged commands, as the inference API's ``init`` / ``step``: each stream
     starts at ``start_pose`` (its true first pose and speed) and then moves by the commands through
-    ``motion_model`` (:func:`ego_motion.step`), with ``scans`` the lidar's scans correcting its heading
-    (the model must have the matcher's fitted noise), else alone. No boxes."""
+    ``motion_model`` (:func:`ego_motion.step`), with ``scans`` the lidar's scans correcting its heading,
+    speed and distance (the model must have the matcher's fitted noise), else alone. No boxes."""
 
     cfg: Config
     motion_model: motion_lib.MotionModel
@@ -342,9 +343,7 @@ class CommandOdometry:
             start_pose,
         )
         b, r = camera.shape[0], self.cfg.data.image_size
-        new = OdometryState(
-            pose=pose, actuator=jnp.where(first[:, None], 0.0, actuator), started=jnp.ones_like(first), scans=scans
-        )
+        new = OdometryState(pose=pose, actuator=actuator, started=jnp.ones_like(first), scans=scans)
         return (
             new,
             PerceiverOutputs(det_cls=jnp.zeros((b, r, r, 1)), det_reg=jnp.zeros((b, r, r, 6)), pose=pose),
@@ -447,7 +446,7 @@ def run(baseline: str, cfg: Config, workdir: str, *, video_frames: int = 300, lo
         label = "dead reckoning (commands through the calibrated motion model)"
         hooks = dict(perceiver=CommandOdometry(cfg, odometry_model(cfg, workdir)))
     elif baseline == "lidar_odometry":
-        label = "lidar odometry (the commands, their heading corrected by scan matching)"
+        label = "lidar odometry (the commands, their heading, speed and distance corrected by scan matching)"
         hooks = dict(perceiver=CommandOdometry(cfg, odometry_model(cfg, workdir, scans=True), scans=True))
     elif baseline == "wheel_odometry":
         label = (

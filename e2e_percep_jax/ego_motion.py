@@ -13,10 +13,15 @@ returns, or a wall only one scan sees, add little), and a weak Gaussian prior ce
 prediction holds what the walls do not pin: along a street, the distance, which moving cars would otherwise
 pull.
 
-Walls along the road pin the heading and the lateral offset; only corners and cross streets pin the
-distance along the road, so the odometry takes the matcher's heading alone (BUILD_NOTES, "Odometry from
-the lidar on towns never seen"). Pure JAX, one stream; ``jax.vmap`` it over streams.
+Walls along the road pin the heading and the lateral offset; only corners, cross streets and standing cars
+pin the distance along the road. The match's Gauss-Newton information says which: the odometry takes the
+matched heading change, and the matched forward motion weighed by its precision from that information
+(:func:`forward_precision`), each through a small Kalman filter that also learns the drive's steering offset
+and gain, and its speed and distance scale (BUILD_NOTES, "Odometry from the lidar on towns never seen").
+Pure JAX, one stream; ``jax.vmap`` it over streams.
 """
+
+from typing import NamedTuple
 
 import flax.struct
 import jax
@@ -54,14 +59,16 @@ def scan_points(scan):
 
 def match(reference, scan, prior):
     """The car's motion (dx m, dy m, dyaw rad) [3] from the ``reference`` scan [A] to ``scan`` [A] (ranges m,
-    :func:`scan_points`), searched from ``prior`` [3]; and the fewer of the two scans' returns [] (float32:
-    the match's error shrinks about as one over its square root)."""
+    :func:`scan_points`), searched from ``prior`` [3]; the fewer of the two scans' returns [] (float32: the
+    match's error shrinks about as one over its square root); and the scans' Gauss-Newton information [3, 3]
+    at the match, the prior's left out (in units of RESIDUAL_M: what the walls pin, and how sharply)."""
     points, weight = scan_points(reference)
     current, returned = scan_points(scan)
-    prior_precision = jnp.asarray(PRIOR_STD, jnp.float32) ** -2
+    prior_precision = jnp.diag(jnp.asarray(PRIOR_STD, jnp.float32) ** -2)
     moved = lambda motion: geo.town_to_ego(points, motion[:2], motion[2])
 
-    def gauss_newton(i, motion):
+    def normal_equations(i, motion):
+        """The scans' information [3, 3] and gradient [3] at ``motion``, with iteration ``i``'s trim."""
         trim_m = jnp.maximum(TRIM_FLOOR_M, TRIM_START_M * TRIM_SHRINK**i)
         q = moved(motion)
         # |q - c|^2 as a product: no [A, A, 2] difference is materialised
@@ -77,12 +84,35 @@ def match(reference, scan, prior):
         near = jnp.linalg.norm(q - a, axis=-1) < trim_m
         w = weight & near & (length > 1e-4) & (length < MAX_SEGMENT_M)
         w = w / (1.0 + (r / ROBUST_M) ** 2) / RESIDUAL_M**2
-        hessian = jnp.einsum("p,pi,pj->ij", w, jac, jac) + jnp.diag(prior_precision)
-        gradient = jnp.einsum("p,pi,p->i", w, jac, r) + prior_precision * (motion - prior)
-        return motion - jnp.linalg.solve(hessian, gradient)
+        return jnp.einsum("p,pi,pj->ij", w, jac, jac), jnp.einsum("p,pi,p->i", w, jac, r)
+
+    def gauss_newton(i, motion):
+        information, gradient = normal_equations(i, motion)
+        return motion - jnp.linalg.solve(information + prior_precision, gradient + prior_precision @ (motion - prior))
 
     motion = jax.lax.fori_loop(0, ITERATIONS, gauss_newton, prior)
-    return motion, jnp.minimum(jnp.sum(weight), jnp.sum(returned)).astype(jnp.float32)
+    information, _ = normal_equations(ITERATIONS - 1, motion)
+    return motion, jnp.minimum(jnp.sum(weight), jnp.sum(returned)).astype(jnp.float32), information
+
+
+def forward_precision(information, direction):
+    """The precision [...] of a match's motion along the unit ``direction`` [..., 2] (ego axes), from its
+    ``information`` [..., 3, 3] (:func:`match`), with the motion across it and the heading marginalised: the
+    Schur complement, their prior's precision added (a pair of scans that pins neither still gives a finite
+    answer). Along a street whose walls alone return, it is near 0: they do not pin the distance."""
+    across = jnp.stack([-direction[..., 1], direction[..., 0]], -1)
+    zeros = jnp.zeros(direction.shape[:-1] + (1,), information.dtype)
+    basis = jnp.stack(
+        [
+            jnp.concatenate([direction, zeros], -1),
+            jnp.concatenate([across, zeros], -1),
+            jnp.broadcast_to(jnp.asarray([0.0, 0.0, 1.0], information.dtype), across.shape[:-1] + (3,)),
+        ],
+        -2,
+    )
+    rotated = basis @ information @ jnp.swapaxes(basis, -1, -2)
+    rest = rotated[..., 1:, 1:] + jnp.diag(jnp.asarray(PRIOR_STD[1:], information.dtype) ** -2)
+    return rotated[..., 0, 0] - jnp.sum(rotated[..., 0, 1:] * jnp.linalg.solve(rest, rotated[..., 1:, 0:1])[..., 0], -1)
 
 
 # ----------------------------------------------------------------------------- the self-calibrating odometry
@@ -101,6 +131,12 @@ class OdometryState:
         wheelbase) and yaw gain error (a share): the model's yaw change ``dyaw`` over a distance ``ds``
         becomes ``dyaw + ds * bias + dyaw * gain_error``;
     covariance: float32 [B, 2, 2], the correction's;
+    speed_change_mps: float32 [B], the odometry's speed change since the keyframe;
+    speed_change_distance_m: float32 [B], the distance that speed change drove since the keyframe (a gain
+        error ``g`` adds ``g`` times it to the distance, and ``g * speed_change_mps`` to the speed);
+    accel_gain_error: float32 [B], the drive's estimated acceleration gain error (a share: the plant's
+        distance scale less 1): the odometry accelerates ``1 + accel_gain_error`` times as the model says;
+    speed_covariance: float32 [B, 2, 2], of (the odometry's speed error at the keyframe m/s, the gain's error);
     pose: float32 [B, 5], the odometry's pose after the last frame (x m, y m, cos, sin, speed m/s);
     travelled_m: float32 [B], the distance the motion model drove since the drive's start (what the
         odometry's spread grows with: :func:`spread`).
@@ -113,6 +149,10 @@ class OdometryState:
     model_yaw_rad: jax.Array
     correction: jax.Array
     covariance: jax.Array
+    speed_change_mps: jax.Array
+    speed_change_distance_m: jax.Array
+    accel_gain_error: jax.Array
+    speed_covariance: jax.Array
     pose: jax.Array
     travelled_m: jax.Array
 
@@ -122,8 +162,14 @@ def prior_covariance(model: MotionModel):
     return jnp.diag(jnp.asarray([model.yaw_bias_std_1pm**2, model.yaw_gain_std**2], jnp.float32))
 
 
+def speed_prior_covariance(model: MotionModel):
+    """The speed's and gain's covariance [2, 2] at a drive's start: the speed known to a step's random walk
+    (the start pose gives it), the gain error within its spread over training drives."""
+    return jnp.diag(jnp.asarray([model.speed_noise_mps**2, model.speed_gain_std**2], jnp.float32))
+
+
 def init_state(batch_size: int) -> OdometryState:
-    """Before a drive's first frame (which sets the keyframe and the correction's prior)."""
+    """Before a drive's first frame (which sets the keyframe and the corrections' priors)."""
     zeros = jnp.zeros((batch_size,), jnp.float32)
     return OdometryState(
         keyframe_scan=jnp.zeros((batch_size, SCAN_AZIMUTHS), jnp.float32),
@@ -133,6 +179,10 @@ def init_state(batch_size: int) -> OdometryState:
         model_yaw_rad=zeros,
         correction=jnp.zeros((batch_size, 2), jnp.float32),
         covariance=jnp.zeros((batch_size, 2, 2), jnp.float32),
+        speed_change_mps=zeros,
+        speed_change_distance_m=zeros,
+        accel_gain_error=zeros,
+        speed_covariance=jnp.zeros((batch_size, 2, 2), jnp.float32),
         pose=jnp.zeros((batch_size, 5), jnp.float32),
         travelled_m=zeros,
     )
@@ -148,12 +198,13 @@ def _xy_yaw(pose):
 
 
 def kalman_update(correction, covariance, h, white_var, scan_var, innovation):
-    """One Kalman update of (e, c) by a matched heading change, B streams: e [B] the heading's error since
-    the keyframe (prior mean 0, variance ``h c_cov h' + white_var``: the correction's error times ``h`` [B, 2],
-    the heading change's derivative by it, plus the model's own errors), c the correction [B, 2] (covariance
+    """One Kalman update of (e, c) by a matched change, B streams: e [B] the change's error since the
+    keyframe (prior mean 0, variance ``h c_cov h' + white_var``: the correction's error times ``h`` [B, 2],
+    the change's derivative by it, plus the model's own errors), c the correction [B, 2] (covariance
     [B, 2, 2]); the measurement is e plus noise of variance ``scan_var`` [B], ``innovation`` [B] the matched
-    minus the predicted heading change. Returns (correction, covariance, the heading's correction [B],
-    innovation variance [B])."""
+    minus the predicted change. The heading (c: curvature bias and yaw gain error) and the distance (c: the
+    speed's error and the acceleration gain error) take it alike. Returns (correction, covariance, the
+    change's correction [B], innovation variance [B])."""
     ph = jnp.einsum("bij,bj->bi", covariance, h)
     heading_var = jnp.einsum("bi,bi->b", h, ph) + white_var
     innovation_var = heading_var + scan_var
@@ -166,15 +217,43 @@ def kalman_update(correction, covariance, h, white_var, scan_var, innovation):
     )
 
 
-def _update(state: OdometryState, model: MotionModel, scan, pose):
-    """The keyframe's match against ``scan`` through :func:`kalman_update`: (correction, covariance, heading
-    change [B] to add to ``pose``). Scans with fewer than MIN_RETURNS returns, and matches off the
-    prediction by more than GATE standard deviations and GATE_FLOOR_RAD, change nothing."""
+def _gated(num_returns, innovation, innovation_var, floor):
+    """Whether a match is taken: enough returns, and within GATE standard deviations or ``floor``."""
+    return (num_returns >= MIN_RETURNS) & (innovation**2 < jnp.maximum(GATE**2 * innovation_var, floor**2))
+
+
+class _Update(NamedTuple):
+    """What a keyframe's match changes (B streams): the heading's correction, its covariance and the turn to
+    add; the pose's move along the chord [B, 2] m, the speed's change [B], the gain error's change [B] and
+    the speed's covariance carried to the new keyframe [B, 2, 2]."""
+
+    correction: jax.Array
+    covariance: jax.Array
+    turn: jax.Array
+    move: jax.Array
+    speed: jax.Array
+    accel_gain: jax.Array
+    speed_covariance: jax.Array
+
+
+def _speed_carried(state: OdometryState, model: MotionModel, covariance):
+    """The speed's covariance [B, 2, 2] moved from the keyframe to now: the gain error adds its share of the
+    speed change, and the random walk a step's variance a frame."""
+    f = jnp.zeros_like(covariance).at[:, 0, 0].set(1.0).at[:, 1, 1].set(1.0).at[:, 0, 1].set(state.speed_change_mps)
+    walk = model.speed_noise_mps**2 * state.keyframe_age.astype(jnp.float32)
+    return f @ covariance @ jnp.swapaxes(f, 1, 2) + jnp.zeros_like(covariance).at[:, 0, 0].set(walk)
+
+
+def _update(state: OdometryState, model: MotionModel, scan, pose) -> _Update:
+    """The keyframe's match against ``scan`` through :func:`kalman_update`, once for the heading and, when
+    ``model`` has the forward motion's noise, once for the distance. Scans with fewer than MIN_RETURNS
+    returns, and matches off the prediction by more than GATE standard deviations (and, for the heading,
+    GATE_FLOOR_RAD), change nothing but the speed's covariance, carried on."""
     pose3, key3 = _xy_yaw(pose), state.keyframe_pose
     predicted = jnp.concatenate(
         [geo.town_to_ego(pose3[:, :2], key3[:, :2], key3[:, 2]), geo.wrap_angle(pose3[:, 2:] - key3[:, 2:])], -1
     )
-    measured, num_returns = jax.vmap(match)(state.keyframe_scan, scan, predicted)
+    measured, num_returns, information = jax.vmap(match)(state.keyframe_scan, scan, predicted)
     innovation = geo.wrap_angle(measured[:, 2] - predicted[:, 2])
     correction, covariance, turn, innovation_var = kalman_update(
         state.correction,
@@ -184,30 +263,93 @@ def _update(state: OdometryState, model: MotionModel, scan, pose):
         model.scan_heading_noise_rad**2 / jnp.maximum(num_returns, 1.0),
         innovation,
     )
-    used = (num_returns >= MIN_RETURNS) & (innovation**2 < jnp.maximum(GATE**2 * innovation_var, GATE_FLOOR_RAD**2))
-    return (
-        jnp.where(used[:, None], correction, state.correction),
-        jnp.where(used[:, None, None], covariance, state.covariance),
-        jnp.where(used, turn, 0.0),
+    used = _gated(num_returns, innovation, innovation_var, GATE_FLOOR_RAD)
+    zeros = jnp.zeros_like(turn)
+    carried = _speed_carried(state, model, state.speed_covariance)
+    update = _Update(
+        correction=jnp.where(used[:, None], correction, state.correction),
+        covariance=jnp.where(used[:, None, None], covariance, state.covariance),
+        turn=jnp.where(used, turn, 0.0),
+        move=jnp.zeros_like(predicted[:, :2]),
+        speed=zeros,
+        accel_gain=zeros,
+        speed_covariance=carried,
     )
+    if not uses_distance(model):
+        return update
+    # The distance along the predicted chord (ahead when the car stood): its error since the keyframe is the
+    # speed's error at the keyframe times the time, plus the gain's error times the speed change's distance.
+    chord_m = jnp.linalg.norm(predicted[:, :2], axis=-1)
+    ahead = jnp.where(
+        chord_m[:, None] > 1e-3, predicted[:, :2] / jnp.maximum(chord_m, 1e-3)[:, None], jnp.asarray([1.0, 0.0])
+    )
+    elapsed_s = state.keyframe_age.astype(jnp.float32) * motion_lib.DT_S
+    forward = jnp.sum(measured[:, :2] * ahead, -1) - chord_m
+    steps = state.keyframe_age.astype(jnp.float32)
+    speed, speed_covariance, along_m, forward_var = kalman_update(
+        jnp.zeros_like(predicted[:, :2]),
+        state.speed_covariance,
+        jnp.stack([elapsed_s, state.speed_change_distance_m], -1),
+        # the random walk's within the interval: a step's variance times DT^2 k^3 / 3
+        model.speed_noise_mps**2 * (motion_lib.DT_S**2) * steps**3 / 3.0,
+        model.scan_distance_noise**2 / jnp.maximum(forward_precision(information, ahead), 1e-9),
+        forward,
+    )
+    taken = _gated(num_returns, forward, forward_var, 0.0)
+    # A match the gate leaves out widens the speed's variance by the speed error it would say: a wrong
+    # prediction (the actuators' unknown state at the start, a wrong gain) is not held against every right
+    # match that follows, and a wrong match costs a keyframe's confidence, not the speed.
+    doubt = jnp.where(
+        (num_returns >= MIN_RETURNS) & ~taken, (forward / jnp.maximum(elapsed_s, motion_lib.DT_S)) ** 2, 0.0
+    )
+    carried = carried.at[:, 0, 0].add(doubt)
+    # the speed's error now: its error at the keyframe, and the gain's error times the speed change since
+    speed_now = speed[:, 0] + speed[:, 1] * state.speed_change_mps
+    to_town = jnp.stack([jnp.cos(key3[:, 2]), jnp.sin(key3[:, 2])], -1)
+    along_town = jnp.stack(
+        [
+            to_town[:, 0] * ahead[:, 0] - to_town[:, 1] * ahead[:, 1],
+            to_town[:, 1] * ahead[:, 0] + to_town[:, 0] * ahead[:, 1],
+        ],
+        -1,
+    )
+    return update._replace(
+        move=jnp.where(taken[:, None], along_m[:, None] * along_town, 0.0),
+        speed=jnp.where(taken, speed_now, 0.0),
+        accel_gain=jnp.where(taken, speed[:, 1], 0.0),
+        speed_covariance=jnp.where(taken[:, None, None], _speed_carried(state, model, speed_covariance), carried),
+    )
+
+
+def uses_distance(model: MotionModel) -> bool:
+    """Whether ``model`` has the matched forward motion's fitted noise (``calibration.fit_scans``): then the
+    odometry corrects its speed, distance and acceleration gain as well as its heading."""
+    return uses_scans(model) and model.scan_distance_noise > 0
 
 
 def step(state: OdometryState, model: MotionModel, actuator, command, pose, scan, first, start_pose):
     """One frame of B streams: (odometry state, actuators after, pose [B, 5] after). The pose moves by
     ``command`` [B, 2] from actuators ``actuator`` [B, 2] through ``model``, its yaw change corrected by the
-    drive's estimated steering offset and gain (:class:`OdometryState`); every KEYFRAME_FRAMES frames the
-    lidar scan ``scan`` [B, SCAN_AZIMUTHS] is matched against the keyframe's, which corrects the heading and the
-    estimate, and becomes the keyframe. Rows with ``first`` [B] start at ``start_pose`` [B, 5]. Without the
-    matcher's fitted noise (:func:`uses_scans`), or ``scan`` None, this is dead reckoning on the commands."""
+    drive's estimated steering offset and gain and its acceleration by the estimated gain
+    (:class:`OdometryState`); every KEYFRAME_FRAMES frames the lidar scan ``scan`` [B, SCAN_AZIMUTHS] is
+    matched against the keyframe's, which corrects the heading, the position along the road, the speed and
+    the estimates, and becomes the keyframe. Rows with ``first`` [B] start at ``start_pose`` [B, 5]. Without
+    the matcher's fitted noise (:func:`uses_scans`), or ``scan`` None, this is dead reckoning on the commands."""
     yaw = geo.pose_yaw(pose)
-    actuator, v_new, ds, model_dyaw = motion_lib.drive(model, actuator, command, pose[:, 4])
+    actuator, v_new, ds, model_dyaw = motion_lib.drive(
+        model, actuator, command, pose[:, 4], 1.0 + state.accel_gain_error
+    )
     dyaw = model_dyaw + ds * state.correction[:, 0] + model_dyaw * state.correction[:, 1]
     xy = pose[:, :2] + motion_lib.centre_move(ds, dyaw, yaw[:, None])[:, 0]
     yaw = yaw + dyaw
+    speed_change = state.speed_change_mps + v_new - pose[:, 4]
     state = state.replace(
         keyframe_age=state.keyframe_age + 1,
         distance_m=state.distance_m + ds,
         model_yaw_rad=state.model_yaw_rad + model_dyaw,
+        speed_change_distance_m=state.speed_change_distance_m
+        + 0.5 * (state.speed_change_mps + speed_change) * motion_lib.DT_S,
+        speed_change_mps=speed_change,
         travelled_m=jnp.where(first, 0.0, state.travelled_m + ds),
     )
     moved = jnp.concatenate([xy, jnp.stack([jnp.cos(yaw), jnp.sin(yaw), v_new], -1)], -1)
@@ -216,25 +358,39 @@ def step(state: OdometryState, model: MotionModel, actuator, command, pose, scan
         return state.replace(pose=pose), actuator, pose
     due = (state.keyframe_age >= KEYFRAME_FRAMES) & ~first
     # (matched only on frames where some stream is due: streams that start together match together)
-    correction, covariance, turn = jax.lax.cond(
-        jnp.any(due),
-        lambda: _update(state, model, scan, pose),
-        lambda: (state.correction, state.covariance, jnp.zeros_like(state.distance_m)),
+    nothing = _Update(
+        state.correction,
+        state.covariance,
+        jnp.zeros_like(state.distance_m),
+        jnp.zeros_like(pose[:, :2]),
+        jnp.zeros_like(state.distance_m),
+        jnp.zeros_like(state.distance_m),
+        state.speed_covariance,
     )
-    yaw = geo.pose_yaw(pose) + jnp.where(due, turn, 0.0)
-    pose = jnp.concatenate([pose[:, :2], jnp.stack([jnp.cos(yaw), jnp.sin(yaw), pose[:, 4]], -1)], -1)
+    update = jax.lax.cond(jnp.any(due), lambda: _update(state, model, scan, pose), lambda: nothing)
+    yaw = geo.pose_yaw(pose) + jnp.where(due, update.turn, 0.0)
+    xy = pose[:, :2] + jnp.where(due[:, None], update.move, 0.0)
+    speed = jnp.maximum(pose[:, 4] + jnp.where(due, update.speed, 0.0), 0.0)
+    pose = jnp.concatenate([xy, jnp.stack([jnp.cos(yaw), jnp.sin(yaw), speed], -1)], -1)
     renew = due | first
     rows = lambda x: renew.reshape(renew.shape + (1,) * (x.ndim - 1))
+    restart = lambda prior, updated, kept: jnp.where(
+        first.reshape(first.shape + (1,) * (kept.ndim - 1)),
+        prior,
+        jnp.where(due.reshape(due.shape + (1,) * (kept.ndim - 1)), updated, kept),
+    )
     state = OdometryState(
         keyframe_scan=jnp.where(rows(scan), scan, state.keyframe_scan),
         keyframe_pose=jnp.where(rows(pose[:, :3]), _xy_yaw(pose), state.keyframe_pose),
         keyframe_age=jnp.where(renew, 0, state.keyframe_age),
         distance_m=jnp.where(renew, 0.0, state.distance_m),
         model_yaw_rad=jnp.where(renew, 0.0, state.model_yaw_rad),
-        correction=jnp.where(first[:, None], 0.0, jnp.where(due[:, None], correction, state.correction)),
-        covariance=jnp.where(
-            first[:, None, None], prior_covariance(model), jnp.where(due[:, None, None], covariance, state.covariance)
-        ),
+        correction=restart(0.0, update.correction, state.correction),
+        covariance=restart(prior_covariance(model), update.covariance, state.covariance),
+        speed_change_mps=jnp.where(renew, 0.0, state.speed_change_mps),
+        speed_change_distance_m=jnp.where(renew, 0.0, state.speed_change_distance_m),
+        accel_gain_error=restart(0.0, state.accel_gain_error + update.accel_gain, state.accel_gain_error),
+        speed_covariance=restart(speed_prior_covariance(model), update.speed_covariance, state.speed_covariance),
         pose=pose,
         travelled_m=state.travelled_m,
     )
@@ -260,8 +416,8 @@ def follow(model: MotionModel, start_pose, prev_action, scans):
     """The odometry along B recorded drives from their true first poses: :func:`step` frame by frame in one
     ``lax.scan``. start_pose [B, 5]; prev_action [B, T, 2], frame t's commands (applied from t-1 to t; frame
     0's only set the actuators); scans [B, T, SCAN_AZIMUTHS] (the lidar's), or None for dead reckoning.
-    Returns the poses [B, T, 5] and the drive's estimated correction [B, T, 2] (curvature bias 1/m, gain
-    error) after each frame."""
+    Returns the poses [B, T, 5] and the drive's estimates [B, T, 3] after each frame: the curvature bias
+    (1/m), the yaw gain error and the acceleration gain error (shares)."""
     b = start_pose.shape[0]
 
     def body(carry, x):
@@ -269,7 +425,8 @@ def follow(model: MotionModel, start_pose, prev_action, scans):
         action, scan = x
         actuator = jnp.where(first[:, None], action, actuator)
         state, actuator, pose = step(state, model, actuator, action, pose, scan, first, start_pose)
-        return (state, actuator, pose, jnp.zeros_like(first)), (pose, state.correction)
+        estimates = jnp.concatenate([state.correction, state.accel_gain_error[:, None]], -1)
+        return (state, actuator, pose, jnp.zeros_like(first)), (pose, estimates)
 
     time_major = lambda x: None if x is None else jnp.swapaxes(x, 0, 1)
     init = (init_state(b), jnp.zeros((b, 2)), start_pose, jnp.ones((b,), bool))

@@ -353,9 +353,10 @@ def filter_step(
 
     ``measure=False`` (known start only: an odometry for a town the head does not know) takes no
     measurement; the pose is the odometry's (:func:`ego_motion.step`: the commands through the motion model,
-    with the lidar's scans ``scan`` [B, 360] (the frame contract's ``lidar_scan``) correcting the heading
-    when the model has the matcher's fitted noise), and the belief a Gaussian around it whose spread grows with the distance driven as the
-    odometry's errors did on training drives (:func:`spread_at`, :func:`ego_motion.spread`), or a point
+    with the lidar's scans ``scan`` [B, 360] (the frame contract's ``lidar_scan``) correcting the heading,
+    speed and distance when the model has the matcher's fitted noises), and the belief a Gaussian around it
+    whose spread grows with the distance driven as the odometry's errors did on calibration drives of other
+    towns (:func:`spread_at`, :func:`ego_motion.spread`), or a point
     (:func:`start_at`) when the model has no fitted spread (a histogram moved without measurements spreads
     over the town, and its mode says little).
     A stream's actuators start at its first logged commands (the car is taken to be in steady state).

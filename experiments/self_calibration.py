@@ -1,18 +1,25 @@
-"""How fast the lidar odometry learns each drive's steering offset: frames until its estimate comes within
-20 % of the drive's true value, which the world draws and no perceiver sees.
+"""How fast the lidar odometry learns each drive's steering offset and distance scale: frames until each
+estimate comes within 20 % of the drive's true value, which the world draws and no perceiver sees.
 
     python experiments/self_calibration.py --workdir=runs/cpu --town_seed=7 [--world.ego_steer_offset_deg=0.5]
 
 Drives ``--drives`` worlds of town ``--town_seed`` (reset from ``--seed``, after the config's warm-up) for
 ``--frames`` frames and follows each from its true first pose with the run's motion model and the lidar's
-scans (``e2e_percep_jax.ego_motion.follow``; the scan matcher's noise is fitted into ``motion_model.json`` the
-first time). The estimate is the drive's curvature bias (1/m, beyond the motion model's mean); the truth is
-the plant's: the curvature its steering offset gives, tan(offset) / (wheelbase + understeer x v^2) at the
-drive's distance-weighted mean v^2, less the model's mean (steer_bias / wheelbase). The distance scale is not
-estimated: the scans do not measure it. Prints, as JSON, the share of drives within 20 % at each of
-``--at_frames``, each drive's first frame from which it stays within 20 %, and the errors in degrees of
-steering offset, each drive's true offset and estimates (as the road-wheel angle in degrees that the
-curvature bias amounts to). A ``--world.*`` flag changes the car driven (the model stays the run's).
+scans (``e2e_percep_jax.ego_motion.follow``; the scan matcher's noises are fitted into ``motion_model.json``
+the first time). Two estimates, each against the plant's truth beyond the motion model's mean:
+
+- the steering offset, as the drive's curvature bias (1/m): the truth is the curvature the plant's offset
+  gives, tan(offset) / (wheelbase + understeer x v^2) at the drive's distance-weighted mean v^2, less the
+  model's mean (steer_bias / wheelbase); reported as road-wheel degrees;
+- the distance scale, as the drive's acceleration gain error (a share): the truth is the plant's distance
+  scale times the commands' full scale over the model's acceleration per pedal, less 1. The plant draws the
+  scale within a few per cent of 1, so an estimate of 1 is within 20 % of the scale itself from the first
+  frame (``scale_within_20pct``, which says nothing); the figure that does is the estimate of its deviation
+  from 1 within 20 % of the true deviation (``share_within_20pct``).
+
+Prints, as JSON, per estimate: the share of drives within 20 % at each of ``--at_frames``, each drive's first
+frame from which it stays within 20 %, the truths and estimates, and the median absolute error. A
+``--world.*`` flag changes the car driven (the model stays the run's).
 """
 
 import json
@@ -36,6 +43,21 @@ FLAGS = flags.FLAGS
 WITHIN = 0.2  # the relative error asked of the estimate
 
 
+def _report(estimate, truth, at_frames):
+    """Of ``estimate`` [W, T] against ``truth`` [W]: the share of drives within 20 % of the truth at each
+    frame of ``at_frames``, the first frame from which each stays within 20 % (None: not at the end), the
+    truths and estimates, and the median absolute error."""
+    within = np.abs(estimate - truth[:, None]) <= WITHIN * np.abs(truth[:, None])
+    outside = [np.nonzero(~w)[0] for w in within]
+    return {
+        "share_within_20pct": {str(f): float(within[:, f - 1].mean()) for f in at_frames},
+        "settled_frame": [None if not w[-1] else int(o[-1]) + 1 if o.size else 0 for w, o in zip(within, outside)],
+        "truth": [round(float(v), 4) for v in truth],
+        "estimate": {str(f): [round(float(v), 4) for v in estimate[:, f - 1]] for f in at_frames},
+        "error_abs_median": {str(f): float(np.median(np.abs(estimate[:, f - 1] - truth))) for f in at_frames},
+    }
+
+
 def main(argv):
     cfg = launch.run_config(argv, FLAGS.workdir)
     at_frames = [int(f) for f in FLAGS.at_frames]
@@ -50,31 +72,32 @@ def main(argv):
     # the plants calibration.drives' worlds were reset with (its keys, its reset)
     plant = jax.vmap(lambda k: world.reset(k, town, cfg.world).ego_plant)(jax.random.split(key, FLAGS.drives))
     start, prev_action = calibration.start_and_commands(pose, speed, command)
-    _, correction = jax.jit(ego_motion.follow, static_argnums=0)(model, start, prev_action, scans)
-    estimate = np.asarray(correction[..., 0], np.float64)  # [W, T] curvature bias (1/m)
+    _, estimates = jax.jit(ego_motion.follow, static_argnums=0)(model, start, prev_action, scans)
+    estimates = np.asarray(estimates, np.float64)  # [W, T, 3]: curvature bias (1/m), yaw gain, accel gain
     v = np.asarray(speed, np.float64)
     v2 = np.sum(v**3, 1) / np.maximum(np.sum(v, 1), 1e-9)  # v^2 weighted by the distance driven
     effective_wheelbase = motion.WHEELBASE_M + np.asarray(plant.understeer_rad_s2pm, np.float64) * v2
     offset = np.asarray(plant.steer_offset_rad, np.float64)
-    truth = np.tan(offset) / effective_wheelbase - model.steer_bias / motion.WHEELBASE_M
-    within = np.abs(estimate - truth[:, None]) <= WITHIN * np.abs(truth[:, None])
-    # each drive's first frame from which the estimate stays within 20 % to the end (None: not at the end)
-    outside = [np.nonzero(~w)[0] for w in within]
-    settled = [None if not w[-1] else int(o[-1]) + 1 if o.size else 0 for w, o in zip(within, outside)]
+    bias_truth = np.tan(offset) / effective_wheelbase - model.steer_bias / motion.WHEELBASE_M
+    scale = np.asarray(plant.distance_scale, np.float64)
+    gain_truth = scale * motion.EGO_ACCEL_LIMIT_MPS2 / model.accel_per_pedal_mps2 - 1.0
     to_deg = lambda bias: np.degrees(np.arctan(bias * motion.WHEELBASE_M))
     result = {
         "town_seed": FLAGS.town_seed,
         "drives": FLAGS.drives,
         "frames": FLAGS.frames,
         "ego_steer_offset_deg": cfg.world.ego_steer_offset_deg,
-        "share_within_20pct": {str(f): float(within[:, f - 1].mean()) for f in at_frames},
-        "settled_frame": settled,
-        "true_offset_deg": [round(float(v), 4) for v in to_deg(truth)],
-        "estimate_deg": {str(f): [round(float(v), 4) for v in to_deg(estimate[:, f - 1])] for f in at_frames},
-        "error_deg_abs_median": {
-            str(f): float(np.median(np.abs(to_deg(estimate[:, f - 1]) - to_deg(truth)))) for f in at_frames
+        "ego_distance_scale_std": cfg.world.ego_distance_scale_std,
+        "steering_offset_deg": _report(to_deg(estimates[..., 0]), to_deg(bias_truth), at_frames),
+        "acceleration_gain_error": _report(estimates[..., 2], gain_truth, at_frames),
+        "scale_within_20pct": {
+            str(f): float(np.mean(np.abs(estimates[:, f - 1, 2] - gain_truth) <= WITHIN * (1.0 + gain_truth)))
+            for f in at_frames
         },
-        "prior_std_deg": float(to_deg(model.yaw_bias_std_1pm)),
+        "prior_std": {
+            "steering_offset_deg": float(to_deg(model.yaw_bias_std_1pm)),
+            "acceleration_gain_error": model.speed_gain_std,
+        },
     }
     print(json.dumps(result, indent=1))
 

@@ -18,6 +18,7 @@ import jax
 import numpy as np
 
 from e2e_percep_jax import config, loss, pose_belief
+from e2e_percep_jax.sim.motion import MotionModel
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # the repository
 TINY = config.get_config("tiny")
@@ -61,6 +62,14 @@ def load_experiment(name):
 
 
 # ----------------------------------------------------------------------------- frames, loss and its terms
+
+
+def odometry_model(**fields):
+    """The exact bicycle with the lidar odometry's priors and noises set (every scan correction on), and
+    ``fields`` changed."""
+    odometry = dict(yaw_bias_std_1pm=0.004, yaw_gain_std=0.03, yaw_noise_rad2pm=1e-7, scan_heading_noise_rad=0.002)
+    odometry.update(speed_gain_std=0.03, speed_noise_mps=0.002, scan_distance_noise=0.25)
+    return MotionModel(**{**odometry, **fields})
 
 
 def frame_contract(image_size, num_boxes):

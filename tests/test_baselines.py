@@ -15,10 +15,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import EXACT_PLANT, ROOT, TINY, np_focal, np_smooth_l1, synthetic_batch
+from helpers import EXACT_PLANT, ROOT, TINY, np_focal, np_smooth_l1, odometry_model, synthetic_batch
 
-from e2e_percep_jax import baselines, config, model, tracking
+from e2e_percep_jax import baselines, config, ego_motion, model, tracking
 from e2e_percep_jax import evaluate as eval_lib
+from e2e_percep_jax.sim import batch as batch_lib
+from e2e_percep_jax.sim import rollout
+from e2e_percep_jax.sim import town as town_lib
 
 LAUNCHER = [sys.executable, os.path.join(ROOT, "experiments", "baselines.py"), "--config=tiny"]
 # The tracker trains the detector's run first; the pose regressor trains by the same code (its loss and
@@ -248,6 +251,38 @@ def test_dead_reckoning_on_the_commands_is_exact_in_the_exact_world_and_drifts_u
     exact, plant = run(EXACT_PLANT, "exact"), run({}, "plant")
     assert exact["location_m"]["mean"] < 0.02 and exact["heading_rad"]["mean"] < 1e-3, exact
     assert plant["location_m"]["mean"] > 0.5, plant
+
+
+@pytest.mark.slow
+def test_the_lidar_odometry_baseline_steps_as_the_odometry_follows_a_drive():
+    """``CommandOdometry`` with the scans, stepped frame by frame through a world drive (40 frames: eight
+    matches) by a motion model with an actuator lag, moves each stream's pose as ``ego_motion.follow`` moves
+    it from the same start on the same commands and scans: the drive's first commands set the actuators,
+    which then lag behind the commands."""
+    cfg = config.replace(TINY, eval=dict(known_start=True))
+    model = odometry_model(lag_share=0.5)
+    town = town_lib.build_town(cfg.world.town_seed)
+    states = jax.jit(batch_lib.warm_up, static_argnames="cfg")(jax.random.PRNGKey(6), town, cfg)
+    r = cfg.data.image_size
+    _, drive = jax.jit(jax.vmap(lambda s: rollout.drive(s, town, 40, r, scans=True)))(states)
+    prev_action = jnp.concatenate([drive["action"][:, :1], drive["action"][:, :-1]], 1)
+    prev_action = prev_action.at[:, 0].set(drive["action"][:, 0] * 0.5)  # a first command unlike the next
+    start = drive["pose"][:, 0]
+    followed, _ = jax.jit(ego_motion.follow, static_argnums=0)(model, start, prev_action, drive["lidar_scan"])
+    odometry = baselines.CommandOdometry(cfg, model, scans=True)
+    step, state = jax.jit(odometry.step, static_argnames="measure"), odometry.init(start.shape[0])
+    for t in range(40):
+        frame = lambda k: drive[k][:, t]
+        state, out = step(
+            {},
+            state,
+            frame("camera"),
+            frame("lidar"),
+            prev_action[:, t],
+            start_pose=start,
+            lidar_scan=frame("lidar_scan"),
+        )
+        np.testing.assert_allclose(out.pose, followed[:, t], rtol=1e-5, atol=1e-4)
 
 
 # ----------------------------------------------------------------------------- launcher

@@ -1,6 +1,7 @@
 """The lidar odometry (e2e_percep_jax/ego_motion.py): the scan matcher against known motions and the world's
-true motion on a town the model never saw, its Kalman update against brute-force Bayes, and the drive's
-steering offset learnt from scans of a drive with a planted one."""
+true motion on a town the model never saw, its Kalman update against brute-force Bayes, the forward motion's
+precision against its closed form and the walls that pin it, and the drive's steering offset and distance
+scale learnt from scans of a drive with planted ones."""
 
 import dataclasses
 import json
@@ -9,6 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import odometry_model
 
 from e2e_percep_jax import calibration, ego_motion
 from e2e_percep_jax import config as config_lib
@@ -23,15 +25,16 @@ def _buildings(centres_m, rng):
     return box
 
 
-def _scan(box_town, pose):
+def _scan(box_town, pose, height_m=None):
     """The lidar scan of buildings ``box_town`` [M, 5] (the nearest SCAN_BUILDINGS of them, as the sensors
-    cull) from ego pose (x, y, yaw)."""
+    cull; 6 m tall, or ``height_m`` [M]) from ego pose (x, y, yaw)."""
     box = geo.box_to_ego(jnp.asarray(box_town), jnp.asarray(pose[:2], jnp.float32), jnp.float32(pose[2]))
+    height_m = jnp.full((box.shape[0],), 6.0) if height_m is None else jnp.asarray(height_m, jnp.float32)
     m = min(box.shape[0], sensors.SCAN_BUILDINGS)
-    box = box[jnp.argsort(jnp.linalg.norm(box[:, :2], axis=-1))[:m]]
+    nearest = jnp.argsort(jnp.linalg.norm(box[:, :2], axis=-1))[:m]
     obstacles = sensors.Obstacles(
-        box=box,
-        height_m=jnp.full((m,), 6.0),
+        box=box[nearest],
+        height_m=height_m[nearest],
         color=jnp.zeros((m, 3)),
         is_vehicle=jnp.zeros((m,), bool),
         valid=jnp.ones((m,), bool),
@@ -61,6 +64,20 @@ def test_the_scan_holds_the_lidars_walls_and_not_its_ground():
     assert not np.any(scan[np.cos(azimuth) < 0])  # nothing behind
 
 
+def test_the_scan_sees_the_wall_over_a_van_and_not_the_van():
+    """The scan keeps returns above the traffic: a van (2.6 m, the tallest vehicle) 8 m ahead of a wall 20 m
+    ahead leaves the wall's range in the azimuths it covers, the beams that clear its roof seeing the wall;
+    a kiosk (3 m, the lowest landmark) alone 10 m ahead is seen."""
+    far = np.array([[300.0, 300.0, 0.0, 4.0, 4.0]], np.float32)  # (the scan casts a power of two of obstacles)
+    wall = np.array([[20.5, 0.0, 0.0, 1.0, 40.0]], np.float32)  # its near face at x = 20 m
+    van = np.array([[8.0, 0.0, 0.0, 2.0, 2.0]], np.float32)
+    scan = np.asarray(_scan(np.concatenate([wall, van]), (0.0, 0.0, 0.0), [6.0, 2.6]))
+    np.testing.assert_allclose(scan[[0, 1, 359]], 20.0 / np.cos(np.deg2rad([0.0, 1.0, 1.0])), rtol=1e-5)
+    kiosk = np.array([[10.5, 0.0, 0.0, 1.0, 3.0]], np.float32)
+    scan = np.asarray(_scan(np.concatenate([kiosk, far]), (0.0, 0.0, 0.0), [3.0, 3.0]))
+    np.testing.assert_allclose(scan[0], 10.0, rtol=1e-5)
+
+
 @pytest.mark.parametrize("motion_true", [(1.0, 0.2, 0.03), (0.6, -0.1, -0.05), (1.5, 0.0, 0.0)])
 def test_a_known_motion_between_two_scans_is_recovered_exactly(motion_true):
     """Two scans of the same buildings from poses a known motion apart: the match from a prior off by more
@@ -69,7 +86,7 @@ def test_a_known_motion_between_two_scans_is_recovered_exactly(motion_true):
     weak pull included)."""
     box = _town_block(1)
     before, after = _scan(box, (0.0, 0.0, 0.0)), _scan(box, motion_true)
-    found, num_returns = ego_motion.match(before, after, jnp.asarray(motion_true) + jnp.asarray([0.15, -0.1, 0.02]))
+    found, num_returns, _ = ego_motion.match(before, after, jnp.asarray(motion_true) + jnp.asarray([0.15, -0.1, 0.02]))
     np.testing.assert_allclose(np.asarray(found)[:2], motion_true[:2], atol=0.005)
     assert abs(float(found[2]) - motion_true[2]) < 2e-4
     assert num_returns == min(np.sum(np.asarray(before) > 0), np.sum(np.asarray(after) > 0))
@@ -101,45 +118,80 @@ def test_the_kalman_update_is_bayes_rule_against_brute_force():
     np.testing.assert_allclose(covariance, second, rtol=0.03, atol=1e-9)
 
 
-def test_a_planted_steering_offset_is_learnt_from_the_scans_of_a_street():
+def test_a_planted_steering_offset_and_distance_scale_are_learnt_from_the_scans_of_a_street():
     """A car whose path curves by a planted 0.004 / m more than its motion model says (a 0.6 degree
-    steering offset) drives 600 frames down a street of buildings that follow its true path; the odometry
-    learns the offset within 10 % and loses under a tenth of the heading that dead reckoning loses."""
-    bias_1pm, frames, speed_mps = 0.004, 600, 6.0
-    model = motion.MotionModel(
-        yaw_bias_std_1pm=0.004, yaw_gain_std=0.03, yaw_noise_rad2pm=1e-7, scan_heading_noise_rad=0.002
-    )
+    steering offset), and which speeds up and slows down 3 % more than the model says (its distance scale),
+    drives 600 frames down a street of buildings that follow its true path; the odometry learns both within
+    10 %, and loses under a tenth of the heading and of the position that dead reckoning loses."""
+    bias_1pm, accel_gain, frames = 0.004, 1.03, 600
+    model = odometry_model()
     command = np.zeros((frames, 2), np.float32)
+    command[:, 0] = 0.3 * np.sin(np.arange(frames) / 30.0)  # speeding up and slowing down between 6 and 11 m/s
     command[:, 1] = 0.03 * np.sin(np.arange(frames) / 40.0)  # a winding road
-    ds = speed_mps * motion.DT_S
-    model_dyaw = ds * np.asarray(motion.curvature(model, jnp.asarray(command[:, 1]), speed_mps))
-    yaw = np.concatenate([[0.0], np.cumsum(model_dyaw + bias_1pm * ds)])
-    xy = np.concatenate(
-        [
-            np.zeros((1, 2)),
-            np.cumsum(
-                np.asarray(motion.centre_move(np.full(frames, ds), model_dyaw + bias_1pm * ds, yaw[:-1, None]))[:, 0], 0
-            ),
-        ]
-    )
+    speed = [6.0]
+    for pedal in command[:, 0]:
+        speed.append(float(motion.speed_step(speed[-1], accel_gain * motion.EGO_ACCEL_LIMIT_MPS2 * pedal)[0]))
+    speed = np.asarray(speed)
+    ds = 0.5 * (speed[1:] + speed[:-1]) * motion.DT_S
+    model_dyaw = ds * np.asarray(motion.curvature(model, jnp.asarray(command[:, 1]), 0.5 * (speed[1:] + speed[:-1])))
+    dyaw = model_dyaw + bias_1pm * ds
+    yaw = np.concatenate([[0.0], np.cumsum(dyaw)])
+    steps = np.asarray(motion.centre_move(jnp.asarray(ds), jnp.asarray(dyaw), jnp.asarray(yaw[:-1, None])))[:, 0]
+    xy = np.concatenate([np.zeros((1, 2)), np.cumsum(steps, 0)])
     rng = np.random.default_rng(2)
     side = np.stack([-np.sin(yaw), np.cos(yaw)], -1)
-    along = np.arange(0, frames + 1, 12)  # a building each side every 7 m
+    along = np.arange(0, frames + 1, 9)  # a building each side every 6-9 m
     centres = np.concatenate([xy[along] + 10 * side[along], xy[along] - 11 * side[along]])
     box = _buildings(centres + rng.normal(0, 1.0, centres.shape), rng)
     scans = jax.vmap(lambda p: _scan(box, p))(jnp.asarray(np.column_stack([xy, yaw]), jnp.float32))
-    start = jnp.asarray([[0.0, 0.0, 1.0, 0.0, speed_mps]], jnp.float32)
+    start = jnp.asarray([[0.0, 0.0, 1.0, 0.0, speed[0]]], jnp.float32)
 
     previous = jnp.asarray(np.concatenate([command[:1], command]))[None]  # frame t's: the commands t-1 -> t
     run = lambda m: jax.tree.map(
         lambda x: x[0], jax.jit(ego_motion.follow, static_argnums=0)(m, start, previous, scans[None])
     )
-    poses, corrections = run(model)
+    poses, estimates = run(model)
     reckoned, _ = run(dataclasses.replace(model, scan_heading_noise_rad=0.0))
-    assert abs(float(corrections[-1, 0]) - bias_1pm) < 0.1 * bias_1pm
+    assert abs(float(estimates[-1, 0]) - bias_1pm) < 0.1 * bias_1pm
+    assert abs(float(estimates[-1, 2]) - (accel_gain - 1.0)) < 0.1 * (accel_gain - 1.0)
     heading_error = lambda p: abs(float(geo.wrap_angle(geo.pose_yaw(p[-1]) - yaw[-1])))
-    assert heading_error(reckoned) > 0.9 * bias_1pm * ds * frames  # dead reckoning misses all of it
+    assert heading_error(reckoned) > 0.9 * bias_1pm * ds.sum()  # dead reckoning misses all of it
     assert heading_error(poses) < 0.1 * heading_error(reckoned)
+    position_error = lambda p: float(np.linalg.norm(np.asarray(p[-1, :2]) - xy[-1]))
+    assert position_error(poses) < 0.1 * position_error(reckoned)
+
+
+def test_the_forward_precision_is_the_inverse_of_the_marginal_variance():
+    """For any information matrix, the forward precision along a direction equals one over the forward
+    variance that inverting the whole (the prior's precision on the motion across and the heading added,
+    in the rotated axes) gives."""
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        a = rng.normal(size=(3, 3)) * [10.0, 10.0, 200.0]
+        information = a @ a.T
+        angle = rng.uniform(-np.pi, np.pi)
+        u = np.array([np.cos(angle), np.sin(angle)])
+        basis = np.array([[u[0], u[1], 0.0], [-u[1], u[0], 0.0], [0.0, 0.0, 1.0]])
+        rotated = basis @ information @ basis.T + np.diag([0.0, *np.asarray(ego_motion.PRIOR_STD[1:]) ** -2.0])
+        truth = 1.0 / np.linalg.inv(rotated)[0, 0]
+        found = float(ego_motion.forward_precision(jnp.asarray(information, jnp.float32), jnp.asarray(u, jnp.float32)))
+        np.testing.assert_allclose(found, truth, rtol=1e-3)
+
+
+def test_a_corridors_walls_do_not_pin_the_distance_and_a_cross_wall_does():
+    """Two long walls either side of the car pin its motion across the road and its heading, not along it:
+    the match's forward precision is under a hundredth of that across; a 14 m wall across the road ahead
+    pins the distance (about a tenth as sharply as the two long walls, with ten times its returns, pin the
+    motion across)."""
+    walls = np.array([[0.0, 8.0, 0.0, 200.0, 1.0], [0.0, -8.0, 0.0, 200.0, 1.0]], np.float32)
+    far = np.array([[300.0, 300.0, 0.0, 4.0, 4.0]], np.float32)  # (the scan casts a power of two of obstacles)
+    cross = np.array([[25.0, 0.0, 0.0, 1.0, 14.0]], np.float32)
+    for box, pinned in ((np.concatenate([walls, far, far]), False), (np.concatenate([walls, cross, far]), True)):
+        before, after = _scan(box, (0.0, 0.0, 0.0)), _scan(box, (1.0, 0.0, 0.0))
+        _, _, information = ego_motion.match(before, after, jnp.asarray([1.0, 0.0, 0.0]))
+        along = float(ego_motion.forward_precision(information, jnp.asarray([1.0, 0.0])))
+        across = float(ego_motion.forward_precision(information, jnp.asarray([0.0, 1.0])))
+        assert (along > 0.05 * across) if pinned else (along < 0.01 * across)
 
 
 def test_the_scan_matcher_follows_the_true_motion_on_a_town_it_never_saw():
@@ -147,39 +199,47 @@ def test_the_scan_matcher_follows_the_true_motion_on_a_town_it_never_saw():
     true heading change at the median (on the tables' drives: 0.05 mrad) and almost never off by 5 mrad,
     though its prior is the exact bicycle, blind to the drive's steering offset."""
     cfg = config_lib.get_config("cpu")
-    error, num_returns = calibration.scan_errors(cfg, motion.MotionModel(), 7, jax.random.PRNGKey(3), 2, 150)
-    kept = num_returns >= ego_motion.MIN_RETURNS
+    errors = calibration.scan_errors(cfg, motion.MotionModel(), 7, jax.random.PRNGKey(3), 2, 150)
+    kept = errors.num_returns >= ego_motion.MIN_RETURNS
     assert kept.mean() > 0.9
-    assert np.median(np.abs(error[kept])) < 5e-4
-    assert np.mean(np.abs(error[kept]) > 5e-3) < 0.02
+    assert np.median(np.abs(errors.heading_rad[kept])) < 5e-4
+    assert np.mean(np.abs(errors.heading_rad[kept]) > 5e-3) < 0.02
 
 
 def test_a_motion_model_from_before_the_lidar_odometry_gains_its_prior_scan_noise_and_spread(tmp_path):
-    """A run whose motion_model.json predates the lidar odometry (no offset prior, no scan noise, no spread)
-    gets all three fitted and saved the first time the odometry needs them; its own fields stay as they
+    """A run whose motion_model.json predates the lidar odometry (no offset or gain priors, no scan noises,
+    no spread) gets them all fitted and saved the first time the odometry needs them; its own fields stay as they
     were. The spread grows with the distance driven."""
     cfg = config_lib.get_config("tiny")
     old = motion.MotionModel(lag_share=0.5, steer_gain=0.97, heading_noise_rad2pm=3e-4)
     old.save(str(tmp_path))
     model = calibration.ensure_scans(cfg, str(tmp_path))
     assert model.yaw_bias_std_1pm > 0 and model.yaw_gain_std > 0 and model.yaw_noise_rad2pm > 0
-    assert ego_motion.uses_scans(model) and ego_motion.spreads(model)
+    assert model.speed_gain_std > 0 and model.speed_noise_mps > 0
+    assert ego_motion.uses_distance(model) and ego_motion.spreads(model)
     assert model.odometry_location_growth > 0 and model.odometry_heading_std_at_100m_rad > 0
     fitted = dict(yaw_bias_std_1pm=0.0, yaw_gain_std=0.0, yaw_noise_rad2pm=0.0, scan_heading_noise_rad=0.0)
+    fitted.update(speed_gain_std=0.0, speed_noise_mps=0.0, scan_distance_noise=0.0)
     fitted.update(odometry_location_std_at_100m_m=0.0, odometry_heading_std_at_100m_rad=0.0)
     fitted.update(odometry_location_growth=1.0, odometry_heading_growth=1.0)
     assert dataclasses.replace(model, **fitted) == old
     assert motion.MotionModel.load(str(tmp_path)) == model
 
 
-def test_a_motion_model_fitted_for_the_image_matcher_is_read_without_its_scan_noise_and_spread(tmp_path):
-    """A motion_model.json saved when the matcher read the lidar image ("scan_yaw_noise_rad", and a spread
-    fitted with that odometry) loads with neither, so that `calibration.ensure_scans` fits both for the
-    scans; the motion model's own fields and the offset's prior are kept."""
+@pytest.mark.parametrize("matcher", ["image", "heading"])
+def test_a_motion_model_fitted_for_an_earlier_matcher_is_read_without_its_scan_noise_and_spread(tmp_path, matcher):
+    """A motion_model.json saved when the matcher read the lidar image ("scan_yaw_noise_rad"), or when the
+    scans corrected the heading alone (no "scan_distance_noise"), with a spread fitted with that odometry,
+    loads without the scans' noises and the spread, so that `calibration.ensure_scans` fits them for the
+    odometry as it is; the motion model's own fields and the priors are kept."""
     kept = motion.MotionModel(lag_share=0.5, steer_gain=0.97, yaw_bias_std_1pm=0.0014, yaw_gain_std=0.034)
     fields = dataclasses.asdict(kept)
-    del fields["scan_heading_noise_rad"]
-    fields.update(scan_yaw_noise_rad=0.047, odometry_location_std_at_100m_m=6.3, odometry_location_growth=1.54)
+    del fields["scan_heading_noise_rad"], fields["scan_distance_noise"]
+    fields.update(odometry_location_std_at_100m_m=6.3, odometry_location_growth=1.54)
+    if matcher == "image":
+        fields.update(scan_yaw_noise_rad=0.047)
+    else:
+        fields.update(scan_heading_noise_rad=0.001)
     (tmp_path / motion.FILE_NAME).write_text(json.dumps(fields))
     loaded = motion.MotionModel.load(str(tmp_path))
     assert loaded == kept

@@ -50,15 +50,24 @@ class MotionModel:
     # The lidar odometry's (e2e_percep_jax.ego_motion): the spread over drives of each drive's curvature bias
     # and yaw gain error, the yaw error per metre left within a drive, and the scan matcher's heading error
     # (times the square root of the scans' returns). A scan noise of 0: not fitted, no scans used.
-    # (Models saved when the matcher read the lidar image carry its noise as "scan_yaw_noise_rad": `load`
-    # drops it and the spread fitted with it, which `calibration.ensure_scans` then fits for the scans.)
+    # (Models saved when the matcher read the lidar image carry its noise as "scan_yaw_noise_rad", and models
+    # saved before the scans measured the distance have no "scan_distance_noise": `load` drops the scans'
+    # noises and the spread fitted with them, which `calibration.ensure_scans` then fits anew.)
     yaw_bias_std_1pm: float = 0.0
     yaw_gain_std: float = 0.0
     yaw_noise_rad2pm: float = 0.0
     scan_heading_noise_rad: float = 0.0
+    # The same for the speed: the spread over drives of each drive's acceleration gain error (the plant's
+    # distance scale), the speed's random walk left within a drive (m/s a step), and the factor that turns a
+    # match's Gauss-Newton precision of the forward motion into its variance (0: not fitted, the odometry's
+    # distance stays the commands').
+    speed_gain_std: float = 0.0
+    speed_noise_mps: float = 0.0
+    scan_distance_noise: float = 0.0
     # How far the odometry (the commands, with the scans when fitted) strays from a known start: its error's
     # std per axis (m) and in heading (rad) at 100 m driven, and how each grows with distance (a power law
-    # fitted to the 95 % quantiles on training drives). 0: not fitted; the odometry's belief is then a point.
+    # fitted to the 95 % quantiles on drives of towns no table uses: calibration.SPREAD_TOWN_SEEDS). 0: not
+    # fitted; the odometry's belief is then a point.
     odometry_location_std_at_100m_m: float = 0.0
     odometry_location_growth: float = 1.0
     odometry_heading_std_at_100m_rad: float = 0.0
@@ -82,6 +91,9 @@ class MotionModel:
                 fields = json.load(f)
             if fields.pop("scan_yaw_noise_rad", None) is not None:
                 fields = {k: v for k, v in fields.items() if not k.startswith("odometry_")}
+            if "scan_heading_noise_rad" in fields and "scan_distance_noise" not in fields:
+                # fitted before the odometry measured its distance: the scans' noises and spread fitted anew
+                fields = {k: v for k, v in fields.items() if not k.startswith(("odometry_", "scan_"))}
             return cls(**fields)
         except (ValueError, TypeError, AttributeError) as e:
             raise ValueError(f"{path}: not a motion model ({type(e).__name__}: {e})") from None
@@ -114,9 +126,15 @@ def actuate(model: MotionModel, actuator, command):
     return lag_step(model.lag_share, actuator, command)
 
 
-def speed_and_distance(model: MotionModel, actuator, speed_mps):
-    """(speed after the step [...], distance driven [...] m) from the actuators [..., 2] and the speed before."""
-    return speed_step(speed_mps, model.accel_per_pedal_mps2 * actuator[..., 0] + model.accel_bias_mps2)
+def acceleration(model: MotionModel, actuator):
+    """The acceleration [...] (m/s^2) the actuators [..., 2] ask of the car."""
+    return model.accel_per_pedal_mps2 * actuator[..., 0] + model.accel_bias_mps2
+
+
+def speed_and_distance(model: MotionModel, actuator, speed_mps, accel_gain=1.0):
+    """(speed after the step [...], distance driven [...] m) from the actuators [..., 2] and the speed before;
+    the acceleration times ``accel_gain`` [...] (a drive's estimated distance scale)."""
+    return speed_step(speed_mps, accel_gain * acceleration(model, actuator))
 
 
 def curvature(model: MotionModel, steer_rad, mid_speed_mps):
@@ -144,11 +162,11 @@ def centre_move(ds_m, dyaw_rad, yaw_rad):
     return centre_after(0.0, yaw_rad, ds_m[..., None], yaw_rad + dyaw_rad[..., None])
 
 
-def drive(model: MotionModel, actuator, command, speed_mps):
+def drive(model: MotionModel, actuator, command, speed_mps, accel_gain=1.0):
     """One step of the motion model without a heading: (actuators after [..., 2], speed after [...], distance
-    [...] m, yaw change [...] rad)."""
+    [...] m, yaw change [...] rad); the acceleration times ``accel_gain`` [...]."""
     actuator = actuate(model, actuator, command)
-    v_new, ds = speed_and_distance(model, actuator, speed_mps)
+    v_new, ds = speed_and_distance(model, actuator, speed_mps, accel_gain)
     return actuator, v_new, ds, ds * curvature(model, actuator[..., 1], 0.5 * (speed_mps + v_new))
 
 

@@ -61,6 +61,10 @@ LIDAR_NUM_AZIMUTHS = 360
 LIDAR_RANGE_M = 50.0  # along the beam
 LIDAR_GROUND_BAND_M = 0.25  # returns below this height are drawn red
 LIDAR_TOP_M = 3.1  # returns between the band and this height are drawn green; higher ones not at all
+# The scan keeps returns above the traffic: every vehicle is at most 2.6 m tall, every building, kiosk, tree
+# and pole at least 3 m, so the walls it holds stand still (cars moving with the ego, a queue, would pull a
+# scan match towards standing still).
+SCAN_MIN_HEIGHT_M = 2.8
 
 # Culling: each sensor sees only the nearest obstacles, so its cost does not grow with the town.
 CAMERA_BUILDINGS, CAMERA_VEHICLES = 20, 12  # nearest inside the camera's view wedge, within its depth
@@ -428,11 +432,12 @@ def render_lidar(obstacles: Obstacles, image_size):
 
 def render_scan(obstacles: Obstacles):
     """The lidar's scan, float32 [LIDAR_NUM_AZIMUTHS]: per azimuth (degree k: k degrees anticlockwise from
-    ahead), the horizontal range (m) of its beams' nearest return at least LIDAR_GROUND_BAND_M above the
-    ground, 0 where no beam of that azimuth returns from an obstacle within range. What a car's lidar
-    reports before any image is drawn: exact ranges, out to LIDAR_RANGE_M (the image keeps only the view)."""
+    ahead), the horizontal range (m) of its beams' nearest return at least SCAN_MIN_HEIGHT_M above the
+    ground (over the traffic's roofs: what stands still), 0 where no beam of that azimuth returns from so
+    high within range. What a car's lidar reports before any image is drawn: exact ranges, out to
+    LIDAR_RANGE_M (the image keeps only the view)."""
     x, y, z, has_return = lidar_returns(obstacles)[:4]
-    range_m = jnp.min(jnp.where(has_return & (z >= LIDAR_GROUND_BAND_M), jnp.hypot(x, y), jnp.inf), axis=0)
+    range_m = jnp.min(jnp.where(has_return & (z >= SCAN_MIN_HEIGHT_M), jnp.hypot(x, y), jnp.inf), axis=0)
     return jnp.where(jnp.isfinite(range_m), range_m, 0.0)
 
 
