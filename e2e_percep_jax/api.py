@@ -68,6 +68,24 @@ def _leaf_names(state) -> list:
     return [f"state{jax.tree_util.keystr(path)}" for path, _ in jax.tree_util.tree_flatten_with_path(state)[0]]
 
 
+def _absent(names: list, others: list) -> list:
+    """The ``names`` not among ``others``, each as its shortest prefix that no name of ``others`` shares (a
+    whole missing sub-state is named once: ``state.pose``), in order, without repeats."""
+    out = []
+    for name in names:
+        if name in others:
+            continue
+        parts = name.split(".")
+        prefix = next(
+            p
+            for p in (".".join(parts[:k]) for k in range(2, len(parts) + 1))
+            if not any(o == p or o.startswith(p + ".") for o in others)
+        )
+        if prefix not in out:
+            out.append(prefix)
+    return out
+
+
 @dataclasses.dataclass(frozen=True)
 class Perceiver:
     """The perception model of ``cfg`` as pure functions of (params, filter state, inputs). ``motion_model``:
@@ -191,8 +209,8 @@ class Perceiver:
         if jax.tree.structure(state) != jax.tree.structure(expected):
             want, got = _leaf_names(expected), _leaf_names(state)
             raise ValueError(
-                f"state: expected the FilterState of Perceiver.init; missing {[n for n in want if n not in got]}, "
-                f"unexpected {[n for n in got if n not in want]}"
+                f"state: expected the FilterState of Perceiver.init; missing {_absent(want, got)}, "
+                f"unexpected {_absent(got, want)}"
             )
         for (path, want), got in zip(jax.tree_util.tree_flatten_with_path(expected)[0], jax.tree.leaves(state)):
             _check(f"state{jax.tree_util.keystr(path)}", jnp.asarray(got), want.shape, want.dtype)

@@ -313,7 +313,7 @@ _STEP_CASES = {  # replaced inputs -> message
     ),
     "state without the pose belief": (
         {"state": lambda: _state(pose=None)},
-        "state: expected the FilterState of Perceiver.init; missing ['state.pose.belief', ",
+        "state: expected the FilterState of Perceiver.init; missing ['state.pose'], unexpected []",
     ),
     "state as a dict of its fields": (
         {"state": lambda: dataclasses.asdict(_state())},
