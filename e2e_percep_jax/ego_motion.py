@@ -283,9 +283,9 @@ def _update(state: OdometryState, model: MotionModel, scan, pose) -> _Update:
     ahead = jnp.where(
         chord_m[:, None] > 1e-3, predicted[:, :2] / jnp.maximum(chord_m, 1e-3)[:, None], jnp.asarray([1.0, 0.0])
     )
-    elapsed_s = state.keyframe_age.astype(jnp.float32) * motion_lib.DT_S
     forward = jnp.sum(measured[:, :2] * ahead, -1) - chord_m
     steps = state.keyframe_age.astype(jnp.float32)
+    elapsed_s = steps * motion_lib.DT_S
     speed, speed_covariance, along_m, forward_var = kalman_update(
         jnp.zeros_like(predicted[:, :2]),
         state.speed_covariance,
@@ -305,16 +305,8 @@ def _update(state: OdometryState, model: MotionModel, scan, pose) -> _Update:
     carried = carried.at[:, 0, 0].add(doubt)
     # the speed's error now: its error at the keyframe, and the gain's error times the speed change since
     speed_now = speed[:, 0] + speed[:, 1] * state.speed_change_mps
-    to_town = jnp.stack([jnp.cos(key3[:, 2]), jnp.sin(key3[:, 2])], -1)
-    along_town = jnp.stack(
-        [
-            to_town[:, 0] * ahead[:, 0] - to_town[:, 1] * ahead[:, 1],
-            to_town[:, 1] * ahead[:, 0] + to_town[:, 0] * ahead[:, 1],
-        ],
-        -1,
-    )
     return update._replace(
-        move=jnp.where(taken[:, None], along_m[:, None] * along_town, 0.0),
+        move=jnp.where(taken[:, None], along_m[:, None] * geo.rotate(ahead, key3[:, 2]), 0.0),
         speed=jnp.where(taken, speed_now, 0.0),
         accel_gain=jnp.where(taken, speed[:, 1], 0.0),
         speed_covariance=jnp.where(taken[:, None, None], _speed_carried(state, model, speed_covariance), carried),
