@@ -209,11 +209,13 @@ def lidar_drives(cfg: Config, town_seed: int, key, num_worlds: int, num_frames: 
 class ScanErrors(NamedTuple):
     """:func:`scan_errors`' matches [M]: the heading change's error (rad), the forward motion's error along
     the predicted chord (m) and its precision from the match (:func:`ego_motion.forward_precision`), the
-    true chord (m), and the fewer of each pair's returns."""
+    model's own lateral error (the true motion across its predicted chord, m), the true chord (m), and the
+    fewer of each pair's returns."""
 
     heading_rad: np.ndarray
     forward_m: np.ndarray
     forward_precision: np.ndarray
+    model_lateral_m: np.ndarray
     chord_m: np.ndarray
     num_returns: np.ndarray
 
@@ -240,10 +242,12 @@ def scan_errors(cfg: Config, model: MotionModel, town_seed: int, key, num_worlds
     true_xy = np.asarray(geo.town_to_ego(after[:, :2], before[:, :2], before[:, 2]))
     chord = np.linalg.norm(np.asarray(predicted[:, :2], np.float64), axis=-1)
     ahead = np.where(chord[:, None] > 1e-3, np.asarray(predicted[:, :2]) / np.maximum(chord, 1e-3)[:, None], [1.0, 0.0])
+    across = np.stack([-ahead[:, 1], ahead[:, 0]], -1)
     return ScanErrors(
         heading_rad=wrap_angle(np.asarray(measured[:, 2]) - wrap_angle(after[:, 2] - before[:, 2])),
         forward_m=np.sum((np.asarray(measured[:, :2], np.float64) - true_xy) * ahead, -1),
         forward_precision=np.asarray(ego_motion.forward_precision(information, jnp.asarray(ahead, jnp.float32))),
+        model_lateral_m=-np.sum(true_xy * across, -1),
         chord_m=np.linalg.norm(true_xy, axis=-1),
         num_returns=np.asarray(num_returns),
     )
@@ -255,76 +259,79 @@ def fit_scans(cfg: Config, model: MotionModel) -> MotionModel:
     ``ego_motion.MIN_RETURNS`` returns: the heading's, the errors' robust spread (1.4826 times the median
     absolute error) times the square root of the scans' returns; the forward motion's, the robust spread of
     its errors times the square root of their precision, over matches that moved (a standing car's match
-    is exact, and would shrink the spread)."""
+    is exact, and would shrink the spread); and the motion model's own error across its chord, as an angle
+    (the robust spread of its lateral error over the chord), which the odometry's error covariance carries."""
     key = jax.random.fold_in(jax.random.PRNGKey(CALIBRATION_SEED), 1)
     errors = scan_errors(cfg, model, cfg.world.town_seed, key)
     kept = errors.num_returns >= ego_motion.MIN_RETURNS
     heading = 1.4826 * np.median(np.abs(errors.heading_rad[kept]) * np.sqrt(errors.num_returns[kept]))
     moved = kept & (errors.chord_m > MIN_SPEED_MPS * DT_S * ego_motion.KEYFRAME_FRAMES)
-    forward = 1.4826 * np.median(np.abs(errors.forward_m[moved]) * np.sqrt(errors.forward_precision[moved]))
-    return dataclasses.replace(model, scan_heading_noise_rad=float(heading), scan_distance_noise=float(forward))
+    robust = lambda x: float(1.4826 * np.median(np.abs(x[moved])))
+    return dataclasses.replace(
+        model,
+        scan_heading_noise_rad=float(heading),
+        scan_distance_noise=robust(errors.forward_m * np.sqrt(errors.forward_precision)),
+        chord_angle_noise_rad=robust(errors.model_lateral_m / np.maximum(errors.chord_m, 1e-9)),
+    )
 
 
-# The odometry's spread: errors in distance bins of these edges (m driven from the known start), each bin's
-# 95 % quantile turned into a std (location: per axis of a circular 2-D Gaussian; heading: of a 1-D one).
-SPREAD_BIN_EDGES_M = (10.0, 20.0, 40.0, 80.0, 160.0, 320.0, 640.0)
-SPREAD_MIN_ERRORS = 50  # a bin with fewer errors is left out of the fit
-CHI_95 = {2: 2.4477, 1: 1.9600}  # sqrt of chi-square's 95 % quantile with 1 and 2 degrees of freedom
+CHI2_95 = {1: 3.8415, 2: 5.9915}  # chi-square's 95 % quantile with 1 and 2 degrees of freedom
+MOVED_M = 1.0  # frames before the car has driven this far from its known start are left out of the spread's fit
 
 
-def spread_law(travelled_m, error, dims: int, rounds: int = 8):
-    """(std at 100 m, growth) of the power law ``std = a (d / 100 m) ^ growth`` for errors ``error`` [M] (a
-    distance in ``dims`` dimensions) after ``travelled_m`` [M], over the distance bins of
-    :data:`SPREAD_BIN_EDGES_M`. The errors are scaled by ``(d / 100 m) ^ growth`` and the growth corrected by
-    the slope, in log-log, of the scaled errors' 95 % quantiles over the bins, ``rounds`` times (scaling each
-    error by its own distance keeps a bin's width out of its quantile); then ``a`` is the 95 % quantile of all
-    the scaled errors over CHI_95[dims]."""
-    kept = np.zeros(error.shape, bool)
-    bins = []
-    for low, high in zip(SPREAD_BIN_EDGES_M[:-1], SPREAD_BIN_EDGES_M[1:]):
-        inside = (travelled_m >= low) & (travelled_m < high)
-        if inside.sum() >= SPREAD_MIN_ERRORS:
-            bins.append((np.log(np.sqrt(low * high) / 100.0), inside))
-            kept |= inside
-    if len(bins) < 2:
-        raise ValueError(f"the odometry's spread needs errors in two distance bins of {SPREAD_BIN_EDGES_M} m")
-    error, d, bins = error[kept], travelled_m[kept] / 100.0, [(log_d, inside[kept]) for log_d, inside in bins]
-    growth = 1.0
-    for _ in range(rounds):
-        quantiles = [np.log(np.quantile(error[inside] / d[inside] ** growth, 0.95)) for _, inside in bins]
-        growth += np.polyfit([log_d for log_d, _ in bins], quantiles, 1)[0]
-    return float(np.quantile(error / d**growth, 0.95) / CHI_95[dims]), float(growth)
+def squared_errors(error, covariance):
+    """The squared Mahalanobis distances [...] of errors [..., k] under covariances [..., k, k]."""
+    return np.einsum("...i,...i->...", error, np.linalg.solve(covariance, error[..., None])[..., 0])
+
+
+def spread_errors(pose, followed, covariance):
+    """The odometry's errors under its error covariance on drives from a known start: the squared
+    Mahalanobis distances of the location errors [W, T] (under ``covariance[..., :2, :2]``) and of the heading
+    errors [W, T], for true poses [W, T, 3] (x, y, yaw), ``followed`` poses [W, T, 5] and covariances [W, T,
+    3, 3] (``ego_motion.follow``); NaN on frames before the car has driven MOVED_M (the covariance is ~0)."""
+    pose, followed, covariance = (np.asarray(x, np.float64) for x in (pose, followed, covariance))
+    step_m = np.linalg.norm(np.diff(pose[:, :, :2], axis=1), axis=-1)
+    moved = np.concatenate([np.zeros((pose.shape[0], 1)), np.cumsum(step_m, 1)], 1) > MOVED_M
+    location, heading = np.full(moved.shape, np.nan), np.full(moved.shape, np.nan)
+    location[moved] = squared_errors((followed[..., :2] - pose[..., :2])[moved], covariance[moved][:, :2, :2])
+    yaw_error = wrap_angle(np.arctan2(followed[..., 3], followed[..., 2]) - pose[..., 2])
+    heading[moved] = yaw_error[moved] ** 2 / covariance[moved][:, 2, 2]
+    return location, heading
+
+
+def spread_scale(squared_distance, dims: int) -> float:
+    """The factor on a covariance that puts 95 % of the errors, whose squared Mahalanobis distances under it
+    are ``squared_distance`` [M] (NaN: left out), inside its 95 % region (an ellipse in ``dims`` dimensions)."""
+    return float(np.nanquantile(squared_distance, 0.95) / CHI2_95[dims])
 
 
 def fit_spread(cfg: Config, model: MotionModel, drives_per_town: int = 4, num_frames: int = 1500) -> MotionModel:
     """``model`` with the odometry's spread: ``drives_per_town`` lidar drives of each of
     :data:`SPREAD_TOWN_SEEDS` from a key of their own, followed from their true starts by the odometry
-    (``ego_motion.follow``: with the scans when ``model`` has the matcher's noise), its location and heading
-    errors against the distance the car drove (:func:`spread_law`). The belief reads the spread only on
-    towns its place head never saw, so it is fitted on such towns: the training town's streets hold the
-    odometry tighter (on the `cpu` preset's, a third of the error of towns 1, 2, 7 and 8)."""
-    travelled_m, location_m, heading_rad = [], [], []
+    (``ego_motion.follow``: with the scans when ``model`` has the matcher's noise); the factor on its error
+    covariance's heading variances that holds 95 % of the heading errors in the 95 % interval, then, with
+    the heading's variances so scaled (which moves the position's), the factor on the location's that holds
+    95 % of the location errors in the 95 % ellipse (:func:`spread_scale`; frames after the first MOVED_M).
+    The belief reads the spread only on towns its place head never saw, so it is fitted on such towns: the
+    training town's streets hold the odometry tighter (on the `cpu` preset's, a third of the error of towns
+    1, 2, 7 and 8)."""
+    drives = []
     for town_seed in SPREAD_TOWN_SEEDS:
         key = jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(CALIBRATION_SEED), 2), town_seed)
         pose, speed, command, scan = lidar_drives(cfg, town_seed, key, drives_per_town, num_frames)
-        start, prev_action = start_and_commands(pose, speed, command)
-        followed, _ = jax.jit(ego_motion.follow, static_argnums=0)(model, start, prev_action, scan)
-        pose, followed = np.asarray(pose, np.float64), np.asarray(followed, np.float64)
-        step_m = np.linalg.norm(np.diff(pose[:, :, :2], axis=1), axis=-1)
-        travelled_m.append(np.concatenate([np.zeros((drives_per_town, 1)), np.cumsum(step_m, 1)], 1).ravel())
-        location_m.append(np.linalg.norm(followed[..., :2] - pose[..., :2], axis=-1).ravel())
-        yaw = np.arctan2(followed[..., 3], followed[..., 2])
-        heading_rad.append(np.abs(wrap_angle(yaw - pose[..., 2])).ravel())
-    travelled_m = np.concatenate(travelled_m)
-    location = spread_law(travelled_m, np.concatenate(location_m), 2)
-    heading = spread_law(travelled_m, np.concatenate(heading_rad), 1)
-    return dataclasses.replace(
-        model,
-        odometry_location_std_at_100m_m=location[0],
-        odometry_location_growth=location[1],
-        odometry_heading_std_at_100m_rad=heading[0],
-        odometry_heading_growth=heading[1],
-    )
+        drives.append((pose, *start_and_commands(pose, speed, command), scan))
+
+    def errors(model):
+        """(squared location errors, squared heading errors) under ``model``'s error covariance, all drives."""
+        squared = [
+            spread_errors(pose, *jax.jit(ego_motion.follow, static_argnums=0)(model, start, prev_action, scan)[::2])
+            for pose, start, prev_action, scan in drives
+        ]
+        return [np.concatenate([s[i].ravel() for s in squared]) for i in (0, 1)]
+
+    model = dataclasses.replace(model, odometry_heading_scale=1.0)
+    model = dataclasses.replace(model, odometry_heading_scale=spread_scale(errors(model)[1], 1))
+    return dataclasses.replace(model, odometry_location_scale=spread_scale(errors(model)[0], 2))
 
 
 def calibrate(cfg: Config, scans: bool = False, **drive_kwargs) -> MotionModel:

@@ -138,8 +138,11 @@ class OdometryState:
         distance scale less 1): the odometry accelerates ``1 + accel_gain_error`` times as the model says;
     speed_covariance: float32 [B, 2, 2], of (the odometry's speed error at the keyframe m/s, the gain's error);
     pose: float32 [B, 5], the odometry's pose after the last frame (x m, y m, cos, sin, speed m/s);
-    travelled_m: float32 [B], the distance the motion model drove since the drive's start (what the
-        odometry's spread grows with: :func:`spread`).
+    pose_covariance: float32 [B, 3, 3], of the pose's error (x m, y m, yaw rad; town axes) since the drive's
+        start: each keyframe's match leaves its interval's heading and forward motion with an error (its
+        posterior variance, or the prior's when the match was not taken), and a heading error moves the
+        position across the motion as the car drives (the interval since the keyframe: :func:`spread`);
+    travelled_m: float32 [B], the distance the motion model drove since the drive's start.
     """
 
     keyframe_scan: jax.Array
@@ -154,6 +157,7 @@ class OdometryState:
     accel_gain_error: jax.Array
     speed_covariance: jax.Array
     pose: jax.Array
+    pose_covariance: jax.Array
     travelled_m: jax.Array
 
 
@@ -184,6 +188,7 @@ def init_state(batch_size: int) -> OdometryState:
         accel_gain_error=zeros,
         speed_covariance=jnp.zeros((batch_size, 2, 2), jnp.float32),
         pose=jnp.zeros((batch_size, 5), jnp.float32),
+        pose_covariance=jnp.zeros((batch_size, 3, 3), jnp.float32),
         travelled_m=zeros,
     )
 
@@ -206,7 +211,7 @@ def kalman_update(correction, covariance, h, white_var, scan_var, innovation):
     speed's error and the acceleration gain error) take it alike. Returns (correction, covariance, the
     change's correction [B], innovation variance [B])."""
     ph = jnp.einsum("bij,bj->bi", covariance, h)
-    heading_var = jnp.einsum("bi,bi->b", h, ph) + white_var
+    heading_var = _prior_variance(h, covariance, white_var)
     innovation_var = heading_var + scan_var
     gain = ph / innovation_var[:, None]
     return (
@@ -217,6 +222,30 @@ def kalman_update(correction, covariance, h, white_var, scan_var, innovation):
     )
 
 
+def _interval_errors(state: OdometryState, model: MotionModel):
+    """What the motion since the keyframe may have got wrong, before a match says: for its heading change and
+    for its forward motion, (the derivative [B, 2] by the errors of the drive's estimates, the variance [B]
+    of the model's own errors). The heading's estimates are the curvature bias and the yaw gain error, so the
+    change's error is the distance and the model's yaw change times theirs, plus the model's per-metre noise;
+    the forward motion's are the speed at the keyframe and the acceleration gain error, so its error is the
+    time and the speed change's distance times theirs, plus the speed's random walk within the interval (a
+    step's variance times DT^2 k^3 / 3)."""
+    steps = state.keyframe_age.astype(jnp.float32)
+    return (
+        (jnp.stack([state.distance_m, state.model_yaw_rad], -1), model.yaw_noise_rad2pm * state.distance_m),
+        (
+            jnp.stack([steps * motion_lib.DT_S, state.speed_change_distance_m], -1),
+            model.speed_noise_mps**2 * (motion_lib.DT_S**2) * steps**3 / 3.0,
+        ),
+    )
+
+
+def _prior_variance(h, covariance, white_var):
+    """The variance [B] of an error ``h`` [B, 2] times the estimates' errors (``covariance`` [B, 2, 2]) plus
+    ``white_var`` [B]: a change's error before its match (:func:`kalman_update`'s prior)."""
+    return jnp.einsum("bi,bij,bj->b", h, covariance, h) + white_var
+
+
 def _gated(num_returns, innovation, innovation_var, floor):
     """Whether a match is taken: enough returns, and within GATE standard deviations or ``floor``."""
     return (num_returns >= MIN_RETURNS) & (innovation**2 < jnp.maximum(GATE**2 * innovation_var, floor**2))
@@ -225,7 +254,8 @@ def _gated(num_returns, innovation, innovation_var, floor):
 class _Update(NamedTuple):
     """What a keyframe's match changes (B streams): the heading's correction, its covariance and the turn to
     add; the pose's move along the chord [B, 2] m, the speed's change [B], the gain error's change [B] and
-    the speed's covariance carried to the new keyframe [B, 2, 2]."""
+    the speed's covariance carried to the new keyframe [B, 2, 2]; and the pose's error covariance [B, 3, 3]
+    the interval adds (what its heading change and forward motion keep of their errors after the match)."""
 
     correction: jax.Array
     covariance: jax.Array
@@ -234,6 +264,30 @@ class _Update(NamedTuple):
     speed: jax.Array
     accel_gain: jax.Array
     speed_covariance: jax.Array
+    pose_covariance: jax.Array
+
+
+def _left(innovation_var, scan_var, taken):
+    """The variance [B] a change's error keeps: the posterior's where its match was taken, else the prior's."""
+    prior = innovation_var - scan_var
+    return jnp.where(taken, prior * scan_var / innovation_var, prior)
+
+
+def _pose_errors(direction, along_var, across_var, heading_var):
+    """A covariance [B, 3, 3] of pose errors (x m, y m, yaw rad) with variances ``along_var`` along the unit
+    ``direction`` [B, 2], ``across_var`` across it and ``heading_var`` in heading (each [B]), uncorrelated."""
+    across = jnp.stack([-direction[:, 1], direction[:, 0]], -1)
+    outer = lambda u: jnp.pad(u, ((0, 0), (0, 1)))[:, :, None] * jnp.pad(u, ((0, 0), (0, 1)))[:, None, :]
+    heading = jnp.zeros(heading_var.shape + (3, 3), heading_var.dtype).at[:, 2, 2].set(heading_var)
+    return along_var[:, None, None] * outer(direction) + across_var[:, None, None] * outer(across) + heading
+
+
+def _across_var(state: OdometryState, model: MotionModel, heading_var):
+    """The variance [B] of the model's motion across its own direction since the keyframe: its chord's angle
+    error (``model.chord_angle_noise_rad``) times the distance, and what a heading error of ``heading_var``
+    [B] makes (it grows along the interval, so the position strays by half the distance times it; scaled
+    as the heading's variances are)."""
+    return state.distance_m**2 * (model.chord_angle_noise_rad**2 + 0.25 * model.odometry_heading_scale * heading_var)
 
 
 def _speed_carried(state: OdometryState, model: MotionModel, covariance):
@@ -255,16 +309,23 @@ def _update(state: OdometryState, model: MotionModel, scan, pose) -> _Update:
     )
     measured, num_returns, information = jax.vmap(match)(state.keyframe_scan, scan, predicted)
     innovation = geo.wrap_angle(measured[:, 2] - predicted[:, 2])
+    (h_heading, white_heading), (h_forward, white_forward) = _interval_errors(state, model)
+    heading_scan_var = model.scan_heading_noise_rad**2 / jnp.maximum(num_returns, 1.0)
     correction, covariance, turn, innovation_var = kalman_update(
-        state.correction,
-        state.covariance,
-        jnp.stack([state.distance_m, state.model_yaw_rad], -1),
-        model.yaw_noise_rad2pm * state.distance_m,  # the model's own per-step errors, summed
-        model.scan_heading_noise_rad**2 / jnp.maximum(num_returns, 1.0),
-        innovation,
+        state.correction, state.covariance, h_heading, white_heading, heading_scan_var, innovation
     )
     used = _gated(num_returns, innovation, innovation_var, GATE_FLOOR_RAD)
     zeros = jnp.zeros_like(turn)
+    # the chord's direction in town axes (ahead when the car stood)
+    chord_m = jnp.linalg.norm(predicted[:, :2], axis=-1)
+    ahead = jnp.where(
+        chord_m[:, None] > 1e-3, predicted[:, :2] / jnp.maximum(chord_m, 1e-3)[:, None], jnp.asarray([1.0, 0.0])
+    )
+    ahead_town = geo.rotate(ahead, key3[:, 2])
+    # what the interval leaves in the pose's error: in heading, what the match left of the turn's error; across
+    # the chord, the model's error there (the match's lateral motion is not taken: it did not help)
+    heading_left = model.odometry_heading_scale * _left(innovation_var, heading_scan_var, used)
+    across_var = _across_var(state, model, innovation_var - heading_scan_var)
     carried = _speed_carried(state, model, state.speed_covariance)
     update = _Update(
         correction=jnp.where(used[:, None], correction, state.correction),
@@ -274,26 +335,17 @@ def _update(state: OdometryState, model: MotionModel, scan, pose) -> _Update:
         speed=zeros,
         accel_gain=zeros,
         speed_covariance=carried,
+        pose_covariance=_pose_errors(ahead_town, zeros, across_var, heading_left),
     )
     if not uses_distance(model):
         return update
-    # The distance along the predicted chord (ahead when the car stood): its error since the keyframe is the
-    # speed's error at the keyframe times the time, plus the gain's error times the speed change's distance.
-    chord_m = jnp.linalg.norm(predicted[:, :2], axis=-1)
-    ahead = jnp.where(
-        chord_m[:, None] > 1e-3, predicted[:, :2] / jnp.maximum(chord_m, 1e-3)[:, None], jnp.asarray([1.0, 0.0])
-    )
+    # The distance along the predicted chord: its error since the keyframe is the speed's error at the keyframe
+    # times the time, plus the gain's error times the speed change's distance.
     forward = jnp.sum(measured[:, :2] * ahead, -1) - chord_m
-    steps = state.keyframe_age.astype(jnp.float32)
-    elapsed_s = steps * motion_lib.DT_S
+    elapsed_s = state.keyframe_age.astype(jnp.float32) * motion_lib.DT_S
+    forward_scan_var = model.scan_distance_noise**2 / jnp.maximum(forward_precision(information, ahead), 1e-9)
     speed, speed_covariance, along_m, forward_var = kalman_update(
-        jnp.zeros_like(predicted[:, :2]),
-        state.speed_covariance,
-        jnp.stack([elapsed_s, state.speed_change_distance_m], -1),
-        # the random walk's within the interval: a step's variance times DT^2 k^3 / 3
-        model.speed_noise_mps**2 * (motion_lib.DT_S**2) * steps**3 / 3.0,
-        model.scan_distance_noise**2 / jnp.maximum(forward_precision(information, ahead), 1e-9),
-        forward,
+        jnp.zeros_like(predicted[:, :2]), state.speed_covariance, h_forward, white_forward, forward_scan_var, forward
     )
     taken = _gated(num_returns, forward, forward_var, 0.0)
     # A match the gate leaves out widens the speed's variance by the speed error it would say: a wrong
@@ -305,11 +357,14 @@ def _update(state: OdometryState, model: MotionModel, scan, pose) -> _Update:
     carried = carried.at[:, 0, 0].add(doubt)
     # the speed's error now: its error at the keyframe, and the gain's error times the speed change since
     speed_now = speed[:, 0] + speed[:, 1] * state.speed_change_mps
+    # a match the gate left out says the forward motion may be off by as much as its innovation
+    forward_left = _left(forward_var, forward_scan_var, taken) + jnp.where(taken, 0.0, doubt * elapsed_s**2)
     return update._replace(
-        move=jnp.where(taken[:, None], along_m[:, None] * geo.rotate(ahead, key3[:, 2]), 0.0),
+        move=jnp.where(taken[:, None], along_m[:, None] * ahead_town, 0.0),
         speed=jnp.where(taken, speed_now, 0.0),
         accel_gain=jnp.where(taken, speed[:, 1], 0.0),
         speed_covariance=jnp.where(taken[:, None, None], _speed_carried(state, model, speed_covariance), carried),
+        pose_covariance=_pose_errors(ahead_town, forward_left, across_var, heading_left),
     )
 
 
@@ -333,6 +388,9 @@ def step(state: OdometryState, model: MotionModel, actuator, command, pose, scan
     )
     dyaw = model_dyaw + ds * state.correction[:, 0] + model_dyaw * state.correction[:, 1]
     xy = pose[:, :2] + motion_lib.centre_move(ds, dyaw, yaw[:, None])[:, 0]
+    # the pose's error moved with it: a heading error of e moves the position by ds e across the motion
+    across = ds[:, None] * jnp.stack([-jnp.sin(yaw + 0.5 * dyaw), jnp.cos(yaw + 0.5 * dyaw)], -1)
+    jacobian = jnp.broadcast_to(jnp.eye(3, dtype=across.dtype), across.shape[:1] + (3, 3)).at[:, :2, 2].set(across)
     yaw = yaw + dyaw
     speed_change = state.speed_change_mps + v_new - pose[:, 4]
     state = state.replace(
@@ -343,6 +401,9 @@ def step(state: OdometryState, model: MotionModel, actuator, command, pose, scan
         + 0.5 * (state.speed_change_mps + speed_change) * motion_lib.DT_S,
         speed_change_mps=speed_change,
         travelled_m=jnp.where(first, 0.0, state.travelled_m + ds),
+        pose_covariance=jnp.where(
+            first[:, None, None], 0.0, jacobian @ state.pose_covariance @ jnp.swapaxes(jacobian, 1, 2)
+        ),
     )
     moved = jnp.concatenate([xy, jnp.stack([jnp.cos(yaw), jnp.sin(yaw), v_new], -1)], -1)
     pose = jnp.where(first[:, None], start_pose, moved)
@@ -358,6 +419,7 @@ def step(state: OdometryState, model: MotionModel, actuator, command, pose, scan
         jnp.zeros_like(state.distance_m),
         jnp.zeros_like(state.distance_m),
         state.speed_covariance,
+        jnp.zeros_like(state.pose_covariance),
     )
     update = jax.lax.cond(jnp.any(due), lambda: _update(state, model, scan, pose), lambda: nothing)
     yaw = geo.pose_yaw(pose) + jnp.where(due, update.turn, 0.0)
@@ -384,6 +446,7 @@ def step(state: OdometryState, model: MotionModel, actuator, command, pose, scan
         accel_gain_error=restart(0.0, state.accel_gain_error + update.accel_gain, state.accel_gain_error),
         speed_covariance=restart(speed_prior_covariance(model), update.speed_covariance, state.speed_covariance),
         pose=pose,
+        pose_covariance=state.pose_covariance + jnp.where(due[:, None, None], update.pose_covariance, 0.0),
         travelled_m=state.travelled_m,
     )
     return state, actuator, pose
@@ -391,25 +454,39 @@ def step(state: OdometryState, model: MotionModel, actuator, command, pose, scan
 
 def spreads(model: MotionModel) -> bool:
     """Whether ``model`` has the odometry's fitted spread (:func:`e2e_percep_jax.calibration.fit_spread`)."""
-    return model.odometry_location_std_at_100m_m > 0
+    return model.odometry_location_scale > 0
 
 
-def spread(model: MotionModel, travelled_m):
-    """The odometry's error spread after ``travelled_m`` [B] metres from a known start, as fitted on training
-    drives: (location std [B] m per axis, heading std [B] rad), each ``std at 100 m x (d / 100 m) ^ growth``."""
-    d = jnp.maximum(travelled_m, 0.0) / 100.0
-    return (
-        model.odometry_location_std_at_100m_m * d**model.odometry_location_growth,
-        model.odometry_heading_std_at_100m_rad * d**model.odometry_heading_growth,
+def error_covariance(state: OdometryState, model: MotionModel):
+    """The covariance [B, 3, 3] of the odometry pose's error (x m, y m, yaw rad) as its filters carry it:
+    the keyframes' (``state.pose_covariance``) and the interval's since, before its match (its heading
+    change's, and its forward motion's along the car's heading). The heading's variances are the filter's
+    times ``model.odometry_heading_scale``."""
+    (h_heading, white_heading), (h_forward, white_forward) = _interval_errors(state, model)
+    heading_var = _prior_variance(h_heading, state.covariance, white_heading)
+    return state.pose_covariance + _pose_errors(
+        state.pose[:, 2:4],
+        _prior_variance(h_forward, state.speed_covariance, white_forward),
+        _across_var(state, model, heading_var),
+        model.odometry_heading_scale * heading_var,
     )
+
+
+def spread(state: OdometryState, model: MotionModel):
+    """The odometry's belief: (location covariance [B, 2, 2] m^2, heading std [B] rad), its carried error
+    covariance (:func:`error_covariance`, the heading's variances scaled as the drives of other towns say)
+    with the location's scaled likewise (``calibration.fit_spread``)."""
+    covariance = error_covariance(state, model)
+    return model.odometry_location_scale * covariance[:, :2, :2], jnp.sqrt(covariance[:, 2, 2])
 
 
 def follow(model: MotionModel, start_pose, prev_action, scans):
     """The odometry along B recorded drives from their true first poses: :func:`step` frame by frame in one
     ``lax.scan``. start_pose [B, 5]; prev_action [B, T, 2], frame t's commands (applied from t-1 to t; frame
     0's only set the actuators); scans [B, T, SCAN_AZIMUTHS] (the lidar's), or None for dead reckoning.
-    Returns the poses [B, T, 5] and the drive's estimates [B, T, 3] after each frame: the curvature bias
-    (1/m), the yaw gain error and the acceleration gain error (shares)."""
+    Returns the poses [B, T, 5], the drive's estimates [B, T, 3] after each frame (the curvature bias (1/m),
+    the yaw gain error and the acceleration gain error: shares), and the pose's error covariance [B, T, 3, 3]
+    (:func:`error_covariance`)."""
     b = start_pose.shape[0]
 
     def body(carry, x):
@@ -418,9 +495,9 @@ def follow(model: MotionModel, start_pose, prev_action, scans):
         actuator = jnp.where(first[:, None], action, actuator)
         state, actuator, pose = step(state, model, actuator, action, pose, scan, first, start_pose)
         estimates = jnp.concatenate([state.correction, state.accel_gain_error[:, None]], -1)
-        return (state, actuator, pose, jnp.zeros_like(first)), (pose, estimates)
+        return (state, actuator, pose, jnp.zeros_like(first)), (pose, estimates, error_covariance(state, model))
 
     time_major = lambda x: None if x is None else jnp.swapaxes(x, 0, 1)
     init = (init_state(b), jnp.zeros((b, 2)), start_pose, jnp.ones((b,), bool))
-    pose, correction = jax.lax.scan(body, init, (time_major(prev_action), time_major(scans)))[1]
-    return time_major(pose), time_major(correction)
+    outputs = jax.lax.scan(body, init, (time_major(prev_action), time_major(scans)))[1]
+    return tuple(time_major(x) for x in outputs)

@@ -355,10 +355,10 @@ def filter_step(
     measurement; the pose is the odometry's (:func:`ego_motion.step`: the commands through the motion model,
     with the lidar's scans ``scan`` [B, 360] (the frame contract's ``lidar_scan``) correcting the heading,
     speed and distance when the model has the matcher's fitted noises), and the belief a Gaussian around it
-    whose spread grows with the distance driven as the odometry's errors did on calibration drives of other
-    towns (:func:`spread_at`, :func:`ego_motion.spread`), or a point
-    (:func:`start_at`) when the model has no fitted spread (a histogram moved without measurements spreads
-    over the town, and its mode says little).
+    whose spread is the error covariance the odometry's filters carry, scaled as calibration drives of
+    other towns say (:func:`spread_at`, :func:`ego_motion.spread`), or a point (:func:`start_at`) when the
+    model has no fitted spread (a histogram moved without measurements spreads over the town, and its mode
+    says little).
     A stream's actuators start at its first logged commands (the car is taken to be in steady state).
     """
     if start_pose is None and not measure:
@@ -374,7 +374,9 @@ def filter_step(
             state.odometry, model, actuator, prev_action, state.odometry.pose, scan, first, start_pose
         )
         if ego_motion.spreads(model):
-            belief, offset = spread_at(pose, *ego_motion.spread(model, odometry.travelled_m), grid)
+            location_covariance, heading_std = ego_motion.spread(odometry, model)
+            location_std = jnp.sqrt(jnp.diagonal(location_covariance, axis1=-2, axis2=-1))
+            belief, offset = spread_at(pose, location_std, heading_std, grid)
         else:
             belief, offset = start_at(pose, grid)
         return PoseBeliefState(
@@ -460,16 +462,17 @@ def start_at(pose, grid: Grid):
 
 def spread_at(pose, location_std_m, heading_std_rad, grid: Grid):
     """(belief [B, H, n, n], heading offset [B] of 0) of a Gaussian around poses [B, 5]: ``location_std_m``
-    [B] per axis, ``heading_std_rad`` [B] (wrapped), each cell's and bin's probability its integral over the
-    cell or bin; a std of 0 puts all of it in the cell and bin holding the pose."""
+    [B, 2] along x and y (their correlation, which a product of the axes cannot hold, left out),
+    ``heading_std_rad`` [B] (wrapped), each cell's and bin's probability its integral over the cell or bin; a
+    std of 0 puts all of it in the cell and bin holding the pose."""
     edges = AREA_ORIGIN_M + grid.cell_m * jnp.arange(grid.n + 1)  # [n + 1]
-    std = jnp.maximum(location_std_m, 1e-6)[:, None]
-    axis = lambda centre: jnp.diff(norm.cdf((edges - centre[:, None]) / std), axis=-1)  # [B, n]
+    std = jnp.maximum(location_std_m, 1e-6)
+    axis = lambda i: jnp.diff(norm.cdf((edges - pose[:, i, None]) / std[:, i, None]), axis=-1)  # [B, n]
     half = 0.5 * grid.bin_rad
     d = wrap_angle(jnp.asarray(grid.bin_centres()) - pose_yaw(pose)[:, None])  # [B, H]
     h_std = jnp.maximum(heading_std_rad, 1e-6)[:, None]
     heading = norm.cdf((d + half) / h_std) - norm.cdf((d - half) / h_std)
-    belief = heading[:, :, None, None] * axis(pose[:, 1])[:, None, :, None] * axis(pose[:, 0])[:, None, None, :]
+    belief = heading[:, :, None, None] * axis(1)[:, None, :, None] * axis(0)[:, None, None, :]
     return _normalised(belief), jnp.zeros(pose.shape[:1])
 
 

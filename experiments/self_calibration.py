@@ -17,6 +17,9 @@ the first time). Two estimates, each against the plant's truth beyond the motion
   frame (``scale_within_20pct``, which says nothing); the figure that does is the estimate of its deviation
   from 1 within 20 % of the true deviation (``share_within_20pct``).
 
+Beside them, the belief's calibration: the share of frames (after the first metre) whose true location and
+heading lie inside the 95 % regions of the odometry's spread (``ego_motion.spread``).
+
 Prints, as JSON, per estimate: the share of drives within 20 % at each of ``--at_frames``, each drive's first
 frame from which it stays within 20 %, the truths and estimates, and the median absolute error. A
 ``--world.*`` flag changes the car driven (the model stays the run's).
@@ -72,7 +75,8 @@ def main(argv):
     # the plants calibration.drives' worlds were reset with (its keys, its reset)
     plant = jax.vmap(lambda k: world.reset(k, town, cfg.world).ego_plant)(jax.random.split(key, FLAGS.drives))
     start, prev_action = calibration.start_and_commands(pose, speed, command)
-    _, estimates = jax.jit(ego_motion.follow, static_argnums=0)(model, start, prev_action, scans)
+    followed, estimates, covariance = jax.jit(ego_motion.follow, static_argnums=0)(model, start, prev_action, scans)
+    location, heading = calibration.spread_errors(pose, followed, covariance)
     estimates = np.asarray(estimates, np.float64)  # [W, T, 3]: curvature bias (1/m), yaw gain, accel gain
     v = np.asarray(speed, np.float64)
     v2 = np.sum(v**3, 1) / np.maximum(np.sum(v, 1), 1e-9)  # v^2 weighted by the distance driven
@@ -82,6 +86,7 @@ def main(argv):
     scale = np.asarray(plant.distance_scale, np.float64)
     gain_truth = scale * motion.EGO_ACCEL_LIMIT_MPS2 / model.accel_per_pedal_mps2 - 1.0
     to_deg = lambda bias: np.degrees(np.arctan(bias * motion.WHEELBASE_M))
+    chi2_location = calibration.CHI2_95[2] * model.odometry_location_scale  # the location's fitted factor
     result = {
         "town_seed": FLAGS.town_seed,
         "drives": FLAGS.drives,
@@ -93,6 +98,11 @@ def main(argv):
         "scale_within_20pct": {
             str(f): float(np.mean(np.abs(estimates[:, f - 1, 2] - gain_truth) <= WITHIN * (1.0 + gain_truth)))
             for f in at_frames
+        },
+        # the belief's calibration: moved frames whose truth lies inside the odometry's 95 % regions
+        "truth_in_95pct_region": {
+            "location": float(np.nanmean(np.where(np.isnan(location), np.nan, location <= chi2_location))),
+            "heading": float(np.nanmean(np.where(np.isnan(heading), np.nan, heading <= calibration.CHI2_95[1]))),
         },
         "prior_std": {
             "steering_offset_deg": float(to_deg(model.yaw_bias_std_1pm)),

@@ -169,8 +169,8 @@ def test_the_known_start_off_the_training_town_is_the_lidar_odometry(params):
     b = drive["pose"].shape[0]
     prev_action = jnp.concatenate([drive["action"][:, :1], drive["action"][:, :-1]], 1)
     start = drive["pose"][:, 0]
-    followed, _ = jax.jit(ego_motion.follow, static_argnums=0)(model, start, prev_action, drive["lidar_scan"])
-    reckoned, _ = jax.jit(ego_motion.follow, static_argnums=0)(model, start, prev_action, None)
+    followed, _, _ = jax.jit(ego_motion.follow, static_argnums=0)(model, start, prev_action, drive["lidar_scan"])
+    reckoned, _, _ = jax.jit(ego_motion.follow, static_argnums=0)(model, start, prev_action, None)
     step, state = jax.jit(perceiver.step, static_argnames="measure"), perceiver.init(b)
     with pytest.raises(ValueError, match="lidar_scan"):
         step(

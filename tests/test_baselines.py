@@ -268,7 +268,7 @@ def test_the_lidar_odometry_baseline_steps_as_the_odometry_follows_a_drive():
     prev_action = jnp.concatenate([drive["action"][:, :1], drive["action"][:, :-1]], 1)
     prev_action = prev_action.at[:, 0].set(drive["action"][:, 0] * 0.5)  # a first command unlike the next
     start = drive["pose"][:, 0]
-    followed, _ = jax.jit(ego_motion.follow, static_argnums=0)(model, start, prev_action, drive["lidar_scan"])
+    followed, _, _ = jax.jit(ego_motion.follow, static_argnums=0)(model, start, prev_action, drive["lidar_scan"])
     odometry = baselines.CommandOdometry(cfg, model, scans=True)
     step, state = jax.jit(odometry.step, static_argnames="measure"), odometry.init(start.shape[0])
     for t in range(40):

@@ -150,8 +150,8 @@ def test_a_planted_steering_offset_and_distance_scale_are_learnt_from_the_scans_
     run = lambda m: jax.tree.map(
         lambda x: x[0], jax.jit(ego_motion.follow, static_argnums=0)(m, start, previous, scans[None])
     )
-    poses, estimates = run(model)
-    reckoned, _ = run(dataclasses.replace(model, scan_heading_noise_rad=0.0))
+    poses, estimates, _ = run(model)
+    reckoned, _, _ = run(dataclasses.replace(model, scan_heading_noise_rad=0.0))
     assert abs(float(estimates[-1, 0]) - bias_1pm) < 0.1 * bias_1pm
     assert abs(float(estimates[-1, 2]) - (accel_gain - 1.0)) < 0.1 * (accel_gain - 1.0)
     heading_error = lambda p: abs(float(geo.wrap_angle(geo.pose_yaw(p[-1]) - yaw[-1])))
@@ -209,7 +209,7 @@ def test_the_scan_matcher_follows_the_true_motion_on_a_town_it_never_saw():
 def test_a_motion_model_from_before_the_lidar_odometry_gains_its_prior_scan_noise_and_spread(tmp_path):
     """A run whose motion_model.json predates the lidar odometry (no offset or gain priors, no scan noises,
     no spread) gets them all fitted and saved the first time the odometry needs them; its own fields stay as they
-    were. The spread grows with the distance driven."""
+    were."""
     cfg = config_lib.get_config("tiny")
     old = motion.MotionModel(lag_share=0.5, steer_gain=0.97, heading_noise_rad2pm=3e-4)
     old.save(str(tmp_path))
@@ -217,30 +217,51 @@ def test_a_motion_model_from_before_the_lidar_odometry_gains_its_prior_scan_nois
     assert model.yaw_bias_std_1pm > 0 and model.yaw_gain_std > 0 and model.yaw_noise_rad2pm > 0
     assert model.speed_gain_std > 0 and model.speed_noise_mps > 0
     assert ego_motion.uses_distance(model) and ego_motion.spreads(model)
-    assert model.odometry_location_growth > 0 and model.odometry_heading_std_at_100m_rad > 0
+    assert model.chord_angle_noise_rad > 0 and model.odometry_heading_scale > 0
     fitted = dict(yaw_bias_std_1pm=0.0, yaw_gain_std=0.0, yaw_noise_rad2pm=0.0, scan_heading_noise_rad=0.0)
-    fitted.update(speed_gain_std=0.0, speed_noise_mps=0.0, scan_distance_noise=0.0)
-    fitted.update(odometry_location_std_at_100m_m=0.0, odometry_heading_std_at_100m_rad=0.0)
-    fitted.update(odometry_location_growth=1.0, odometry_heading_growth=1.0)
+    fitted.update(speed_gain_std=0.0, speed_noise_mps=0.0, scan_distance_noise=0.0, chord_angle_noise_rad=0.0)
+    fitted.update(odometry_heading_scale=1.0, odometry_location_scale=0.0)
     assert dataclasses.replace(model, **fitted) == old
     assert motion.MotionModel.load(str(tmp_path)) == model
 
 
-@pytest.mark.parametrize("matcher", ["image", "heading"])
+@pytest.mark.parametrize("matcher", ["image", "heading", "distance"])
 def test_a_motion_model_fitted_for_an_earlier_matcher_is_read_without_its_scan_noise_and_spread(tmp_path, matcher):
-    """A motion_model.json saved when the matcher read the lidar image ("scan_yaw_noise_rad"), or when the
-    scans corrected the heading alone (no "scan_distance_noise"), with a spread fitted with that odometry,
-    loads without the scans' noises and the spread, so that `calibration.ensure_scans` fits them for the
-    odometry as it is; the motion model's own fields and the priors are kept."""
+    """A motion_model.json saved when the matcher read the lidar image ("scan_yaw_noise_rad"), when the
+    scans corrected the heading alone (no "scan_distance_noise"), or before the odometry carried its error
+    covariance (no "chord_angle_noise_rad"; its spread a law of the distance driven), loads without the
+    scans' noises and the spread, so that `calibration.ensure_scans` fits them for the odometry as it is;
+    the motion model's own fields and the priors are kept."""
     kept = motion.MotionModel(lag_share=0.5, steer_gain=0.97, yaw_bias_std_1pm=0.0014, yaw_gain_std=0.034)
-    fields = dataclasses.asdict(kept)
-    del fields["scan_heading_noise_rad"], fields["scan_distance_noise"]
+    fields = {k: v for k, v in dataclasses.asdict(kept).items() if not k.startswith(("scan_", "chord_", "odometry_"))}
     fields.update(odometry_location_std_at_100m_m=6.3, odometry_location_growth=1.54)
     if matcher == "image":
         fields.update(scan_yaw_noise_rad=0.047)
-    else:
+    elif matcher == "heading":
         fields.update(scan_heading_noise_rad=0.001)
+    else:
+        fields.update(scan_heading_noise_rad=0.001, scan_distance_noise=0.15)
     (tmp_path / motion.FILE_NAME).write_text(json.dumps(fields))
     loaded = motion.MotionModel.load(str(tmp_path))
     assert loaded == kept
     assert not ego_motion.uses_scans(loaded) and not ego_motion.spreads(loaded)
+
+
+def test_the_error_covariance_carries_a_heading_error_across_the_motion():
+    """A heading error of variance s^2 at the start, the car driving straight d metres at heading psi without
+    scans (nothing adds to the covariance): the position's error is d times the heading's across the motion,
+    so the covariance is s^2 [a; 1][a; 1]' with a = d (-sin psi, cos psi), and nothing along it."""
+    model = motion.MotionModel()
+    yaw, s2 = 0.3, 0.01**2
+    start = jnp.asarray([[10.0, -5.0, np.cos(yaw), np.sin(yaw), 8.0]], jnp.float32)
+    state = ego_motion.init_state(1)
+    actuator, command = jnp.zeros((1, 2)), jnp.zeros((1, 2))
+    first = jnp.ones((1,), bool)
+    state, actuator, pose = ego_motion.step(state, model, actuator, command, start, None, first, start)
+    state = state.replace(pose_covariance=state.pose_covariance.at[:, 2, 2].set(s2))
+    for _ in range(40):
+        state, actuator, pose = ego_motion.step(state, model, actuator, command, pose, None, ~first, start)
+    d = float(np.linalg.norm(np.asarray(pose[0, :2] - start[0, :2])))
+    assert d > 20.0  # it drove
+    a = d * np.array([-np.sin(yaw), np.cos(yaw), 0.0]) + np.array([0.0, 0.0, 1.0])
+    np.testing.assert_allclose(np.asarray(state.pose_covariance[0]), s2 * np.outer(a, a), rtol=1e-4, atol=1e-9)

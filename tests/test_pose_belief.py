@@ -505,7 +505,7 @@ def test_known_start_odometry_follows_the_motion_model(spread):
     restart = 350
     model = LAGGED
     if spread:
-        model = dataclasses.replace(LAGGED, odometry_location_std_at_100m_m=5.0, odometry_heading_std_at_100m_rad=0.1)
+        model = dataclasses.replace(LAGGED, odometry_location_scale=2.0, odometry_heading_scale=3.0)
     got, got_actuator = known_start_track(model, start, commands, grid, restart_at=restart)
     # frame t's pose comes from commands 0..t-1; after the restart from commands restart..t-1
     first_part, first_act = np_odometry(LAGGED, start, commands[: restart - 1].astype(np.float64))
@@ -747,11 +747,12 @@ def test_a_spread_belief_is_the_gaussian_it_stands_for():
     its mean is the pose, and a std of 0 puts all the mass in the pose's own cell and bin."""
     grid = pose_belief.Grid(cell_m=5.0, heading_bins=36)
     pose = np.array([[203.0, 151.0, math.cos(0.7), math.sin(0.7), 5.0]], np.float32)
-    belief, offset = pose_belief.spread_at(jnp.asarray(pose), jnp.asarray([9.0]), jnp.asarray([0.2]), grid)
+    std_m = np.array([9.0, 6.0])
+    belief, offset = pose_belief.spread_at(jnp.asarray(pose), jnp.asarray(std_m[None]), jnp.asarray([0.2]), grid)
     belief = np.asarray(belief[0], np.float64)
     assert float(offset[0]) == 0.0 and abs(belief.sum() - 1.0) < 1e-5
     rng = np.random.default_rng(3)
-    xy = pose[0, :2] + rng.normal(0, 9.0, (20000, 2))
+    xy = pose[0, :2] + rng.normal(0, 1.0, (20000, 2)) * std_m
     yaw = 0.7 + rng.normal(0, 0.2, 20000)
     cell = np.asarray(pose_belief.true_cell(jnp.asarray(xy), grid)[0])
     k = np.asarray(pose_belief.true_bin(jnp.asarray(yaw), grid)[0])
@@ -764,7 +765,7 @@ def test_a_spread_belief_is_the_gaussian_it_stands_for():
     mean = np.asarray(pose_belief.mean_pose(state, grid)[0])
     np.testing.assert_allclose(mean[:2], pose[0, :2], atol=0.05)
     assert abs(math.atan2(mean[3], mean[2]) - 0.7) < 0.005
-    point, _ = pose_belief.spread_at(jnp.asarray(pose), jnp.zeros(1), jnp.zeros(1), grid)
+    point, _ = pose_belief.spread_at(jnp.asarray(pose), jnp.zeros((1, 2)), jnp.zeros(1), grid)
     own = np.zeros(np.asarray(point).shape[1:])
     own[int(pose_belief.true_bin(jnp.asarray(0.7), grid)[0])].flat[
         int(pose_belief.true_cell(jnp.asarray(pose[0, :2]), grid)[0])
@@ -772,16 +773,16 @@ def test_a_spread_belief_is_the_gaussian_it_stands_for():
     np.testing.assert_allclose(np.asarray(point[0]), own, atol=1e-6)
 
 
-def test_the_spread_law_recovers_a_planted_power_law():
-    """``calibration.spread_law`` on errors drawn from a 2-D Gaussian of std 4 m x (d / 100 m)^1.3 per axis and
-    a 1-D one of 0.08 rad x (d / 100 m)^0.6 returns both laws within 5 %."""
+def test_the_spread_scale_recovers_a_planted_factor():
+    """``calibration.spread_scale`` on errors drawn from Gaussians of covariance 3 x C (2-D, each draw its own
+    C) and 0.5 x v (1-D) under C and v returns 3 and 0.5 within 5 %: the 95 % quantile of the squared
+    Mahalanobis distances over chi-square's, as ``calibration.squared_errors`` computes them."""
     rng = np.random.default_rng(0)
-    d = rng.uniform(10.0, 640.0, 40000)
-    location = np.linalg.norm(rng.normal(size=(d.size, 2)), axis=-1) * 4.0 * (d / 100.0) ** 1.3
-    heading = np.abs(rng.normal(size=d.size)) * 0.08 * (d / 100.0) ** 0.6
-    a, growth = calibration.spread_law(d, location, 2)
-    assert abs(a / 4.0 - 1) < 0.05 and abs(growth - 1.3) < 0.05
-    a, growth = calibration.spread_law(d, heading, 1)
-    assert abs(a / 0.08 - 1) < 0.05 and abs(growth - 0.6) < 0.05
-    with pytest.raises(ValueError, match="two distance bins"):
-        calibration.spread_law(np.full(100, 15.0), location[:100], 2)
+    n = 40000
+    root = rng.normal(size=(n, 2, 2))
+    covariance = root @ np.swapaxes(root, 1, 2) + 0.1 * np.eye(2)
+    error = np.einsum("nij,nj->ni", np.linalg.cholesky(3.0 * covariance), rng.normal(size=(n, 2)))
+    assert abs(calibration.spread_scale(calibration.squared_errors(error, covariance), 2) / 3.0 - 1) < 0.05
+    variance = rng.uniform(0.1, 2.0, n)
+    heading = rng.normal(size=n) * np.sqrt(0.5 * variance)
+    assert abs(calibration.spread_scale(heading**2 / variance, 1) / 0.5 - 1) < 0.05

@@ -64,14 +64,19 @@ class MotionModel:
     speed_gain_std: float = 0.0
     speed_noise_mps: float = 0.0
     scan_distance_noise: float = 0.0
-    # How far the odometry (the commands, with the scans when fitted) strays from a known start: its error's
-    # std per axis (m) and in heading (rad) at 100 m driven, and how each grows with distance (a power law
-    # fitted to the 95 % quantiles on drives of towns no table uses: calibration.SPREAD_TOWN_SEEDS). 0: not
-    # fitted; the odometry's belief is then a point.
-    odometry_location_std_at_100m_m: float = 0.0
-    odometry_location_growth: float = 1.0
-    odometry_heading_std_at_100m_rad: float = 0.0
-    odometry_heading_growth: float = 1.0
+    # The model's own error across its chord (its chord's angle to the true motion's), which the odometry's
+    # error covariance carries. (Models saved before it have none: `load` drops their scans' noises and
+    # spread, which `calibration.ensure_scans` fits anew.)
+    chord_angle_noise_rad: float = 0.0
+    # How far the odometry strays from a known start, against what its filters say: the factors on the
+    # heading's variances that the odometry's error covariance carries (ego_motion.error_covariance: they
+    # move the position too), then on its location's, that put 95 % of the heading and location errors inside
+    # their 95 % regions on drives of towns no table uses (calibration.SPREAD_TOWN_SEEDS). A location scale of
+    # 0: not fitted; the odometry's belief is then a point. (Models saved when the spread was a law of the
+    # distance driven carry "odometry_location_std_at_100m_m": `load` drops it, and
+    # `calibration.ensure_scans` fits the factors.)
+    odometry_heading_scale: float = 1.0
+    odometry_location_scale: float = 0.0
 
     def save(self, workdir: str) -> str:
         path = os.path.join(workdir, FILE_NAME)
@@ -91,8 +96,10 @@ class MotionModel:
                 fields = json.load(f)
             if fields.pop("scan_yaw_noise_rad", None) is not None:
                 fields = {k: v for k, v in fields.items() if not k.startswith("odometry_")}
-            if "scan_heading_noise_rad" in fields and "scan_distance_noise" not in fields:
-                # fitted before the odometry measured its distance: the scans' noises and spread fitted anew
+            if "odometry_location_std_at_100m_m" in fields:  # the spread as a law of the distance driven
+                fields = {k: v for k, v in fields.items() if not k.startswith("odometry_")}
+            if "scan_heading_noise_rad" in fields and "chord_angle_noise_rad" not in fields:
+                # fitted before the odometry measured its distance, or carried its error covariance: fitted anew
                 fields = {k: v for k, v in fields.items() if not k.startswith(("odometry_", "scan_"))}
             return cls(**fields)
         except (ValueError, TypeError, AttributeError) as e:
