@@ -10,7 +10,7 @@ import sys
 import pytest
 from helpers import ROOT, load_experiment
 
-from e2e_percep_jax import config, pose_belief
+from e2e_percep_jax import config, pose_belief, protocol
 
 tables = load_experiment("tables")
 
@@ -366,3 +366,26 @@ def test_groups_table_gives_each_group_its_boxes_seed_means_and_the_drives_inter
     ]
     assert rows[0].startswith("| `cpu` | 0 |") and rows[3].endswith("| 55.0 ± 5.0 [45.0, 75.0] |")
     assert "`cpu`" not in rendered["detection"]
+
+
+def test_a_held_out_evaluation_without_detections_own_drives_fills_the_pose_cells(results, tmp_path):
+    """A held-out known-start evaluation that only left out detection's own drives
+    (``--eval.detection_drives=0``: its protocol's name gains ``_detection_drives0``) drove the same pose
+    drives, so its drift fills that town's cell; an evaluation that changed the pose drives does not."""
+    trained = config.get_config("cpu")
+
+    def evaluation(seed, drift, **eval_changes):
+        m = _metrics(seed, town=7, known_start=True, drift=drift)
+        cfg = config.replace(trained, train=dict(seed=seed), eval=dict(town_seed=7, known_start=True, **eval_changes))
+        m["protocol"] = protocol.of(cfg, config.replace(trained, train=dict(seed=seed))).to_dict()
+        m["config"] = json.loads(cfg.to_json())
+        return {m["protocol"]["name"]: m}
+
+    for seed in (0, 1):
+        _write_run(tmp_path / "odo" / f"place_s{seed}", evaluation(seed, 3.0 + seed, detection_drives=0))
+    tables.collect("odometry", [str(tmp_path / "odo" / f"place_s{s}") for s in (0, 1)], str(results))
+    assert _row(tables.render(str(results))["localisation"], "`odometry`")[6] == "- / 3.50 ± 0.50"
+    for seed in (0, 1):
+        _write_run(tmp_path / "drives" / f"place_s{seed}", evaluation(seed, 3.0, num_worlds=2))
+    tables.collect("drives", [str(tmp_path / "drives" / f"place_s{s}") for s in (0, 1)], str(results))
+    assert "| `drives` |" not in tables.render(str(results))["localisation"]
