@@ -302,7 +302,8 @@ def _update(state: OdometryState, model: MotionModel, scan, pose) -> _Update:
     """The keyframe's match against ``scan`` through :func:`kalman_update`, once for the heading and, when
     ``model`` has the forward motion's noise, once for the distance. Scans with fewer than MIN_RETURNS
     returns, and matches off the prediction by more than GATE standard deviations (and, for the heading,
-    GATE_FLOOR_RAD), change nothing but the speed's covariance, carried on."""
+    GATE_FLOOR_RAD), change nothing but the speed's covariance, carried on, and the pose's error
+    covariance, which then takes the interval's errors as the prediction left them."""
     pose3, key3 = _xy_yaw(pose), state.keyframe_pose
     predicted = jnp.concatenate(
         [geo.town_to_ego(pose3[:, :2], key3[:, :2], key3[:, 2]), geo.wrap_angle(pose3[:, 2:] - key3[:, 2:])], -1
