@@ -474,11 +474,11 @@ def error_covariance(state: OdometryState, model: MotionModel):
 
 
 def spread(state: OdometryState, model: MotionModel):
-    """The odometry's belief: (location covariance [B, 2, 2] m^2, heading std [B] rad), its carried error
-    covariance (:func:`error_covariance`, the heading's variances scaled as the drives of other towns say)
-    with the location's scaled likewise (``calibration.fit_spread``)."""
-    covariance = error_covariance(state, model)
-    return model.odometry_location_scale * covariance[:, :2, :2], jnp.sqrt(covariance[:, 2, 2])
+    """The odometry's belief per axis: (location std [B, 2] m along x and y, heading std [B] rad), the square
+    roots of its carried error covariance's diagonal (:func:`error_covariance`, the heading's variances
+    scaled as the drives of other towns say) with the location's scaled likewise (``calibration.fit_spread``)."""
+    variance = jnp.diagonal(error_covariance(state, model), axis1=-2, axis2=-1)  # [B, 3]
+    return jnp.sqrt(model.odometry_location_scale * variance[:, :2]), jnp.sqrt(variance[:, 2])
 
 
 def follow(model: MotionModel, start_pose, prev_action, scans):

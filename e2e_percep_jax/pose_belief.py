@@ -374,9 +374,7 @@ def filter_step(
             state.odometry, model, actuator, prev_action, state.odometry.pose, scan, first, start_pose
         )
         if ego_motion.spreads(model):
-            location_covariance, heading_std = ego_motion.spread(odometry, model)
-            location_std = jnp.sqrt(jnp.diagonal(location_covariance, axis1=-2, axis2=-1))
-            belief, offset = spread_at(pose, location_std, heading_std, grid)
+            belief, offset = spread_at(pose, *ego_motion.spread(odometry, model), grid)
         else:
             belief, offset = start_at(pose, grid)
         return PoseBeliefState(
