@@ -316,6 +316,10 @@ def _update(state: OdometryState, model: MotionModel, scan, pose) -> _Update:
         state.correction, state.covariance, h_heading, white_heading, heading_scan_var, innovation
     )
     used = _gated(num_returns, innovation, innovation_var, GATE_FLOOR_RAD)
+    # The drive's first interval (until the car has driven through one) starts from actuators that the first
+    # commands only guess: a car turning in as the drive starts errs there by tens of milliradians, which the
+    # estimates would take for a steering offset. Its match corrects the heading, not the estimates.
+    learns = used & (state.travelled_m > state.distance_m)
     zeros = jnp.zeros_like(turn)
     # the chord's direction in town axes (ahead when the car stood)
     chord_m = jnp.linalg.norm(predicted[:, :2], axis=-1)
@@ -329,8 +333,8 @@ def _update(state: OdometryState, model: MotionModel, scan, pose) -> _Update:
     across_var = _across_var(state, model, innovation_var - heading_scan_var)
     carried = _speed_carried(state, model, state.speed_covariance)
     update = _Update(
-        correction=jnp.where(used[:, None], correction, state.correction),
-        covariance=jnp.where(used[:, None, None], covariance, state.covariance),
+        correction=jnp.where(learns[:, None], correction, state.correction),
+        covariance=jnp.where(learns[:, None, None], covariance, state.covariance),
         turn=jnp.where(used, turn, 0.0),
         move=jnp.zeros_like(predicted[:, :2]),
         speed=zeros,

@@ -2,9 +2,10 @@
 estimate comes within 20 % of the drive's true value, which the world draws and no perceiver sees.
 
     python experiments/self_calibration.py --workdir=runs/cpu --town_seed=7 [--world.ego_steer_offset_deg=0.5]
+    python experiments/self_calibration.py --workdir=runs/cpu --town_seed=8 --pose_drives --at_frames=100,300,1875
 
 Drives ``--drives`` worlds of town ``--town_seed`` (reset from ``--seed``, after the config's warm-up) for
-``--frames`` frames and follows each from its true first pose with the run's motion model and the lidar's
+``--frames`` frames (or, with ``--pose_drives``, the evaluation's pose drives of that town) and follows each from its true first pose with the run's motion model and the lidar's
 scans (``e2e_percep_jax.ego_motion.follow``; the scan matcher's noises are fitted into ``motion_model.json``
 the first time). Two estimates, each against the plant's truth beyond the motion model's mean:
 
@@ -17,7 +18,7 @@ the first time). Two estimates, each against the plant's truth beyond the motion
   frame (``scale_within_20pct``, which says nothing); the figure that does is the estimate of its deviation
   from 1 within 20 % of the true deviation (``share_within_20pct``).
 
-Beside them, the belief's calibration: the share of frames (after the first metre) whose true location and
+Beside them, the odometry's drift per 100 m and mean location error, and the belief's calibration: the share of frames (after the first metre) whose true location and
 heading lie inside the 95 % regions of the odometry's spread (``ego_motion.spread``).
 
 Prints, as JSON, per estimate: the share of drives within 20 % at each of ``--at_frames``, each drive's first
@@ -31,7 +32,7 @@ import jax
 import numpy as np
 from absl import app, flags
 
-from e2e_percep_jax import calibration, ego_motion, launch
+from e2e_percep_jax import calibration, ego_motion, evaluate, launch, metrics
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax.sim import motion, world
 from e2e_percep_jax.sim import town as town_lib
@@ -42,6 +43,11 @@ flags.DEFINE_integer("seed", 1000, "the worlds' reset key")
 flags.DEFINE_integer("drives", 16, "drives (worlds)")
 flags.DEFINE_integer("frames", 600, "frames driven")
 flags.DEFINE_list("at_frames", ["100", "300", "600"], "frames at which the share within 20 % is reported")
+flags.DEFINE_bool(
+    "pose_drives",
+    False,
+    "drive the evaluation's pose drives (--eval.seed, --eval.num_worlds, --eval.num_frames) instead",
+)
 FLAGS = flags.FLAGS
 WITHIN = 0.2  # the relative error asked of the estimate
 
@@ -64,16 +70,20 @@ def _report(estimate, truth, at_frames):
 def main(argv):
     cfg = launch.run_config(argv, FLAGS.workdir)
     at_frames = [int(f) for f in FLAGS.at_frames]
-    if FLAGS.drives < 1 or FLAGS.frames < 1 or not all(0 < f <= FLAGS.frames for f in at_frames):
+    if FLAGS.pose_drives:  # the keys evaluate.start_keys splits
+        key = jax.random.fold_in(jax.random.PRNGKey(cfg.eval.seed), evaluate.RESET_STREAM)
+        num_drives, num_frames = cfg.eval.num_worlds, cfg.eval.num_frames // cfg.eval.num_worlds
+    else:
+        key, num_drives, num_frames = jax.random.PRNGKey(FLAGS.seed), FLAGS.drives, FLAGS.frames
+    if num_drives < 1 or num_frames < 1 or not all(0 < f <= num_frames for f in at_frames):
         raise app.UsageError("--drives and --frames must be >= 1, and every --at_frames in [1, --frames]")
     model = calibration.ensure_scans(cfg, FLAGS.workdir)
     town = town_lib.build_town(FLAGS.town_seed)
-    key = jax.random.PRNGKey(FLAGS.seed)
     pose, speed, command, scans = calibration.drives(
-        key, town, cfg.world, cfg.data.warmup_steps, FLAGS.drives, FLAGS.frames, scans=True
+        key, town, cfg.world, cfg.data.warmup_steps, num_drives, num_frames, scans=True
     )
     # the plants calibration.drives' worlds were reset with (its keys, its reset)
-    plant = jax.vmap(lambda k: world.reset(k, town, cfg.world).ego_plant)(jax.random.split(key, FLAGS.drives))
+    plant = jax.vmap(lambda k: world.reset(k, town, cfg.world).ego_plant)(jax.random.split(key, num_drives))
     start, prev_action = calibration.start_and_commands(pose, speed, command)
     followed, estimates, covariance = jax.jit(ego_motion.follow, static_argnums=0)(model, start, prev_action, scans)
     location, heading = calibration.spread_errors(pose, followed, covariance)
@@ -89,8 +99,8 @@ def main(argv):
     chi2_location = calibration.CHI2_95[2] * model.odometry_location_scale  # the location's fitted factor
     result = {
         "town_seed": FLAGS.town_seed,
-        "drives": FLAGS.drives,
-        "frames": FLAGS.frames,
+        "drives": num_drives,
+        "frames": num_frames,
         "ego_steer_offset_deg": cfg.world.ego_steer_offset_deg,
         "ego_distance_scale_std": cfg.world.ego_distance_scale_std,
         "steering_offset_deg": _report(to_deg(estimates[..., 0]), to_deg(bias_truth), at_frames),
@@ -104,6 +114,13 @@ def main(argv):
             "location": float(np.nanmean(np.where(np.isnan(location), np.nan, location <= chi2_location))),
             "heading": float(np.nanmean(np.where(np.isnan(heading), np.nan, heading <= calibration.CHI2_95[1]))),
         },
+        # the odometry's own figures, as the evaluation computes them
+        "drift_per_100m": metrics.drive_pose_summary(np.asarray(pose)[..., :2], np.asarray(followed)[..., :2])[
+            "drift_per_100m"
+        ],
+        "location_m_mean": float(
+            np.mean(np.linalg.norm(np.asarray(followed)[..., :2] - np.asarray(pose)[..., :2], axis=-1))
+        ),
         "prior_std": {
             "steering_offset_deg": float(to_deg(model.yaw_bias_std_1pm)),
             "acceleration_gain_error": model.speed_gain_std,

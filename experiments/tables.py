@@ -364,9 +364,9 @@ def localisation(found: dict) -> str:
                 rows.append([f"paper: {name}", f"{p['location_m']}", f"{p['heading_rad']}", "", "", "", "", ""])
             continue
         ev = found[method]
-        known = ev.get("eval_known_start")
+        known = _same_drives(ev, "eval_known_start")
         held_out = [_same_drives(ev, f"eval_town{t}_known_start") for t in towns]
-        drift = [_cell(ev.get("eval_known_start"), "drift per 100 m (m)", digits=2)] + [
+        drift = [_cell(known, "drift per 100 m (m)", digits=2)] + [
             _cell(e, "drift per 100 m (m)", digits=2)
             + (COMMANDS_ONLY if _commands_only(e) else "")
             + (IMAGE_MATCHER if _image_matcher(e) else "")
