@@ -5,8 +5,9 @@ estimate comes within 20 % of the drive's true value, which the world draws and 
     python experiments/self_calibration.py --workdir=runs/cpu --town_seed=8 --pose_drives --at_frames=100,300,1875
 
 Drives ``--drives`` worlds of town ``--town_seed`` (reset from ``--seed``, after the config's warm-up) for
-``--frames`` frames (or, with ``--pose_drives``, the evaluation's pose drives of that town) and follows each from its true first pose with the run's motion model and the lidar's
-scans (``e2e_percep_jax.ego_motion.follow``; the scan matcher's noises are fitted into ``motion_model.json``
+``--frames`` frames (or, with ``--pose_drives``, the evaluation's pose drives of that town) and follows
+each from its true first pose with the run's motion model and the lidar's scans
+(``e2e_percep_jax.ego_motion.follow``; the scan matcher's noises are fitted into ``motion_model.json``
 the first time). Two estimates, each against the plant's truth beyond the motion model's mean:
 
 - the steering offset, as the drive's curvature bias (1/m): the truth is the curvature the plant's offset
@@ -18,8 +19,9 @@ the first time). Two estimates, each against the plant's truth beyond the motion
   frame (``scale_within_20pct``, which says nothing); the figure that does is the estimate of its deviation
   from 1 within 20 % of the true deviation (``share_within_20pct``).
 
-Beside them, the odometry's drift per 100 m and mean location error, and the belief's calibration: the share of frames (after the first metre) whose true location and
-heading lie inside the 95 % regions of the odometry's spread (``ego_motion.spread``).
+Beside them, the odometry's drift per 100 m and mean location error, and the belief's calibration: the
+share of frames (after the first metre) whose true location and heading lie inside the 95 % regions of the
+odometry's spread (``ego_motion.spread``).
 
 Prints, as JSON, per estimate: the share of drives within 20 % at each of ``--at_frames``, each drive's first
 frame from which it stays within 20 %, the truths and estimates, and the median absolute error. A
