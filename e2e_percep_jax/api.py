@@ -102,8 +102,8 @@ class Perceiver:
 
     @property
     def lidar_odometry(self) -> bool:
-        """Whether ``measure=False`` corrects the commands' heading with the lidar's scans
-        (:func:`ego_motion.step`: the motion model has the scan matcher's fitted noise)."""
+        """Whether the lidar's scans, given to :meth:`step`, correct the commands' motion (:func:`ego_motion.step`:
+        the motion model has the scan matcher's fitted noise); ``measure=False`` then requires them."""
         return self.belief and self.cfg.model.pose_filter == "histogram" and ego_motion.uses_scans(self.motion_model)
 
     def init(self, batch_size: int) -> model_lib.FilterState:
@@ -143,7 +143,9 @@ class Perceiver:
         ``measure=False`` (a town the model has not seen) is an odometry: the commands through the motion
         model, their heading, speed and distance corrected by the lidar's scans ``lidar_scan`` float32 [B, 360]
         (the frame contract's: ranges m a degree) when the model has the scan matcher's fitted noise
-        (:attr:`lidar_odometry`, :mod:`e2e_percep_jax.ego_motion`); nothing else reads ``lidar_scan``.
+        (:attr:`lidar_odometry`, :mod:`e2e_percep_jax.ego_motion`). With ``measure``, ``lidar_scan`` is
+        optional: given, the belief moves by that odometry between the place measurements, else by the
+        commands alone. Nothing else reads ``lidar_scan``.
         """
         camera, lidar, action = jnp.asarray(camera), jnp.asarray(lidar), jnp.asarray(action)
         first = state.first if isinstance(state, model_lib.FilterState) else None
@@ -154,9 +156,9 @@ class Perceiver:
         if start_pose is not None:
             start_pose = jnp.asarray(start_pose)
             _check("start_pose", start_pose, (b, 5), jnp.float32)
-        if start_pose is not None and not measure and self.lidar_odometry:
-            if lidar_scan is None:
-                raise ValueError("lidar_scan: measure=False follows the lidar's scans; pass the frame's lidar_scan")
+        if lidar_scan is None and start_pose is not None and not measure and self.lidar_odometry:
+            raise ValueError("lidar_scan: measure=False follows the lidar's scans; pass the frame's lidar_scan")
+        if lidar_scan is not None and self.lidar_odometry:
             lidar_scan = jnp.asarray(lidar_scan)
             _check("lidar_scan", lidar_scan, (b, ego_motion.SCAN_AZIMUTHS), jnp.float32)
         self._check_state(state, b)

@@ -275,7 +275,7 @@ def fit_scans(cfg: Config, model: MotionModel) -> MotionModel:
     )
 
 
-CHI2_95 = {1: 3.8415, 2: 5.9915}  # chi-square's 95 % quantile with 1 and 2 degrees of freedom
+CHI2_95 = {1: 3.8415, 2: 5.9915, 3: 7.8147}  # chi-square's 95 % quantile with 1, 2 and 3 degrees of freedom
 MOVED_M = 1.0  # frames before the car has driven this far from its known start are left out of the spread's fit
 
 
@@ -342,10 +342,10 @@ def calibrate(cfg: Config, scans: bool = False, **drive_kwargs) -> MotionModel:
     return fit_spread(cfg, fit_scans(cfg, model)) if scans else model
 
 
-def ensure_scans(cfg: Config, workdir: str) -> MotionModel:
-    """Run ``workdir``'s motion model with the scan matcher's noise and the odometry's spread, fitted
-    (:func:`fit_scans`, :func:`fit_spread`: a few minutes) and saved into the run the first time the lidar
-    odometry needs them."""
+def ensure_scans(cfg: Config, workdir: str, spread: bool = True) -> MotionModel:
+    """Run ``workdir``'s motion model with the scan matcher's noise (:func:`fit_scans`, seconds) and, with
+    ``spread``, the odometry's spread (:func:`fit_spread`, a few minutes: only the pose of a town the head
+    does not know needs it), fitted and saved into the run the first time the lidar odometry needs them."""
     model = MotionModel.load(workdir)
     if not ego_motion.uses_distance(model):
         print("fitting the scan matcher's noise on training drives", flush=True)
@@ -355,7 +355,7 @@ def ensure_scans(cfg: Config, workdir: str) -> MotionModel:
             model = _with_drive_spread(model, drives, ds, dyaw)
         model = fit_scans(cfg, model)
         model.save(workdir)
-    if not ego_motion.spreads(model):
+    if spread and not ego_motion.spreads(model):
         print("fitting the odometry's spread on drives of other towns", flush=True)
         model = fit_spread(cfg, model)
         model.save(workdir)

@@ -32,7 +32,10 @@ NMS cheap; the curve is exact above it.
 
 Ego pose, under one of two protocols: global (``--eval.known_start`` off: nothing about the start is
 given) or known start (the belief starts at each drive's true first pose and then follows the recorded
-actions alone: an odometry, for towns the model has not seen). The figures (:mod:`metrics`): location,
+actions alone: an odometry, for towns the model has not seen). On both the perceiver gets each frame's lidar
+scan: the belief moves by the lidar odometry (the commands corrected by the scans, once the run's motion model
+has the matcher's noises, fitted here the first time), and the place head, where it knows the town,
+measures. The figures (:mod:`metrics`): location,
 heading and speed errors with their spread, the error by steps since a drive's start, the frame from
 which each drive stays converged, the drift per 100 m and the belief's negative log-likelihood of the
 true pose. Baseline row: a constant pose, the mean of the evaluation drives' own true poses (an oracle
@@ -183,16 +186,19 @@ def make_chunk_fn(cfg: Config, town, perceiver, sample: bool, detect: detection.
     def perceive(params, pstate, frame, prev_action, key):
         # Known start measures places only in the town the model was trained on (it cannot name others').
         known = (
-            {
-                "start_pose": frame["pose"],
-                "measure": cfg.eval.town_seed == cfg.world.town_seed,
-                "lidar_scan": frame["lidar_scan"],
-            }
+            {"start_pose": frame["pose"], "measure": cfg.eval.town_seed == cfg.world.town_seed}
             if cfg.eval.known_start
             else {}
         )
         pstate, outputs = perceiver.step(
-            params, pstate, frame["camera"], frame["lidar"], prev_action, key if sample else None, **known
+            params,
+            pstate,
+            frame["camera"],
+            frame["lidar"],
+            prev_action,
+            key if sample else None,
+            lidar_scan=frame["lidar_scan"],
+            **known,
         )
         if heads is not None:
             outputs = heads(outputs, frame)
@@ -424,8 +430,9 @@ def evaluate(
     filtered = filtered and cfg.model.pose_head == "belief" and cfg.model.pose_filter == "histogram"
     program_cfg = _program_config(cfg)
     if perceiver is None:
-        if workdir and ev.known_start and ev.town_seed != cfg.world.town_seed and cfg.model.pose_head == "belief":
-            calibration.ensure_scans(cfg, workdir)  # the lidar odometry of a town the head does not know
+        if workdir and cfg.model.pose_head == "belief" and cfg.model.pose_filter == "histogram":
+            # the lidar odometry moves the belief; on a town the head does not know it is the pose, with its spread
+            calibration.ensure_scans(cfg, workdir, spread=ev.known_start and ev.town_seed != cfg.world.town_seed)
         perceiver = run_perceiver(program_cfg, workdir) if workdir else Perceiver(program_cfg)
     program = chunk_program(program_cfg, perceiver, sample, detect, heads)
     sample_root = jax.random.fold_in(jax.random.PRNGKey(ev.seed), SAMPLE_STREAM)
@@ -466,10 +473,9 @@ def evaluate(
         **scores.metrics(bool(getattr(perceiver, "pose_coverage", None)), num_frames, det_remembered),
         "examples": examples,
     }
-    # (from a known start on a town the model has not seen: whether the lidar's scans corrected the pose)
-    lidar_odometry = bool(
-        ev.known_start and ev.town_seed != cfg.world.town_seed and getattr(perceiver, "lidar_odometry", False)
-    )
+    # whether the lidar's scans moved the pose (earlier evaluations used them only from a known start on a town
+    # the model has not seen, and recorded False on the others)
+    lidar_odometry = bool(getattr(perceiver, "lidar_odometry", False))
     metrics["pose"].update(
         known_start=ev.known_start,
         pose_filter=cfg.model.pose_filter,

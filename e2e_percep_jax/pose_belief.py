@@ -17,10 +17,12 @@ on the offsets of the true cell and bin, smooth-L1 on the speed. Read alone (:fu
 the mode cell refined by its offset.
 
 The histogram filter (:func:`init_state`, :func:`filter_step`) keeps a :class:`PoseBeliefState`: the belief,
-a speed track, a heading offset shared by all bins and the actuators' state. Motion: the
-run's calibrated motion model (:mod:`e2e_percep_jax.sim.motion`, fitted on training drives, not the world's
-plant) driven by the logged commands, each heading bin's mass moved by its own displacement (a bilinear
-split over the neighbouring cells, which keeps the mass's mean exact) and the common yaw change added to
+a speed track, a heading offset shared by all bins and the actuators' state. Motion: the run's calibrated
+motion model (:mod:`e2e_percep_jax.sim.motion`, fitted on training drives, not the world's plant) driven by
+the logged commands, or, given the lidar's scans, the lidar odometry's motion (the same commands corrected
+by matching the scans, :mod:`e2e_percep_jax.ego_motion`), each heading bin's mass moved by its own
+displacement (a bilinear split over the neighbouring cells, which keeps the mass's mean exact) and the
+common yaw change added to
 the offset, whole bins rolling the heading axis; then the model's process noise: heading mass diffused to
 the neighbouring bins, and position mass to the neighbouring cells where the split's own spread falls
 short of it. Measurement: the head's place and heading probabilities, floored and tempered, multiplied in
@@ -43,7 +45,7 @@ from e2e_percep_jax import ego_motion
 from e2e_percep_jax.config import ModelConfig
 from e2e_percep_jax.sim import extent
 from e2e_percep_jax.sim import motion as motion_lib
-from e2e_percep_jax.sim.geometry import pose_yaw, wrap_angle
+from e2e_percep_jax.sim.geometry import pose_yaw, rotate, town_to_ego, wrap_angle
 from e2e_percep_jax.sim.motion import MotionModel
 
 # The grid covers the town's square (its lanes lie within about [-10, 435] m): the margin keeps a vehicle's
@@ -226,8 +228,9 @@ class PoseBeliefState:
     actuator: float32 [B, 2], the actuators' state (pedal, steering rad): the commands seen through the
         motion model's lag.
     actuator_set: bool [B], whether ``actuator`` has been set (from a drive's first logged commands).
-    odometry: the lidar odometry's keyframe and steering estimate (:class:`ego_motion.OdometryState`), which
-        only the odometry of a town the head does not know (``measure=False``) moves.
+    odometry: the lidar odometry's keyframe, estimates and pose (:class:`ego_motion.OdometryState`), moved
+        only where the filter is given the lidar's scans (:func:`filter_step`); with a measured town and no
+        known start its pose is in a frame of its own, from the drive's start.
     """
 
     belief: jax.Array
@@ -359,6 +362,10 @@ def filter_step(
     other towns say (:func:`spread_at`, :func:`ego_motion.spread`), or a point (:func:`start_at`) when the
     model has no fitted spread (a histogram moved without measurements spreads over the town, and its mode
     says little).
+    With ``measure``, the lidar's scans ``scan``, when given and the model has the matcher's fitted noises,
+    move the belief in place of the commands alone: each frame's motion is the lidar odometry's
+    (:func:`ego_motion.step`, its pose only differenced: :func:`relative_motion`), and the head's places then
+    correct what it drifts.
     A stream's actuators start at its first logged commands (the car is taken to be in steady state).
     """
     if start_pose is None and not measure:
@@ -381,12 +388,22 @@ def filter_step(
             belief=belief, speed_mps=pose[:, 4], yaw_offset_rad=offset, odometry=odometry, **started
         ), pose
     yaw = jnp.asarray(grid.bin_centres()) + state.yaw_offset_rad[:, None]
-    _, v_new, ds, move, dyaw = motion_lib.step(model, actuator, prev_action, state.speed_mps, yaw)
+    head_speed = head["speed"] * SPEED_SCALE_MPS
+    odometry = state.odometry
+    if scan is not None and ego_motion.uses_scans(model):
+        # the lidar odometry's motion in place of the commands': its pose is only differenced, so a drive
+        # without a known start starts it anywhere
+        origin = jnp.zeros_like(prev_action[:, :1])
+        start = jnp.concatenate([origin, origin, origin + 1.0, origin, head_speed[:, None]], -1)
+        start = start if start_pose is None else start_pose
+        odometry, _, after = ego_motion.step(odometry, model, actuator, prev_action, odometry.pose, scan, first, start)
+        v_new, ds, move, dyaw = relative_motion(state.odometry.pose, after, yaw)
+    else:
+        _, v_new, ds, move, dyaw = motion_lib.step(model, actuator, prev_action, state.speed_mps, yaw)
     moved, offset = jax.vmap(lambda b, m, o, d: predict(b, m, o, d, model, grid, heading_noise_scale))(
         state.belief, move, state.yaw_offset_rad + dyaw, ds
     )
     prior = (1.0 - relocation) * moved + relocation * jnp.mean(moved, axis=-3, keepdims=True)
-    head_speed = head["speed"] * SPEED_SCALE_MPS
     if start_pose is None:
         first_belief, first_speed, first_offset = 1.0, head_speed, 0.0
     else:
@@ -398,10 +415,19 @@ def filter_step(
         belief=_normalised(jnp.where(rows(moved), first_belief, prior) * measured),
         speed_mps=jnp.where(first, first_speed, v_new + speed_gain * (head_speed - v_new)),
         yaw_offset_rad=jnp.where(first, first_offset, offset),
-        odometry=state.odometry,
+        odometry=odometry,
         **started,
     )
     return new, estimate(new.belief, head, new.speed_mps, grid, position)
+
+
+def relative_motion(before, after, yaw_rad):
+    """The motion from pose ``before`` to ``after`` (each [B, 5]) applied at K other headings ``yaw_rad``
+    [B, K]: (speed after [B], chord length [B] m, centre displacement [B, K, 2] m, yaw change [B] rad). The
+    chord is taken in the car's axes at ``before`` and turned to each heading (the motion is rigid)."""
+    chord = town_to_ego(after[:, :2], before[:, :2], pose_yaw(before))
+    dyaw = wrap_angle(pose_yaw(after) - pose_yaw(before))
+    return after[:, 4], jnp.linalg.norm(chord, axis=-1), rotate(chord[:, None, :], yaw_rad), dyaw
 
 
 def head_state(head: dict, grid: Grid, odometry: ego_motion.OdometryState) -> PoseBeliefState:

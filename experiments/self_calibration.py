@@ -36,6 +36,7 @@ from absl import app, flags
 
 from e2e_percep_jax import calibration, ego_motion, evaluate, launch, metrics
 from e2e_percep_jax import config as config_lib
+from e2e_percep_jax.sim import geometry as geo
 from e2e_percep_jax.sim import motion, world
 from e2e_percep_jax.sim import town as town_lib
 
@@ -99,6 +100,16 @@ def main(argv):
     gain_truth = scale * motion.EGO_ACCEL_LIMIT_MPS2 / model.accel_per_pedal_mps2 - 1.0
     to_deg = lambda bias: np.degrees(np.arctan(bias * motion.WHEELBASE_M))
     chi2_location = calibration.CHI2_95[2] * model.odometry_location_scale  # the location's fitted factor
+    # the joint region: the covariance's 3-D ellipsoid, its location scaled by that factor (its heading's is in it)
+    scaled = np.sqrt([model.odometry_location_scale] * 2 + [1.0])
+    followed64, pose64 = np.asarray(followed, np.float64), np.asarray(pose, np.float64)
+    yaw_error = geo.wrap_angle(np.arctan2(followed64[..., 3], followed64[..., 2]) - pose64[..., 2])
+    error = np.concatenate([followed64[..., :2] - pose64[..., :2], yaw_error[..., None]], -1)
+    moved = ~np.isnan(location)  # the frames the other two keep (the covariance is ~0 before)
+    joint = np.full(location.shape, np.nan)
+    joint[moved] = calibration.squared_errors(
+        error[moved], np.asarray(covariance, np.float64)[moved] * scaled[:, None] * scaled
+    )
     result = {
         "town_seed": FLAGS.town_seed,
         "drives": num_drives,
@@ -115,6 +126,7 @@ def main(argv):
         "truth_in_95pct_region": {
             "location": float(np.nanmean(np.where(np.isnan(location), np.nan, location <= chi2_location))),
             "heading": float(np.nanmean(np.where(np.isnan(heading), np.nan, heading <= calibration.CHI2_95[1]))),
+            "location_heading": float(np.nanmean(np.where(np.isnan(joint), np.nan, joint <= calibration.CHI2_95[3]))),
         },
         # the odometry's own figures, as the evaluation computes them
         "drift_per_100m": metrics.drive_pose_summary(np.asarray(pose)[..., :2], np.asarray(followed)[..., :2])[

@@ -18,6 +18,7 @@ method's runs; each method's row names the command that trained it. Beside them,
 keeps every 100th record of the run's ``metrics.jsonl`` for the learning curves' figure.
 """
 
+import dataclasses
 import glob
 import json
 import os
@@ -43,6 +44,11 @@ COMMANDS_ONLY = " ‡"  # after a held-out town's drift that the commands alone 
 COMMANDS_ONLY_NOTE = (
     "- ‡ Evaluated before the lidar odometry: on a town the model never saw, the belief followed the commands "
     "alone (the network plays no part there): [BUILD_NOTES](BUILD_NOTES.md#odometry-from-the-lidar-on-towns-never-seen)."
+)
+TOWN0_COMMANDS = " ¶"  # after a method whose town-0 belief the commands alone moved (_commands_only)
+TOWN0_COMMANDS_NOTE = (
+    "- ¶ Town 0's belief moved by the commands alone between place measurements, before the lidar odometry "
+    "moved it there too: [BUILD_NOTES](BUILD_NOTES.md#odometry-from-the-lidar-on-towns-never-seen)."
 )
 IMAGE_MATCHER = " §"  # after a held-out town's drift that the odometry made by matching lidar images
 IMAGE_MATCHER_NOTE = (
@@ -310,8 +316,8 @@ def _earlier_filter(evaluations: list[dict] | None) -> bool:
 
 
 def _commands_only(evaluations: list[dict] | None) -> bool:
-    """Whether an end-to-end model's known-start evaluations on a held-out town followed the commands alone
-    (evaluated before the lidar odometry, which metrics.json records)."""
+    """Whether an end-to-end model's belief moved by the commands alone in these evaluations (evaluated
+    before the lidar odometry moved it there, which metrics.json records)."""
     return any(m["label"] in config_lib.VARIANTS and not m["pose"].get("lidar_odometry") for m in evaluations or [])
 
 
@@ -330,14 +336,13 @@ def _same_drives(ev: dict, name: str):
     drives, and detection scored on them, are the same."""
     if name in ev:
         return ev[name]
-    changed_detection_only = lambda runs: (
-        runs[0]["protocol"]["changes"]
-        and all(field in DETECTION_DRIVE_FIELDS for field, _ in runs[0]["protocol"]["changes"])
-    )
-    return next(
-        (runs for other, runs in sorted(ev.items()) if other.startswith(name + "_") and changed_detection_only(runs)),
-        None,
-    )
+
+    def same_but_detection(runs):
+        evaluation = protocol.from_metrics(runs[0], "")
+        unchanged = dataclasses.replace(evaluation, changes=())
+        return unchanged.name == name and all(field in DETECTION_DRIVE_FIELDS for field, _ in evaluation.changes)
+
+    return next((runs for _, runs in sorted(ev.items()) if same_but_detection(runs)), None)
 
 
 def localisation(found: dict) -> str:
@@ -356,7 +361,7 @@ def localisation(found: dict) -> str:
         "against the paper's row: location / heading",
     ]
     rows, shown, constant, paper, marked = [], [], None, _paper_figures("pose"), False
-    commands_only = image_matcher = False
+    commands_only = image_matcher = town0_commands = False
     for method, variant in _paper_rows(found):
         if method is None:
             if variant in paper:
@@ -374,7 +379,7 @@ def localisation(found: dict) -> str:
         ]
         commands_only = commands_only or any(map(_commands_only, held_out))
         image_matcher = image_matcher or any(map(_image_matcher, held_out))
-        glob_ = ev.get("eval")
+        glob_ = _same_drives(ev, "eval")
         against = ""
         if glob_ and variant in paper:
             mean = mean_std([summary_metrics(m) for m in glob_])
@@ -382,8 +387,9 @@ def localisation(found: dict) -> str:
             pairs = (("location mean (m)", "location_m"), ("heading mean (rad)", "heading_rad"))
             against = " / ".join("better" if mean[k][0] <= p[f] else "worse" for k, f in pairs)
         earlier = _earlier_filter(glob_) or _earlier_filter(known)
+        on_commands = _commands_only(glob_) or _commands_only(known)
         row = [
-            f"`{method}`{EARLIER_FILTER if earlier else ''}",
+            f"`{method}`{EARLIER_FILTER if earlier else ''}{TOWN0_COMMANDS if on_commands else ''}",
             " / ".join(filter(None, [_cell(glob_, "location mean (m)"), _cell(glob_, "location p90 (m)")])),
             _cell(glob_, "heading mean (rad)", digits=3),
             " / ".join(filter(None, [_cell(glob_, f"location within {m} m (%)") for m in (5, 10)])),
@@ -405,6 +411,7 @@ def localisation(found: dict) -> str:
         shown.append(method)
         rows.append(row)
         marked = marked or earlier
+        town0_commands = town0_commands or on_commands
         if glob_ and constant is None:
             constant = glob_[0]["baseline"]["pose"]
     if constant is not None:
@@ -417,6 +424,7 @@ def localisation(found: dict) -> str:
             ]
         )
     note = f"\n{EARLIER_FILTER_NOTE}" if marked else ""
+    note += f"\n{TOWN0_COMMANDS_NOTE}" if town0_commands else ""
     note += f"\n{COMMANDS_ONLY_NOTE}" if commands_only else ""
     note += f"\n{IMAGE_MATCHER_NOTE}" if image_matcher else ""
     return markdown_table(header, rows) + "\n\n" + _runs_note(found, shown) + note + "\n"

@@ -157,7 +157,7 @@ def test_the_known_start_off_the_training_town_is_the_lidar_odometry(params):
     """With a motion model that has the scan matcher's noise, ``measure=False`` moves each stream's pose as
     ``ego_motion.follow`` moves it from the same start on the same commands and lidar scans (a drive of the
     world, 30 frames: six matches), which correct the heading away from the commands' alone; without the
-    frame's ``lidar_scan`` the step names the argument it needs."""
+    frame's ``lidar_scan``, or with one of the wrong width on the measured town, the step names it."""
     model = dataclasses.replace(
         MODEL, yaw_bias_std_1pm=0.002, yaw_gain_std=0.03, yaw_noise_rad2pm=1e-6, scan_heading_noise_rad=0.002
     )
@@ -172,16 +172,10 @@ def test_the_known_start_off_the_training_town_is_the_lidar_odometry(params):
     followed, _, _ = jax.jit(ego_motion.follow, static_argnums=0)(model, start, prev_action, drive["lidar_scan"])
     reckoned, _, _ = jax.jit(ego_motion.follow, static_argnums=0)(model, start, prev_action, None)
     step, state = jax.jit(perceiver.step, static_argnames="measure"), perceiver.init(b)
-    with pytest.raises(ValueError, match="lidar_scan"):
-        step(
-            params,
-            state,
-            drive["camera"][:, 0],
-            drive["lidar"][:, 0],
-            prev_action[:, 0],
-            start_pose=start,
-            measure=False,
-        )
+    first_frame = (params, state, drive["camera"][:, 0], drive["lidar"][:, 0], prev_action[:, 0])
+    for bad in (dict(start_pose=start, measure=False), dict(lidar_scan=jnp.zeros((b, 359)))):
+        with pytest.raises(ValueError, match="lidar_scan"):
+            step(*first_frame, **bad)
     for t in range(30):
         frame = lambda k: drive[k][:, t]
         state, out = step(

@@ -4,6 +4,7 @@ precision against its closed form and the walls that pin it, and the drive's ste
 scale learnt from scans of a drive with planted ones."""
 
 import dataclasses
+import functools
 import json
 
 import jax
@@ -12,7 +13,7 @@ import numpy as np
 import pytest
 from helpers import odometry_model
 
-from e2e_percep_jax import calibration, ego_motion
+from e2e_percep_jax import calibration, ego_motion, pose_belief
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax.sim import geometry as geo
 from e2e_percep_jax.sim import motion, sensors
@@ -190,6 +191,49 @@ def test_a_turn_in_at_the_drives_start_is_not_taken_for_a_steering_offset():
     assert float(np.max(np.abs(estimates[:, 0]))) < 0.1 * model.yaw_bias_std_1pm
     assert abs(float(geo.wrap_angle(geo.pose_yaw(poses[-1]) - yaw[-1]))) < 1e-3
     assert float(np.linalg.norm(np.asarray(poses[-1, :2]) - xy[-1])) < 0.15
+
+
+def test_the_measured_belief_moves_by_the_lidar_odometry_given_the_scans():
+    """On the training town (``measure``), a belief started at a known pose, under a head that says nothing
+    (flat: Bayes' rule leaves it as moved), is moved by the lidar odometry when given the scans: down a
+    winding street, its path curving 0.004 / m more than the commands say, its mean stays within 0.5 m of
+    the true path over 300 frames (the bilinear split keeps the mean exact), where the commands alone leave
+    it more than 10 m off."""
+    frames = 300
+    model = odometry_model()  # the exact bicycle: no process noise moves the mean
+    command = np.zeros((frames, 2), np.float32)
+    command[:, 1] = 0.03 * np.sin(np.arange(frames) / 40.0)
+    ds = np.full(frames, 0.6)  # 6 m/s, the pedal at 0
+    dyaw = ds * np.asarray(motion.curvature(model, jnp.asarray(command[:, 1]), 6.0)) + 0.004 * ds
+    xy, _, scans = _street(ds, dyaw)
+    grid = pose_belief.Grid(cell_m=5.0, heading_bins=36)
+    origin = np.array([200.0, 200.0])
+    start = jnp.asarray([[*origin, 1.0, 0.0, 6.0]], jnp.float32)
+    flat = dict(
+        place_logit=jnp.zeros((1, grid.num_cells)),
+        place_offset=jnp.zeros((1, grid.num_cells, 2)),
+        heading_logit=jnp.zeros((1, grid.heading_bins)),
+        heading_offset=jnp.zeros((1, grid.heading_bins)),
+        speed=jnp.full((1,), 0.6),
+    )
+
+    @functools.partial(jax.jit, static_argnums=0)
+    def track(with_scans):
+        def body(state, x):
+            action, scan, first = x
+            state, _ = pose_belief.filter_step(
+                state, flat, action[None], first[None], grid, model, start_pose=start, scan=scan, relocation=0.0
+            )
+            return state, pose_belief.mean_pose(state, grid)[0]
+
+        actions = jnp.asarray(np.concatenate([command[:1], command]))  # frame t's: the commands t-1 -> t
+        firsts = jnp.arange(frames + 1) == 0
+        xs = (actions, scans[:, None] if with_scans else None, firsts)
+        return jax.lax.scan(body, pose_belief.init_state(1, grid), xs)[1]
+
+    error_m = lambda poses: np.linalg.norm(np.asarray(poses[:, :2]) - origin - xy, axis=-1)
+    assert error_m(track(True)).max() < 0.5, error_m(track(True)).max()
+    assert error_m(track(False)).max() > 10.0  # the commands alone miss the offset
 
 
 def test_the_forward_precision_is_the_inverse_of_the_marginal_variance():

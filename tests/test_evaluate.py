@@ -233,7 +233,8 @@ class RecordingPerceiver:
 def test_evaluation_hands_a_perceiver_the_logged_commands_and_never_the_plant(tmp_path):
     """A perceiver that records what it receives: each frame's ``action`` is the commands of the frame
     contract (the previous frame's ``action`` of the same worlds driven here by ``rollout.drive``), pedal
-    and steering within their limits, and nothing else is handed over (no keyword beyond the protocol's)."""
+    and steering within their limits, and nothing else is handed over but the frame's lidar scan (no keyword
+    beyond the protocol's)."""
     cfg = config_lib.replace(config_lib.get_config("tiny"), eval=dict(num_frames=60, num_worlds=2, chunk_steps=20))
     perceiver = RecordingPerceiver(cfg)
     eval_lib.evaluate(cfg, {}, str(tmp_path), perceiver=perceiver, video_frames=0, num_examples=0, log=lambda _: None)
@@ -249,7 +250,7 @@ def test_evaluation_hands_a_perceiver_the_logged_commands_and_never_the_plant(tm
     assert set(range(30)) <= set(perceiver.seen)  # (and the rest of the last chunk, past the scored frames)
     for t in range(1, 30):
         action, names = perceiver.seen[t]
-        assert names == ()  # the global protocol: no start pose, nothing else
+        assert names == ("lidar_scan",)  # the global protocol: the sensors' scan, no start pose, nothing else
         np.testing.assert_allclose(action, commands[:, t - 1], atol=1e-6)
         assert (np.abs(action[:, 0]) <= 1.0).all() and (np.abs(action[:, 1]) <= world.EGO_STEER_LIMIT_RAD).all()
 

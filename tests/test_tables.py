@@ -60,8 +60,8 @@ def _metrics(
     if not earlier_filter:
         pose["filter_settings"] = pose_belief.default_settings()
     if not commands_only:
-        pose["lidar_odometry"] = town != 0 and known_start
-        if pose["lidar_odometry"] and not image_matcher:
+        pose["lidar_odometry"] = True
+        if not image_matcher:
             pose["scan_matcher"] = "lidar scan"
     return {
         "label": label,
@@ -217,6 +217,18 @@ def test_a_variant_filtered_at_earlier_settings_is_marked(results, tmp_path):
     assert tables.EARLIER_FILTER_NOTE in localisation
 
 
+def test_a_training_town_belief_moved_by_the_commands_alone_is_marked(results, tmp_path):
+    """A variant whose town-0 known-start evaluation (one seed of two) is from before the lidar odometry moved
+    the belief there gets the mark on its name and the note; with every evaluation by today's, neither."""
+    localisation = tables.render(str(results))["localisation"]
+    assert tables.TOWN0_COMMANDS not in localisation and tables.TOWN0_COMMANDS_NOTE not in localisation
+    _write_run(tmp_path / "runs" / "place_s1", {"eval_known_start": _metrics(1, known_start=True, commands_only=True)})
+    tables.collect("cpu", [str(tmp_path / "runs" / name) for name in ("place_s0", "place_s1")], str(results))
+    localisation = tables.render(str(results))["localisation"]
+    assert _row(localisation, f"`cpu`{tables.TOWN0_COMMANDS}")[1] == "5.0 ± 1.0 / 10.0 ± 2.0"
+    assert tables.TOWN0_COMMANDS_NOTE in localisation
+
+
 @pytest.mark.parametrize(
     "old, mark, note",
     [
@@ -368,15 +380,17 @@ def test_groups_table_gives_each_group_its_boxes_seed_means_and_the_drives_inter
     assert "`cpu`" not in rendered["detection"]
 
 
-def test_a_held_out_evaluation_without_detections_own_drives_fills_the_pose_cells(results, tmp_path):
+def test_an_evaluation_without_detections_own_drives_fills_the_pose_cells(results, tmp_path):
     """A held-out known-start evaluation that only left out detection's own drives
     (``--eval.detection_drives=0``: its protocol's name gains ``_detection_drives0``) drove the same pose
-    drives, so its drift fills that town's cell; an evaluation that changed the pose drives does not."""
+    drives, so its drift fills that town's cell; an evaluation that changed the pose drives does not. Town 0's
+    global protocol likewise, and a known start there, which also left them out, is not taken for it."""
     trained = config.get_config("cpu")
 
-    def evaluation(seed, drift, **eval_changes):
-        m = _metrics(seed, town=7, known_start=True, drift=drift)
-        cfg = config.replace(trained, train=dict(seed=seed), eval=dict(town_seed=7, known_start=True, **eval_changes))
+    def evaluation(seed, drift, town=7, known_start=True, location=1.0, **eval_changes):
+        m = _metrics(seed, town=town, known_start=known_start, drift=drift, location=location)
+        eval_cfg = dict(town_seed=town, known_start=known_start, **eval_changes)
+        cfg = config.replace(trained, train=dict(seed=seed), eval=eval_cfg)
         m["protocol"] = protocol.of(cfg, config.replace(trained, train=dict(seed=seed))).to_dict()
         m["config"] = json.loads(cfg.to_json())
         return {m["protocol"]["name"]: m}
@@ -389,3 +403,14 @@ def test_a_held_out_evaluation_without_detections_own_drives_fills_the_pose_cell
         _write_run(tmp_path / "drives" / f"place_s{seed}", evaluation(seed, 3.0, num_worlds=2))
     tables.collect("drives", [str(tmp_path / "drives" / f"place_s{s}") for s in (0, 1)], str(results))
     assert "| `drives` |" not in tables.render(str(results))["localisation"]
+    for seed in (0, 1):
+        pose_only = dict(town=0, drift=0.5, detection_drives=0)
+        _write_run(
+            tmp_path / "town0" / f"place_s{seed}",
+            {
+                **evaluation(seed, known_start=True, location=9.0, **pose_only),
+                **evaluation(seed, known_start=False, location=3.0 + seed, **pose_only),
+            },
+        )
+    tables.collect("town0", [str(tmp_path / "town0" / f"place_s{s}") for s in (0, 1)], str(results))
+    assert _row(tables.render(str(results))["localisation"], "`town0`")[1] == "3.5 ± 0.5 / 7.0 ± 1.0"
