@@ -127,15 +127,19 @@ def _protocol_flags(cfg: config_lib.Config, base: config_lib.Config) -> list[str
 
 
 def _share_motion_model(base: config_lib.Config, run_dirs) -> None:
-    """Fits the motion model of the sweep's world once (``SWEEP_DIR/motion_model.json``) and gives each of
-    ``run_dirs`` that has none a copy. Every run and baseline drives the same world (only the seed and the
-    variant differ), so each would fit this same model itself, at a fit's cost each."""
+    """Fits the motion model of the sweep's world once (``SWEEP_DIR/motion_model.json``), with the scan
+    matcher's noises that the belief's evaluation moves it by, and gives each of ``run_dirs`` that has none
+    a copy. Every run and baseline drives the same world (only the seed and the variant differ), so each
+    would fit this same model itself, at a fit's cost each."""
+    from e2e_percep_jax import calibration
     from e2e_percep_jax import train as train_lib
     from e2e_percep_jax.sim import motion as motion_lib
 
     missing = [d for d in run_dirs if not os.path.exists(os.path.join(d, motion_lib.FILE_NAME))]
     if missing:
         model = train_lib.ensure_motion_model(base, FLAGS.sweep_dir)
+        if base.model.pose_head == "belief" and base.model.pose_filter == "histogram":
+            model = calibration.ensure_scans(base, FLAGS.sweep_dir, spread=False)
         for d in missing:
             os.makedirs(d, exist_ok=True)
             model.save(d)
