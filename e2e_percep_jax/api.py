@@ -104,7 +104,7 @@ class Perceiver:
     def lidar_odometry(self) -> bool:
         """Whether the lidar's scans, given to :meth:`step`, correct the commands' motion (:func:`ego_motion.step`:
         the motion model has the scan matcher's fitted noise); ``measure=False`` then requires them."""
-        return self.belief and self.cfg.model.pose_filter == "histogram" and ego_motion.uses_scans(self.motion_model)
+        return self.cfg.model.histogram_belief and ego_motion.uses_scans(self.motion_model)
 
     def init(self, batch_size: int) -> model_lib.FilterState:
         """The filter state (:class:`~e2e_percep_jax.model.FilterState`) before the first frame of
@@ -197,11 +197,12 @@ class Perceiver:
         return pose_belief.negative_log_likelihood(state.pose, pose, pose_belief.grid_of(self.cfg.model))
 
     def pose_coverage(self, state: model_lib.FilterState, pose):
-        """Whether the true poses [B, 5] lie in the pose belief's 95 % region: bool [B, 2], for the place
-        and for the place with heading (:func:`pose_belief.in_region`); False without the belief head."""
+        """How much of the true poses' [B, 5] cell lies in the pose belief's 95 % region: float [B, 2] in
+        [0, 1], for the place and for the place with heading (:func:`pose_belief.region_share`); 0 without
+        the belief head."""
         if not self.belief:
-            return jnp.zeros(pose.shape[:1] + (2,), bool)
-        return pose_belief.in_region(state.pose, pose, pose_belief.grid_of(self.cfg.model))
+            return jnp.zeros(pose.shape[:1] + (2,))
+        return pose_belief.region_share(state.pose, pose, pose_belief.grid_of(self.cfg.model))
 
     def _check_state(self, state, batch_size: int):
         """Trace-time check of a filter state against :meth:`init`'s for ``batch_size`` streams."""

@@ -286,17 +286,20 @@ def squared_errors(error, covariance):
 
 def spread_errors(pose, followed, covariance):
     """The odometry's errors under its error covariance on drives from a known start: the squared
-    Mahalanobis distances of the location errors [W, T] (under ``covariance[..., :2, :2]``) and of the heading
-    errors [W, T], for true poses [W, T, 3] (x, y, yaw), ``followed`` poses [W, T, 5] and covariances [W, T,
-    3, 3] (``ego_motion.follow``); NaN on frames before the car has driven MOVED_M (the covariance is ~0)."""
+    Mahalanobis distances of the location errors [W, T] (under ``covariance[..., :2, :2]``), of the heading
+    errors [W, T] and of both [W, T] (under the whole covariance), for true poses [W, T, 3] (x, y, yaw),
+    ``followed`` poses [W, T, 5] and covariances [W, T, 3, 3] (``ego_motion.follow``); NaN on frames before
+    the car has driven MOVED_M (the covariance is ~0)."""
     pose, followed, covariance = (np.asarray(x, np.float64) for x in (pose, followed, covariance))
     step_m = np.linalg.norm(np.diff(pose[:, :, :2], axis=1), axis=-1)
     moved = np.concatenate([np.zeros((pose.shape[0], 1)), np.cumsum(step_m, 1)], 1) > MOVED_M
-    location, heading = np.full(moved.shape, np.nan), np.full(moved.shape, np.nan)
-    location[moved] = squared_errors((followed[..., :2] - pose[..., :2])[moved], covariance[moved][:, :2, :2])
     yaw_error = wrap_angle(np.arctan2(followed[..., 3], followed[..., 2]) - pose[..., 2])
-    heading[moved] = yaw_error[moved] ** 2 / covariance[moved][:, 2, 2]
-    return location, heading
+    error = np.concatenate([followed[..., :2] - pose[..., :2], yaw_error[..., None]], -1)[moved]
+    location, heading, joint = (np.full(moved.shape, np.nan) for _ in range(3))
+    location[moved] = squared_errors(error[:, :2], covariance[moved][:, :2, :2])
+    heading[moved] = error[:, 2] ** 2 / covariance[moved][:, 2, 2]
+    joint[moved] = squared_errors(error, covariance[moved])
+    return location, heading, joint
 
 
 def spread_scale(squared_distance, dims: int) -> float:

@@ -126,6 +126,12 @@ class ModelConfig:
     grid_channels: int = 8
     grid_update: str = "learned"  # one of GRID_UPDATES
 
+    @property
+    def histogram_belief(self) -> bool:
+        """Whether the pose is the belief head's, filtered by the histogram (what known starts, the lidar
+        odometry and the belief's regions need)."""
+        return self.pose_head == "belief" and self.pose_filter == "histogram"
+
 
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
@@ -431,7 +437,7 @@ def validate(cfg: Config) -> Config:
             f"--data.carry_state: needs segments to carry across, --data.batches_per_drive >= 2 "
             f"(got {cfg.data.batches_per_drive})"
         )
-    if cfg.eval.known_start and (cfg.model.pose_head, cfg.model.pose_filter) != ("belief", "histogram"):
+    if cfg.eval.known_start and not cfg.model.histogram_belief:
         raise ValueError(
             "--eval.known_start: needs the belief pose head and its filter (--model.pose_head=belief "
             "--model.pose_filter=histogram)"

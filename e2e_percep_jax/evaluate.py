@@ -77,9 +77,14 @@ BOOTSTRAP_RESAMPLES = 1000
 # ----------------------------------------------------------------------------- device side
 
 
+def reset_root(cfg: Config):
+    """The key that the pose drives' reset keys are split from (:func:`start_keys`)."""
+    return jax.random.fold_in(jax.random.PRNGKey(cfg.eval.seed), RESET_STREAM)
+
+
 def start_keys(cfg: Config):
     """The E held-out world reset keys of the pose drives."""
-    return jax.random.split(jax.random.fold_in(jax.random.PRNGKey(cfg.eval.seed), RESET_STREAM), cfg.eval.num_worlds)
+    return jax.random.split(reset_root(cfg), cfg.eval.num_worlds)
 
 
 @functools.partial(jax.jit, static_argnames="world_cfg")
@@ -207,9 +212,7 @@ def make_chunk_fn(cfg: Config, town, perceiver, sample: bool, detect: detection.
         )
         nll = jnp.full(frame["pose"].shape[:1], jnp.nan) if pose_nll is None else pose_nll(pstate, frame["pose"])
         cover = (
-            jnp.zeros(frame["pose"].shape[:1] + (2,), bool)
-            if pose_coverage is None
-            else pose_coverage(pstate, frame["pose"])
+            jnp.zeros(frame["pose"].shape[:1] + (2,)) if pose_coverage is None else pose_coverage(pstate, frame["pose"])
         )
         group = metrics_lib.box_groups(
             frame["boxes_lidar_visible"], frame["boxes_camera_visible"], frame["boxes_frames_since_seen"]
@@ -427,10 +430,10 @@ def evaluate(
     # The pose figures come from the belief's histogram filter at its defaults (recorded with them) only for
     # the default perceiver whose pose neither ``heads`` nor ``host_fn`` replaces.
     filtered = perceiver is None and heads is None and host_fn is None
-    filtered = filtered and cfg.model.pose_head == "belief" and cfg.model.pose_filter == "histogram"
+    filtered = filtered and cfg.model.histogram_belief
     program_cfg = _program_config(cfg)
     if perceiver is None:
-        if workdir and cfg.model.pose_head == "belief" and cfg.model.pose_filter == "histogram":
+        if workdir and cfg.model.histogram_belief:
             # the lidar odometry moves the belief; on a town the head does not know it is the pose, with its spread
             calibration.ensure_scans(cfg, workdir, spread=ev.known_start and ev.town_seed != cfg.world.town_seed)
         perceiver = run_perceiver(program_cfg, workdir) if workdir else Perceiver(program_cfg)
@@ -509,7 +512,7 @@ class _Scores:
         self.saturated = 0  # frames whose top-k candidates were all above the score floor
         # Per pose drive and frame, copied out of the chunks' buffers (flat memory)
         self.true, self.pred = np.zeros((e, n, 5)), np.zeros((e, n, 5))
-        self.nll, self.cover = np.zeros((e, n)), np.zeros((e, n, 2), bool)
+        self.nll, self.cover = np.zeros((e, n)), np.zeros((e, n, 2))
         self.pictures = report.Pictures(
             town,
             out_dir,
@@ -618,11 +621,13 @@ class _Scores:
                 metrics_lib.pose_summary(self.pose),
                 **metrics_lib.drive_pose_summary(drives_true, drives_pred),
                 nll_mean=summary.defined(float(np.mean(np.concatenate(scored(self.nll)), dtype=np.float64))),
-                # the share of frames whose true cell (place) and (heading bin, cell) (place_heading)
-                # lie in the belief's 95 % region: about 0.95 for a calibrated belief
+                # the share of frames whose true cell (place) and (heading bin, cell) (place_heading) lie
+                # in the belief's 95 % region, the cells at its edge counted in part: about 0.95 for a
+                # calibrated belief (pose_belief.region_share)
                 coverage95=dict(zip(("place", "place_heading"), np.concatenate(cover).mean(0).tolist()))
                 if cover is not None
                 else None,
+                coverage95_region="exact mass",  # evaluations saved before it: a region of whole cells
                 interval95={
                     k: [span(v) for v in lo_hi] if np.ndim(lo_hi[0]) else span(lo_hi)
                     for k, lo_hi in metrics_lib.drive_pose_intervals(

@@ -662,11 +662,11 @@ def drive_pose_summary(drives_true, drives_pred) -> dict:
 
 def drive_pose_intervals(drives_true, drives_pred, cover, step_bin_edges, num_resamples: int = 1000) -> dict:
     """95 % bootstrap intervals over whole drives (:func:`bootstrap_interval`) of the pose figures, from each
-    drive's true and estimated poses ([frames, 5] each) and ``cover`` (bool [frames, 2] per drive: the truth
-    in the belief's 95 % place and (heading, place) regions; None: no belief). Returns ``{name: (low,
-    high)}``: location_m_mean, location_m_p90, heading_rad_mean, location_within_5m, location_within_10m,
-    drift_per_100m, coverage_place, coverage_place_heading (NaN without a belief) and location_m_by_step_mean
-    (arrays [B], per bin of ``step_bin_edges``)."""
+    drive's true and estimated poses ([frames, 5] each) and ``cover`` ([frames, 2] per drive: how much of
+    the truth's cell lies in the belief's 95 % place and (heading, place) regions; None: no belief). Returns
+    ``{name: (low, high)}``: location_m_mean, location_m_p90, heading_rad_mean, location_within_5m,
+    location_within_10m, drift_per_100m, coverage_place, coverage_place_heading (NaN without a belief) and
+    location_m_by_step_mean (arrays [B], per bin of ``step_bin_edges``)."""
     errors = [pose_errors(p, t) for t, p in zip(drives_true, drives_pred)]
     loc = [np.asarray(e.location_m, np.float64) for e in errors]
     frames = np.array([len(v) for v in loc], np.float64)

@@ -530,16 +530,25 @@ def negative_log_likelihood(state: PoseBeliefState, pose, grid: Grid):
     return -jnp.log(jnp.maximum(p, 1e-30)) + math.log(grid.cell_m**2 * grid.bin_rad)
 
 
-def in_region(state: PoseBeliefState, pose, grid: Grid, mass: float = 0.95):
-    """Whether true poses [B, 5] lie in the belief's highest-probability region holding ``mass``, at the
-    grid's resolution: bool [B, 2], for the place (the cell, under the place marginal) and for the place
-    with heading (the (heading bin, cell) pair, under the whole belief). A cell is in the region when the
-    cells more probable than it hold less than ``mass``."""
+def region_share(state: PoseBeliefState, pose, grid: Grid, mass: float = 0.95):
+    """How much of the true poses' [B, 5] cell lies in the belief's highest-probability region holding
+    exactly ``mass``, at the grid's resolution: float [B, 2] in [0, 1], for the place (the cell, under the
+    place marginal) and for the place with heading (the (heading bin, cell) pair, under the whole belief).
+    The cells more probable than the truth's are in the region; those as probable as it (its own among them)
+    share what the region still needs, each the same part (each cell's mass is spread evenly over it, as in
+    :func:`negative_log_likelihood`); less probable ones are out. The mean over frames is the region's
+    coverage: ``mass`` in expectation for truths drawn from the belief. A region of whole cells would hold
+    more than ``mass``, and the truth in nearly every frame once the belief is narrower than a cell."""
     belief = state.belief.reshape(state.belief.shape[0], grid.heading_bins, -1)
     cell, _ = true_cell(pose[:, :2], grid)
     k, _ = true_bin(pose_yaw(pose) - state.yaw_offset_rad, grid)
-    inside = lambda p, p_true: jnp.sum(jnp.where(p > p_true[:, None], p, 0.0), -1) < mass * jnp.sum(p, -1)
+
+    def share(p, p_true):
+        above = jnp.sum(jnp.where(p > p_true[:, None], p, 0.0), -1)
+        tied = jnp.sum(jnp.where(p == p_true[:, None], p, 0.0), -1)  # the truth's cell among them
+        return jnp.clip((mass * jnp.sum(p, -1) - above) / jnp.maximum(tied, 1e-30), 0.0, 1.0)
+
     place = jnp.sum(belief, 1)
     flat = belief.reshape(belief.shape[0], -1)
     b = jnp.arange(belief.shape[0])
-    return jnp.stack([inside(place, place[b, cell]), inside(flat, belief[b, k, cell])], -1)
+    return jnp.stack([share(place, place[b, cell]), share(flat, belief[b, k, cell])], -1)

@@ -266,7 +266,7 @@ def markdown(m: dict) -> str:
             f"The belief's 95 % region holds the true cell in {fmt(cover['place'], True)} "
             f"{bracket('coverage_place', True)} of frames and the true (heading bin, cell) in "
             f"{fmt(cover['place_heading'], True)} {bracket('coverage_place_heading', True)} (about 95 % when "
-            "calibrated).",
+            "calibrated; the cells at the region's edge count in part, so that it holds 95 % of the belief).",
         ]
     by = pose["location_m_by_step"]
     edges = by["bin_edges"] + [None]

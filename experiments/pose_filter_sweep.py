@@ -123,7 +123,7 @@ def main(argv):
             state, estimate = pose_belief.filter_step(
                 state, h, action, jnp.full(FLAGS.worlds, is_first), grid, motion_model, position=position, **setting
             )
-            return state, (estimate, pose_belief.in_region(state, pose, grid))
+            return state, (estimate, pose_belief.region_share(state, pose, grid))
 
         xs = (head, time_major(prev_action), first, time_major(frames["pose"]))
         return jax.lax.scan(body, pose_belief.init_state(FLAGS.worlds, grid), xs)[1]

@@ -20,8 +20,9 @@ the first time). Two estimates, each against the plant's truth beyond the motion
   from 1 within 20 % of the true deviation (``share_within_20pct``).
 
 Beside them, the odometry's drift per 100 m and mean location error, and the belief's calibration: the
-share of frames (after the first metre) whose true location and heading lie inside the 95 % regions of the
-odometry's spread (``ego_motion.spread``).
+share of frames (after the first metre) whose true location, heading and both lie inside the 95 % regions
+of the odometry's error covariance (its location's variances times the fitted factor, as
+``ego_motion.spread`` scales them), each with its 95 % bootstrap interval over whole drives.
 
 Prints, as JSON, per estimate: the share of drives within 20 % at each of ``--at_frames``, each drive's first
 frame from which it stays within 20 %, the truths and estimates, and the median absolute error. A
@@ -36,7 +37,6 @@ from absl import app, flags
 
 from e2e_percep_jax import calibration, ego_motion, evaluate, launch, metrics
 from e2e_percep_jax import config as config_lib
-from e2e_percep_jax.sim import geometry as geo
 from e2e_percep_jax.sim import motion, world
 from e2e_percep_jax.sim import town as town_lib
 
@@ -70,11 +70,20 @@ def _report(estimate, truth, at_frames):
     }
 
 
+def _coverage(squared_distance, chi2_95: float) -> dict:
+    """The share of frames whose squared Mahalanobis distance [W, T] (NaN: left out) is inside the 95 %
+    region (at most ``chi2_95``), and its 95 % bootstrap interval over whole drives."""
+    inside = np.sum(squared_distance <= chi2_95, 1).astype(np.float64)  # [W] (NaN compares False)
+    counted = np.sum(~np.isnan(squared_distance), 1).astype(np.float64)
+    low, high = metrics.bootstrap_interval(lambda w: (w @ inside) / (w @ counted), len(inside))
+    return {"share": float(inside.sum() / counted.sum()), "interval95": [float(low), float(high)]}
+
+
 def main(argv):
     cfg = launch.run_config(argv, FLAGS.workdir)
     at_frames = [int(f) for f in FLAGS.at_frames]
     if FLAGS.pose_drives:  # the keys evaluate.start_keys splits
-        key = jax.random.fold_in(jax.random.PRNGKey(cfg.eval.seed), evaluate.RESET_STREAM)
+        key = evaluate.reset_root(cfg)
         num_drives, num_frames = cfg.eval.num_worlds, cfg.eval.num_frames // cfg.eval.num_worlds
     else:
         key, num_drives, num_frames = jax.random.PRNGKey(FLAGS.seed), FLAGS.drives, FLAGS.frames
@@ -89,7 +98,12 @@ def main(argv):
     plant = jax.vmap(lambda k: world.reset(k, town, cfg.world).ego_plant)(jax.random.split(key, num_drives))
     start, prev_action = calibration.start_and_commands(pose, speed, command)
     followed, estimates, covariance = jax.jit(ego_motion.follow, static_argnums=0)(model, start, prev_action, scans)
-    location, heading = calibration.spread_errors(pose, followed, covariance)
+    # the belief's covariance: the odometry's, its location's variances times the fitted factor (its heading's
+    # are in it)
+    scaled = np.sqrt([model.odometry_location_scale] * 2 + [1.0])
+    location, heading, joint = calibration.spread_errors(
+        pose, followed, np.asarray(covariance, np.float64) * scaled[:, None] * scaled
+    )
     estimates = np.asarray(estimates, np.float64)  # [W, T, 3]: curvature bias (1/m), yaw gain, accel gain
     v = np.asarray(speed, np.float64)
     v2 = np.sum(v**3, 1) / np.maximum(np.sum(v, 1), 1e-9)  # v^2 weighted by the distance driven
@@ -99,17 +113,6 @@ def main(argv):
     scale = np.asarray(plant.distance_scale, np.float64)
     gain_truth = scale * motion.EGO_ACCEL_LIMIT_MPS2 / model.accel_per_pedal_mps2 - 1.0
     to_deg = lambda bias: np.degrees(np.arctan(bias * motion.WHEELBASE_M))
-    chi2_location = calibration.CHI2_95[2] * model.odometry_location_scale  # the location's fitted factor
-    # the joint region: the covariance's 3-D ellipsoid, its location scaled by that factor (its heading's is in it)
-    scaled = np.sqrt([model.odometry_location_scale] * 2 + [1.0])
-    followed64, pose64 = np.asarray(followed, np.float64), np.asarray(pose, np.float64)
-    yaw_error = geo.wrap_angle(np.arctan2(followed64[..., 3], followed64[..., 2]) - pose64[..., 2])
-    error = np.concatenate([followed64[..., :2] - pose64[..., :2], yaw_error[..., None]], -1)
-    moved = ~np.isnan(location)  # the frames the other two keep (the covariance is ~0 before)
-    joint = np.full(location.shape, np.nan)
-    joint[moved] = calibration.squared_errors(
-        error[moved], np.asarray(covariance, np.float64)[moved] * scaled[:, None] * scaled
-    )
     result = {
         "town_seed": FLAGS.town_seed,
         "drives": num_drives,
@@ -122,11 +125,15 @@ def main(argv):
             str(f): float(np.mean(np.abs(estimates[:, f - 1, 2] - gain_truth) <= WITHIN * (1.0 + gain_truth)))
             for f in at_frames
         },
-        # the belief's calibration: moved frames whose truth lies inside the odometry's 95 % regions
+        # the belief's calibration: moved frames whose truth lies inside the odometry's 95 % regions, each with
+        # its 95 % bootstrap interval over whole drives
         "truth_in_95pct_region": {
-            "location": float(np.nanmean(np.where(np.isnan(location), np.nan, location <= chi2_location))),
-            "heading": float(np.nanmean(np.where(np.isnan(heading), np.nan, heading <= calibration.CHI2_95[1]))),
-            "location_heading": float(np.nanmean(np.where(np.isnan(joint), np.nan, joint <= calibration.CHI2_95[3]))),
+            name: _coverage(squared, calibration.CHI2_95[dims])
+            for name, squared, dims in (
+                ("location", location, 2),
+                ("heading", heading, 1),
+                ("location_heading", joint, 3),
+            )
         },
         # the odometry's own figures, as the evaluation computes them
         "drift_per_100m": metrics.drive_pose_summary(np.asarray(pose)[..., :2], np.asarray(followed)[..., :2])[

@@ -138,7 +138,7 @@ def _share_motion_model(base: config_lib.Config, run_dirs) -> None:
     missing = [d for d in run_dirs if not os.path.exists(os.path.join(d, motion_lib.FILE_NAME))]
     if missing:
         model = train_lib.ensure_motion_model(base, FLAGS.sweep_dir)
-        if base.model.pose_head == "belief" and base.model.pose_filter == "histogram":
+        if base.model.histogram_belief:
             model = calibration.ensure_scans(base, FLAGS.sweep_dir, spread=False)
         for d in missing:
             os.makedirs(d, exist_ok=True)

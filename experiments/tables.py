@@ -55,6 +55,12 @@ IMAGE_MATCHER_NOTE = (
     "- § The lidar odometry matched the bird-eye lidar image (0.5 m pixels, 16-20 m out) before it matched "
     "the lidar's own scan: [BUILD_NOTES](BUILD_NOTES.md#odometry-from-the-lidar-on-towns-never-seen)."
 )
+WHOLE_CELLS = " ∥"  # after a coverage whose region was whole cells (_whole_cells)
+WHOLE_CELLS_NOTE = (
+    "- ∥ The region was counted in whole cells before its edge cells were counted in part: it held more than "
+    "95 % of the belief, and the truth more often: "
+    "[BUILD_NOTES](BUILD_NOTES.md#a-region-that-holds-95--of-the-belief-2026-12-01)."
+)
 TRAINING_EVERY = 100  # steps between the kept training records (a 9,000-step run: 90 lines)
 # BGR, one per method in the learning curves' figure
 COLOURS = (
@@ -327,6 +333,12 @@ def _image_matcher(evaluations: list[dict] | None) -> bool:
     return any(m["pose"].get("lidar_odometry") and not m["pose"].get("scan_matcher") for m in evaluations or [])
 
 
+def _whole_cells(evaluations: list[dict] | None) -> bool:
+    """Whether a belief's coverage among these evaluations counted its 95 % region in whole cells (evaluated
+    before metrics.json recorded ``coverage95_region``)."""
+    return any(m["pose"].get("coverage95") and not m["pose"].get("coverage95_region") for m in evaluations or [])
+
+
 DETECTION_DRIVE_FIELDS = ("detection_drives", "detection_frames", "detection_pool")  # the pose drives' own stay
 
 
@@ -361,7 +373,7 @@ def localisation(found: dict) -> str:
         "against the paper's row: location / heading",
     ]
     rows, shown, constant, paper, marked = [], [], None, _paper_figures("pose"), False
-    commands_only = image_matcher = town0_commands = False
+    commands_only = image_matcher = town0_commands = whole_cells = False
     for method, variant in _paper_rows(found):
         if method is None:
             if variant in paper:
@@ -401,7 +413,8 @@ def localisation(found: dict) -> str:
                         _cell(glob_, "truth in the 95 % region, place + heading (%)"),
                     ],
                 )
-            ),
+            )
+            + (WHOLE_CELLS if _whole_cells(glob_) else ""),
             " / ".join(filter(None, [_frames_cell(known, 100, 1000), _frames_cell(known, 1000, 10**9)])),
             " / ".join(d or "-" for d in drift) if any(drift) else "",
             against,
@@ -412,6 +425,7 @@ def localisation(found: dict) -> str:
         rows.append(row)
         marked = marked or earlier
         town0_commands = town0_commands or on_commands
+        whole_cells = whole_cells or _whole_cells(glob_)
         if glob_ and constant is None:
             constant = glob_[0]["baseline"]["pose"]
     if constant is not None:
@@ -425,6 +439,7 @@ def localisation(found: dict) -> str:
         )
     note = f"\n{EARLIER_FILTER_NOTE}" if marked else ""
     note += f"\n{TOWN0_COMMANDS_NOTE}" if town0_commands else ""
+    note += f"\n{WHOLE_CELLS_NOTE}" if whole_cells else ""
     note += f"\n{COMMANDS_ONLY_NOTE}" if commands_only else ""
     note += f"\n{IMAGE_MATCHER_NOTE}" if image_matcher else ""
     return markdown_table(header, rows) + "\n\n" + _runs_note(found, shown) + note + "\n"

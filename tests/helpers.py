@@ -165,6 +165,20 @@ TINY_FLAGS = [
 ]
 
 
+def np_region_share(p, mass):
+    """By levels: how much of each state lies in the region holding exactly ``mass``. The states' distinct
+    probabilities from the highest down; a level is wholly in while the levels above it and it hold at most
+    ``mass`` of the total, wholly out once those above hold it all, and the level that crosses holds the
+    rest in proportion to its states' mass. float [S]."""
+    p = np.asarray(p, np.float64)
+    levels, level_of = np.unique(p, return_inverse=True)
+    level_mass = np.bincount(level_of.ravel(), p.ravel())[::-1]  # highest level first
+    above = np.cumsum(level_mass) - level_mass
+    with np.errstate(invalid="ignore", divide="ignore"):
+        share = np.where(level_mass > 0, np.clip((mass * p.sum() - above) / level_mass, 0.0, 1.0), 0.0)
+    return share[::-1][level_of.ravel()]
+
+
 def np_kl(q_loc, q_scale, p_loc, p_scale):
     """KL(N(q) || N(p)) of diagonal Gaussians, per dimension, in closed form (NumPy)."""
     return np.log(p_scale / q_scale) + (q_scale**2 + (q_loc - p_loc) ** 2) / (2 * p_scale**2) - 0.5

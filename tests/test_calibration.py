@@ -117,3 +117,44 @@ def test_with_the_plant_on_the_exact_bicycle_drifts_and_the_fitted_noise_account
     distance_m = np.sum(np.linalg.norm(np.diff(plant["pose"][:, :600, :2], axis=1), axis=-1), 1)
     z = heading_error / np.sqrt(model.heading_noise_rad2pm * distance_m)
     assert 0.9 < np.sqrt(np.mean(z**2)) < 1.5, z
+
+
+def test_spread_errors_against_the_closed_form():
+    """``spread_errors`` on a straight drive at 1 m a frame, followed with errors planted per frame under
+    covariances with the location uncorrelated to the heading: the location's squared distance is the error
+    through the 2x2 block's inverse (written out), the heading's its square over its variance, the joint's
+    their sum (a block-diagonal covariance); frames before the car has driven ``MOVED_M`` are NaN; and with
+    a correlation planted, the joint is the 3-D quadratic form, not the sum."""
+    rng = np.random.default_rng(2)
+    w, t = 3, 6
+    yaw = rng.uniform(-np.pi, np.pi, (w, 1))
+    travelled = np.arange(t)[None, :] * np.ones((w, 1))
+    pose = np.stack([travelled * np.cos(yaw), travelled * np.sin(yaw), np.broadcast_to(yaw, (w, t))], -1)
+    error = rng.normal(size=(w, t, 3)) * [0.5, 0.3, 0.02]
+    a, c, d = rng.uniform(0.5, 2.0, (w, t)), rng.uniform(-0.3, 0.3, (w, t)), rng.uniform(0.5, 2.0, (w, t))
+    heading_var = rng.uniform(1e-4, 1e-3, (w, t))
+    covariance = np.zeros((w, t, 3, 3))
+    covariance[..., 0, 0], covariance[..., 0, 1], covariance[..., 1, 0], covariance[..., 1, 1] = a, c, c, d
+    covariance[..., 2, 2] = heading_var
+    yaw_followed = pose[..., 2] + error[..., 2]
+    followed = np.concatenate(
+        [
+            pose[..., :2] + error[..., :2],
+            np.stack([np.cos(yaw_followed), np.sin(yaw_followed)], -1),
+            np.ones((w, t, 1)),
+        ],
+        -1,
+    )
+    location, heading, joint = calibration.spread_errors(pose, followed, covariance)
+    ex, ey = error[..., 0], error[..., 1]
+    want_location = (d * ex**2 - 2 * c * ex * ey + a * ey**2) / (a * d - c**2)
+    moved = travelled > calibration.MOVED_M  # frames 2 onwards
+    assert np.isnan(location[~moved]).all() and np.isnan(joint[~moved]).all()
+    np.testing.assert_allclose(location[moved], want_location[moved], rtol=1e-9)
+    np.testing.assert_allclose(heading[moved], (error[..., 2] ** 2 / heading_var)[moved], rtol=1e-6)
+    np.testing.assert_allclose(joint[moved], (want_location + error[..., 2] ** 2 / heading_var)[moved], rtol=1e-6)
+    correlated = covariance.copy()
+    correlated[..., 0, 2] = correlated[..., 2, 0] = 0.5 * np.sqrt(a * heading_var)
+    joint_correlated = calibration.spread_errors(pose, followed, correlated)[2]
+    want = np.einsum("...i,...ij,...j->...", error, np.linalg.inv(correlated), error)
+    np.testing.assert_allclose(joint_correlated[moved], want[moved], rtol=1e-6)

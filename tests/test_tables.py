@@ -30,13 +30,15 @@ def _metrics(
     earlier_filter=False,
     commands_only=False,
     image_matcher=False,
+    whole_cells=False,
 ):
     """A metrics.json with what the tables read, every AP ``ap`` and the location mean ``location``
     (of checkpoint ``step``, or of the trained run where None), of the `cpu` preset (with ``place_frames``
     where given: another recipe), its belief filtered at today's defaults (``earlier_filter``: from before
     evaluations recorded the filter's settings), on a held-out town from the known start by the lidar
     odometry (``commands_only``: from before evaluations recorded it; ``image_matcher``: its matcher on the
-    lidar images, from before evaluations recorded what it matched)."""
+    lidar images, from before evaluations recorded what it matched), its regions holding exactly 95 %
+    (``whole_cells``: from before evaluations recorded how the region was counted)."""
     cfg = config.replace(
         config.get_config("cpu"), train=dict(seed=seed), eval=dict(town_seed=town, known_start=known_start)
     )
@@ -57,6 +59,8 @@ def _metrics(
         "coverage95": {"place": 0.95, "place_heading": 0.9},
         "pose_filter": "histogram",
     }
+    if not whole_cells:
+        pose["coverage95_region"] = "exact mass"
     if not earlier_filter:
         pose["filter_settings"] = pose_belief.default_settings()
     if not commands_only:
@@ -227,6 +231,18 @@ def test_a_training_town_belief_moved_by_the_commands_alone_is_marked(results, t
     localisation = tables.render(str(results))["localisation"]
     assert _row(localisation, f"`cpu`{tables.TOWN0_COMMANDS}")[1] == "5.0 ± 1.0 / 10.0 ± 2.0"
     assert tables.TOWN0_COMMANDS_NOTE in localisation
+
+
+def test_a_coverage_counted_in_whole_cells_is_marked(results, tmp_path):
+    """A variant whose global evaluation (one seed of two) counted its region in whole cells gets the mark on
+    its coverage cell and the note; with every evaluation counting exactly 95 %, neither appears."""
+    localisation = tables.render(str(results))["localisation"]
+    assert tables.WHOLE_CELLS not in localisation and tables.WHOLE_CELLS_NOTE not in localisation
+    _write_run(tmp_path / "runs" / "place_s1", {"eval": _metrics(1, ap=0.6, location=6.0, whole_cells=True)})
+    tables.collect("cpu", [str(tmp_path / "runs" / name) for name in ("place_s0", "place_s1")], str(results))
+    localisation = tables.render(str(results))["localisation"]
+    assert _row(localisation, "`cpu`")[4] == f"95.0 ± 0.0 / 90.0 ± 0.0{tables.WHOLE_CELLS}"
+    assert tables.WHOLE_CELLS_NOTE in localisation
 
 
 @pytest.mark.parametrize(
