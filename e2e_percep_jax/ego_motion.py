@@ -21,11 +21,13 @@ and gain, and its speed and distance scale (BUILD_NOTES, "Odometry from the lida
 Pure JAX, one stream; ``jax.vmap`` it over streams.
 """
 
+import math
 from typing import NamedTuple
 
 import flax.struct
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from e2e_percep_jax.sim import geometry as geo
 from e2e_percep_jax.sim import motion as motion_lib
@@ -477,12 +479,20 @@ def error_covariance(state: OdometryState, model: MotionModel):
     )
 
 
+def belief_covariance(covariance, model: MotionModel):
+    """The belief's covariance [..., 3, 3] (x m, y m, yaw rad) from the odometry's error covariance
+    ``covariance`` [..., 3, 3] (:func:`error_covariance`, its heading's variances scaled already): the
+    location's variances times the factor fitted on the drives of other towns (``calibration.fit_spread``),
+    its covariances with the heading times that factor's root, as for the location scaled by that root."""
+    s, r = model.odometry_location_scale, math.sqrt(model.odometry_location_scale)
+    return covariance * np.array([[s, s, r], [s, s, r], [r, r, 1.0]])
+
+
 def spread(state: OdometryState, model: MotionModel):
     """The odometry's belief per axis: (location std [B, 2] m along x and y, heading std [B] rad), the square
-    roots of its carried error covariance's diagonal (:func:`error_covariance`, the heading's variances
-    scaled as the drives of other towns say) with the location's scaled likewise (``calibration.fit_spread``)."""
-    variance = jnp.diagonal(error_covariance(state, model), axis1=-2, axis2=-1)  # [B, 3]
-    return jnp.sqrt(model.odometry_location_scale * variance[:, :2]), jnp.sqrt(variance[:, 2])
+    roots of :func:`belief_covariance`'s diagonal."""
+    variance = jnp.diagonal(belief_covariance(error_covariance(state, model), model), axis1=-2, axis2=-1)
+    return jnp.sqrt(variance[:, :2]), jnp.sqrt(variance[:, 2])
 
 
 def follow(model: MotionModel, start_pose, prev_action, scans):

@@ -627,7 +627,8 @@ class _Scores:
                 coverage95=dict(zip(("place", "place_heading"), np.concatenate(cover).mean(0).tolist()))
                 if cover is not None
                 else None,
-                coverage95_region="exact mass",  # evaluations saved before it: a region of whole cells
+                # evaluations saved before it: a region of whole cells
+                coverage95_region="exact mass" if cover is not None else None,
                 interval95={
                     k: [span(v) for v in lo_hi] if np.ndim(lo_hi[0]) else span(lo_hi)
                     for k, lo_hi in metrics_lib.drive_pose_intervals(

@@ -21,8 +21,8 @@ the first time). Two estimates, each against the plant's truth beyond the motion
 
 Beside them, the odometry's drift per 100 m and mean location error, and the belief's calibration: the
 share of frames (after the first metre) whose true location, heading and both lie inside the 95 % regions
-of the odometry's error covariance (its location's variances times the fitted factor, as
-``ego_motion.spread`` scales them), each with its 95 % bootstrap interval over whole drives.
+of the belief's covariance (``ego_motion.belief_covariance``: the odometry's, its location's variances
+times the fitted factor), each with its 95 % bootstrap interval over whole drives.
 
 Prints, as JSON, per estimate: the share of drives within 20 % at each of ``--at_frames``, each drive's first
 frame from which it stays within 20 %, the truths and estimates, and the median absolute error. A
@@ -98,11 +98,8 @@ def main(argv):
     plant = jax.vmap(lambda k: world.reset(k, town, cfg.world).ego_plant)(jax.random.split(key, num_drives))
     start, prev_action = calibration.start_and_commands(pose, speed, command)
     followed, estimates, covariance = jax.jit(ego_motion.follow, static_argnums=0)(model, start, prev_action, scans)
-    # the belief's covariance: the odometry's, its location's variances times the fitted factor (its heading's
-    # are in it)
-    scaled = np.sqrt([model.odometry_location_scale] * 2 + [1.0])
     location, heading, joint = calibration.spread_errors(
-        pose, followed, np.asarray(covariance, np.float64) * scaled[:, None] * scaled
+        pose, followed, ego_motion.belief_covariance(np.asarray(covariance, np.float64), model)
     )
     estimates = np.asarray(estimates, np.float64)  # [W, T, 3]: curvature bias (1/m), yaw gain, accel gain
     v = np.asarray(speed, np.float64)

@@ -198,7 +198,9 @@ def test_the_measured_belief_moves_by_the_lidar_odometry_given_the_scans():
     (flat: Bayes' rule leaves it as moved), is moved by the lidar odometry when given the scans: down a
     winding street, its path curving 0.004 / m more than the commands say, its mean stays within 0.5 m of
     the true path over 300 frames (the bilinear split keeps the mean exact), where the commands alone leave
-    it more than 10 m off."""
+    it more than 10 m off. Its heading spreads by what the odometry's own heading variance grows frame by
+    frame (:func:`ego_motion.follow`'s covariances; nothing where a match narrows it): a random walk over the
+    bins, whose variances add."""
     frames = 300
     model = odometry_model()  # the exact bicycle: no process noise moves the mean
     command = np.zeros((frames, 2), np.float32)
@@ -229,11 +231,38 @@ def test_the_measured_belief_moves_by_the_lidar_odometry_given_the_scans():
         actions = jnp.asarray(np.concatenate([command[:1], command]))  # frame t's: the commands t-1 -> t
         firsts = jnp.arange(frames + 1) == 0
         xs = (actions, scans[:, None] if with_scans else None, firsts)
-        return jax.lax.scan(body, pose_belief.init_state(1, grid), xs)[1]
+        return jax.lax.scan(body, pose_belief.init_state(1, grid), xs)
 
     error_m = lambda poses: np.linalg.norm(np.asarray(poses[:, :2]) - origin - xy, axis=-1)
-    assert error_m(track(True)).max() < 0.5, error_m(track(True)).max()
-    assert error_m(track(False)).max() > 10.0  # the commands alone miss the offset
+    last, poses = track(True)
+    assert error_m(poses).max() < 0.5, error_m(poses).max()
+    assert error_m(track(False)[1]).max() > 10.0  # the commands alone miss the offset
+
+    heading_var_rad2 = np.asarray(_follow(model, 6.0, command, scans)[2])[:, 2, 2].astype(np.float64)
+    grown = np.maximum(np.diff(heading_var_rad2), 0.0)
+    assert np.any(np.diff(heading_var_rad2) < 0)  # matches narrowed it, and took nothing back from the belief
+    p = np.asarray(last.belief[0], np.float64).sum((1, 2))  # [H]
+    bins = np.arange(grid.heading_bins)
+    spread_rad2 = np.sum(p * (bins - np.sum(p * bins)) ** 2) * grid.bin_rad**2
+    np.testing.assert_allclose(spread_rad2, grown.sum(), rtol=1e-2)
+
+
+def test_the_belief_covariance_is_the_error_covariance_with_the_location_scaled():
+    """The belief's covariance is the odometry's error covariance with the location scaled by the fitted
+    factor's root (D C D, D = diag(r, r, 1), r^2 the factor: the covariance of the errors so scaled), for a
+    batch of random covariances, in NumPy float64 and in JAX; its diagonal keeps the heading's variance and
+    scales the location's by the factor exactly."""
+    rng = np.random.default_rng(5)
+    a = rng.normal(size=(4, 3, 3)) * [2.0, 1.0, 0.01]
+    covariance = a @ np.swapaxes(a, -1, -2)  # [4, 3, 3]
+    model = dataclasses.replace(odometry_model(), odometry_location_scale=2.5)
+    d = np.diag([np.sqrt(2.5), np.sqrt(2.5), 1.0])
+    got = ego_motion.belief_covariance(covariance, model)
+    np.testing.assert_allclose(got, d @ covariance @ d, rtol=1e-12)
+    diagonal = lambda x: np.diagonal(x, 0, -2, -1)
+    np.testing.assert_array_equal(diagonal(got), diagonal(covariance) * [2.5, 2.5, 1.0])
+    in_jax = ego_motion.belief_covariance(jnp.asarray(covariance, jnp.float32), model)
+    np.testing.assert_allclose(in_jax, d @ covariance @ d, rtol=1e-5)
 
 
 def test_the_forward_precision_is_the_inverse_of_the_marginal_variance():

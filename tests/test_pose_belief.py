@@ -552,7 +552,10 @@ def histogram_track(model, start, commands, grid):
     state = pose_belief.init_state(1, grid).replace(
         belief=belief, yaw_offset_rad=offset, speed_mps=jnp.asarray(start[None, 4], jnp.float32)
     )
-    predict = jax.jit(lambda b, m, o, d: pose_belief.predict(b, m, o, d, model, grid), compiler_options=OPTIMISED)
+    predict = jax.jit(
+        lambda b, m, o, d: pose_belief.predict(b, m, o, d, model.heading_noise_rad2pm * d, model, grid),
+        compiler_options=OPTIMISED,
+    )
     actuator = jnp.asarray(commands[:1], jnp.float32)
     poses = [pose_belief.mean_pose(state, grid)[0]]
     for command in commands:
