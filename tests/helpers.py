@@ -1,5 +1,6 @@
 """What more than one test module uses: the tiny config and its synthetic frames, the jitted loss and
-gradients, NumPy forms of the loss terms, and the training launcher with the files a run writes.
+gradients, NumPy forms of the loss terms, lidar scans of hand-built streets, and the training launcher with
+the files a run writes.
 
 A plain module, not conftest.py: the tests import these names directly (``from helpers import ...``), and so
 does code that the training tests run in a fresh ``python -c`` subprocess, which imports no pytest plugin.
@@ -15,9 +16,12 @@ import socket
 import sys
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from e2e_percep_jax import config, loss, pose_belief
+from e2e_percep_jax.sim import geometry as geo
+from e2e_percep_jax.sim import motion, sensors
 from e2e_percep_jax.sim.motion import MotionModel
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # the repository
@@ -70,6 +74,49 @@ def odometry_model(**fields):
     odometry = dict(yaw_bias_std_1pm=0.004, yaw_gain_std=0.03, yaw_noise_rad2pm=1e-7, scan_heading_noise_rad=0.002)
     odometry.update(speed_gain_std=0.03, speed_noise_mps=0.002, scan_distance_noise=0.25)
     return MotionModel(**{**odometry, **fields})
+
+
+# ----------------------------------------------------------------------------- lidar scans of hand-built streets
+
+
+def buildings(centres_m, rng):
+    """Obstacles: boxes of 3-8 m sides and random yaw at town points ``centres_m`` [M, 2]."""
+    m = len(centres_m)
+    box = np.column_stack([centres_m, rng.uniform(-np.pi, np.pi, m), rng.uniform(3, 8, (m, 2))]).astype(np.float32)
+    return box
+
+
+def lidar_scan(box_town, pose, height_m=None):
+    """The lidar scan of buildings ``box_town`` [M, 5] (the nearest SCAN_BUILDINGS of them, as the sensors
+    cull; 6 m tall, or ``height_m`` [M]) from ego pose (x, y, yaw)."""
+    box = geo.box_to_ego(jnp.asarray(box_town), jnp.asarray(pose[:2], jnp.float32), jnp.float32(pose[2]))
+    height_m = jnp.full((box.shape[0],), 6.0) if height_m is None else jnp.asarray(height_m, jnp.float32)
+    m = min(box.shape[0], sensors.SCAN_BUILDINGS)
+    nearest = jnp.argsort(jnp.linalg.norm(box[:, :2], axis=-1))[:m]
+    obstacles = sensors.Obstacles(
+        box=box[nearest],
+        height_m=height_m[nearest],
+        color=jnp.zeros((m, 3)),
+        is_vehicle=jnp.zeros((m,), bool),
+        valid=jnp.ones((m,), bool),
+        vehicle_index=jnp.full((m,), -1, jnp.int32),
+    )
+    return sensors.render_scan(obstacles)
+
+
+def street(ds, dyaw):
+    """A drive's true path from its steps ``ds`` [T] m and yaw changes ``dyaw`` [T] rad (from the origin,
+    heading along x), down a street of buildings that follow it (one each side every 6-9 m): the path's
+    (x, y) [T + 1, 2] and yaw [T + 1], and its lidar scans [T + 1, SCAN_AZIMUTHS]."""
+    yaw = np.concatenate([[0.0], np.cumsum(dyaw)])
+    steps = np.asarray(motion.centre_move(jnp.asarray(ds), jnp.asarray(dyaw), jnp.asarray(yaw[:-1, None])))[:, 0]
+    xy = np.concatenate([np.zeros((1, 2)), np.cumsum(steps, 0)])
+    rng = np.random.default_rng(2)
+    side = np.stack([-np.sin(yaw), np.cos(yaw)], -1)
+    along = np.arange(0, len(yaw), 9)
+    centres = np.concatenate([xy[along] + 10 * side[along], xy[along] - 11 * side[along]])
+    box = buildings(centres + rng.normal(0, 1.0, centres.shape), rng)
+    return xy, yaw, jax.vmap(lambda p: lidar_scan(box, p))(jnp.asarray(np.column_stack([xy, yaw]), jnp.float32))
 
 
 def frame_contract(image_size, num_boxes):

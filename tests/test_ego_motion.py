@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import odometry_model
+from helpers import buildings, lidar_scan, odometry_model, street
 
 from e2e_percep_jax import calibration, ego_motion, pose_belief
 from e2e_percep_jax import config as config_lib
@@ -19,34 +19,9 @@ from e2e_percep_jax.sim import geometry as geo
 from e2e_percep_jax.sim import motion, sensors
 
 
-def _buildings(centres_m, rng):
-    """Obstacles: boxes of 3-8 m sides and random yaw at town points ``centres_m`` [M, 2]."""
-    m = len(centres_m)
-    box = np.column_stack([centres_m, rng.uniform(-np.pi, np.pi, m), rng.uniform(3, 8, (m, 2))]).astype(np.float32)
-    return box
-
-
-def _scan(box_town, pose, height_m=None):
-    """The lidar scan of buildings ``box_town`` [M, 5] (the nearest SCAN_BUILDINGS of them, as the sensors
-    cull; 6 m tall, or ``height_m`` [M]) from ego pose (x, y, yaw)."""
-    box = geo.box_to_ego(jnp.asarray(box_town), jnp.asarray(pose[:2], jnp.float32), jnp.float32(pose[2]))
-    height_m = jnp.full((box.shape[0],), 6.0) if height_m is None else jnp.asarray(height_m, jnp.float32)
-    m = min(box.shape[0], sensors.SCAN_BUILDINGS)
-    nearest = jnp.argsort(jnp.linalg.norm(box[:, :2], axis=-1))[:m]
-    obstacles = sensors.Obstacles(
-        box=box[nearest],
-        height_m=height_m[nearest],
-        color=jnp.zeros((m, 3)),
-        is_vehicle=jnp.zeros((m,), bool),
-        valid=jnp.ones((m,), bool),
-        vehicle_index=jnp.full((m,), -1, jnp.int32),
-    )
-    return sensors.render_scan(obstacles)
-
-
 def _town_block(seed):
     rng = np.random.default_rng(seed)
-    box = _buildings(rng.uniform(-40, 40, (30, 2)), rng)
+    box = buildings(rng.uniform(-40, 40, (30, 2)), rng)
     return box[np.linalg.norm(box[:, :2], axis=-1) > 7]  # none over the ego
 
 
@@ -56,9 +31,9 @@ def test_the_scan_holds_the_lidars_walls_and_not_its_ground():
     it, exactly."""
     assert ego_motion.SCAN_AZIMUTHS == sensors.LIDAR_NUM_AZIMUTHS
     far = np.array([[sensors.LIDAR_RANGE_M + 5.0, 0.0, 0.0, 4.0, 4.0]], np.float32)
-    assert not np.any(np.asarray(_scan(far, (0.0, 0.0, 0.0))))
+    assert not np.any(np.asarray(lidar_scan(far, (0.0, 0.0, 0.0))))
     wall = np.array([[10.5, 0.0, 0.0, 1.0, 40.0]], np.float32)  # its near face at x = 10 m
-    scan = np.asarray(_scan(wall, (0.0, 0.0, 0.0)))
+    scan = np.asarray(lidar_scan(wall, (0.0, 0.0, 0.0)))
     azimuth = np.deg2rad(np.arange(360.0))
     meets = (np.cos(azimuth) > 0) & (np.abs(10.0 * np.tan(azimuth)) < 19.9)  # (off its ends by a margin)
     np.testing.assert_allclose(scan[meets], 10.0 / np.cos(azimuth[meets]), rtol=1e-5)
@@ -72,10 +47,10 @@ def test_the_scan_sees_the_wall_over_a_van_and_not_the_van():
     far = np.array([[300.0, 300.0, 0.0, 4.0, 4.0]], np.float32)  # (the scan casts a power of two of obstacles)
     wall = np.array([[20.5, 0.0, 0.0, 1.0, 40.0]], np.float32)  # its near face at x = 20 m
     van = np.array([[8.0, 0.0, 0.0, 2.0, 2.0]], np.float32)
-    scan = np.asarray(_scan(np.concatenate([wall, van]), (0.0, 0.0, 0.0), [6.0, 2.6]))
+    scan = np.asarray(lidar_scan(np.concatenate([wall, van]), (0.0, 0.0, 0.0), [6.0, 2.6]))
     np.testing.assert_allclose(scan[[0, 1, 359]], 20.0 / np.cos(np.deg2rad([0.0, 1.0, 1.0])), rtol=1e-5)
     kiosk = np.array([[10.5, 0.0, 0.0, 1.0, 3.0]], np.float32)
-    scan = np.asarray(_scan(np.concatenate([kiosk, far]), (0.0, 0.0, 0.0), [3.0, 3.0]))
+    scan = np.asarray(lidar_scan(np.concatenate([kiosk, far]), (0.0, 0.0, 0.0), [3.0, 3.0]))
     np.testing.assert_allclose(scan[0], 10.0, rtol=1e-5)
 
 
@@ -86,7 +61,7 @@ def test_a_known_motion_between_two_scans_is_recovered_exactly(motion_true):
     5 mm and 0.2 mrad (4 mm at 20 m: the line through two returns cuts a building's corners; the prior's
     weak pull included)."""
     box = _town_block(1)
-    before, after = _scan(box, (0.0, 0.0, 0.0)), _scan(box, motion_true)
+    before, after = lidar_scan(box, (0.0, 0.0, 0.0)), lidar_scan(box, motion_true)
     found, num_returns, _ = ego_motion.match(before, after, jnp.asarray(motion_true) + jnp.asarray([0.15, -0.1, 0.02]))
     np.testing.assert_allclose(np.asarray(found)[:2], motion_true[:2], atol=0.005)
     assert abs(float(found[2]) - motion_true[2]) < 2e-4
@@ -119,21 +94,6 @@ def test_the_kalman_update_is_bayes_rule_against_brute_force():
     np.testing.assert_allclose(covariance, second, rtol=0.03, atol=1e-9)
 
 
-def _street(ds, dyaw):
-    """A drive's true path from its steps ``ds`` [T] m and yaw changes ``dyaw`` [T] rad (from the origin,
-    heading along x), down a street of buildings that follow it (one each side every 6-9 m): the path's
-    (x, y) [T + 1, 2] and yaw [T + 1], and its lidar scans [T + 1, SCAN_AZIMUTHS]."""
-    yaw = np.concatenate([[0.0], np.cumsum(dyaw)])
-    steps = np.asarray(motion.centre_move(jnp.asarray(ds), jnp.asarray(dyaw), jnp.asarray(yaw[:-1, None])))[:, 0]
-    xy = np.concatenate([np.zeros((1, 2)), np.cumsum(steps, 0)])
-    rng = np.random.default_rng(2)
-    side = np.stack([-np.sin(yaw), np.cos(yaw)], -1)
-    along = np.arange(0, len(yaw), 9)
-    centres = np.concatenate([xy[along] + 10 * side[along], xy[along] - 11 * side[along]])
-    box = _buildings(centres + rng.normal(0, 1.0, centres.shape), rng)
-    return xy, yaw, jax.vmap(lambda p: _scan(box, p))(jnp.asarray(np.column_stack([xy, yaw]), jnp.float32))
-
-
 def _follow(model, speed_mps, command, scans):
     """``ego_motion.follow`` of one drive from the origin at ``speed_mps``, heading along x: commands [T, 2]
     applied frame to frame, scans [T + 1, SCAN_AZIMUTHS]. (poses, estimates, covariances) of its T + 1 frames."""
@@ -161,7 +121,7 @@ def test_a_planted_steering_offset_and_distance_scale_are_learnt_from_the_scans_
     ds = 0.5 * (speed[1:] + speed[:-1]) * motion.DT_S
     model_dyaw = ds * np.asarray(motion.curvature(model, jnp.asarray(command[:, 1]), 0.5 * (speed[1:] + speed[:-1])))
     dyaw = model_dyaw + bias_1pm * ds
-    xy, yaw, scans = _street(ds, dyaw)
+    xy, yaw, scans = street(ds, dyaw)
     run = lambda m: _follow(m, speed[0], command, scans)
     poses, estimates, _ = run(model)
     reckoned, _, _ = run(dataclasses.replace(model, scan_heading_noise_rad=0.0))
@@ -186,7 +146,7 @@ def test_a_turn_in_at_the_drives_start_is_not_taken_for_a_steering_offset():
     command = np.zeros((frames, 2), np.float32)
     ds = np.full(frames, 0.6)  # 6 m/s, the pedal at 0
     dyaw = np.where(np.arange(frames) < 5, 0.006, 0.0)
-    xy, yaw, scans = _street(ds, dyaw)
+    xy, yaw, scans = street(ds, dyaw)
     poses, estimates, _ = _follow(model, 6.0, command, scans)
     assert float(np.max(np.abs(estimates[:, 0]))) < 0.1 * model.yaw_bias_std_1pm
     assert abs(float(geo.wrap_angle(geo.pose_yaw(poses[-1]) - yaw[-1]))) < 1e-3
@@ -207,7 +167,7 @@ def test_the_measured_belief_moves_by_the_lidar_odometry_given_the_scans():
     command[:, 1] = 0.03 * np.sin(np.arange(frames) / 40.0)
     ds = np.full(frames, 0.6)  # 6 m/s, the pedal at 0
     dyaw = ds * np.asarray(motion.curvature(model, jnp.asarray(command[:, 1]), 6.0)) + 0.004 * ds
-    xy, _, scans = _street(ds, dyaw)
+    xy, _, scans = street(ds, dyaw)
     grid = pose_belief.Grid(cell_m=5.0, heading_bins=36)
     origin = np.array([200.0, 200.0])
     start = jnp.asarray([[*origin, 1.0, 0.0, 6.0]], jnp.float32)
@@ -291,7 +251,7 @@ def test_a_corridors_walls_do_not_pin_the_distance_and_a_cross_wall_does():
     far = np.array([[300.0, 300.0, 0.0, 4.0, 4.0]], np.float32)  # (the scan casts a power of two of obstacles)
     cross = np.array([[25.0, 0.0, 0.0, 1.0, 14.0]], np.float32)
     for box, pinned in ((np.concatenate([walls, far, far]), False), (np.concatenate([walls, cross, far]), True)):
-        before, after = _scan(box, (0.0, 0.0, 0.0)), _scan(box, (1.0, 0.0, 0.0))
+        before, after = lidar_scan(box, (0.0, 0.0, 0.0)), lidar_scan(box, (1.0, 0.0, 0.0))
         _, _, information = ego_motion.match(before, after, jnp.asarray([1.0, 0.0, 0.0]))
         along = float(ego_motion.forward_precision(information, jnp.asarray([1.0, 0.0])))
         across = float(ego_motion.forward_precision(information, jnp.asarray([0.0, 1.0])))

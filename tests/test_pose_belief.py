@@ -1,11 +1,12 @@
 """The pose belief (e2e_percep_jax/pose_belief.py): soft targets, mode + offset decoding, the histogram
-filter against brute-force Bayes (motion through a motion model with lag and process noise, relocation,
-measurement, restarts), its credible regions against sorting, the known-start odometry against a NumPy
+filter against brute-force Bayes (motion through a motion model with lag and process noise, or by the lidar
+odometry from a uniform or a known start, relocation, measurement, restarts), its credible regions against sorting, the known-start odometry against a NumPy
 integration of the motion model, and the filter on real drives of a world whose ego has a plant.
 
 The expectations are computed here in NumPy float64 from the motion model's equations as
 e2e_percep_jax/sim/motion.py's docstring states them; pose_belief's and motion.py's functions only produce the
-values under test."""
+values under test (the lidar odometry's poses and covariances come from ``ego_motion.follow``, tested in
+test_ego_motion.py)."""
 
 import dataclasses
 import functools
@@ -15,9 +16,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import EXACT_PLANT, OPTIMISED, np_region_share
+from helpers import EXACT_PLANT, OPTIMISED, np_region_share, odometry_model, street
 
-from e2e_percep_jax import calibration, config, pose_belief
+from e2e_percep_jax import calibration, config, ego_motion, pose_belief
 from e2e_percep_jax.sim import motion as motion_lib
 from e2e_percep_jax.sim import rollout, world
 from e2e_percep_jax.sim.motion import MotionModel
@@ -209,12 +210,12 @@ def test_measurement_update_is_bayes_rule_against_brute_force():
         np.testing.assert_allclose(new.belief[row], want / want.sum(), rtol=1e-4, atol=1e-9)
 
 
-def np_transition(move_m, ds_m, yaw_after_rad, model, n, cell_m, h, relocation, heading_noise_scale, stats):
+def np_transition(move_m, ds_m, yaw_after_rad, model, n, cell_m, h, relocation, heading_var_rad2, stats):
     """The histogram's motion step as a dense matrix [S, S] (S = h n n, state (k, i, j) at (k n + i) n + j,
     i along y, j along x), built from where each source state's mass goes, stage by stage: bin k's mass
     split bilinearly by its displacement ``move_m[k]`` (x, then y; mass leaving the grid lost), position
-    noise (per axis, the variance the split has not spread), heading noise (the model's times
-    ``heading_noise_scale``, to the neighbouring bins, around), whole bins of ``yaw_after_rad`` rolled onto
+    noise (per axis, the variance the split has not spread), heading noise (``heading_var_rad2``, to the
+    neighbouring bins, around), whole bins of ``yaw_after_rad`` rolled onto
     the heading axis, then ``relocation`` of each cell's mass spread evenly over its headings."""
     s = h * n * n
     index = lambda k, i, j: (k * n + i) * n + j
@@ -252,7 +253,7 @@ def np_transition(move_m, ds_m, yaw_after_rad, model, n, cell_m, h, relocation, 
             (k, i + 1, j, pos_share[k, 1]),
         ]
     )
-    head_share = min(0.5 * heading_noise_scale * model.heading_noise_rad2pm * ds_m / bin_rad**2, 0.25)
+    head_share = min(0.5 * heading_var_rad2 / bin_rad**2, 0.25)
     noise_heading = stage(
         lambda k, i, j: [(k, i, j, 1 - 2 * head_share), (k - 1, i, j, head_share), (k + 1, i, j, head_share)]
     )
@@ -372,7 +373,8 @@ def test_filter_step_is_brute_force_bayes_through_the_motion_model(name, monkeyp
                 actuator, v_new, ds, dyaw = np_model_step(model, actuator, command, w["speed"])
                 move = np_centre_move(ds, dyaw, centres + w["offset"])
                 yaw_after = w["offset"] + dyaw
-                matrix = np_transition(move, ds, yaw_after, model, n, grid.cell_m, h, relocation, heading_scale, stats)
+                heading_var = heading_scale * model.heading_noise_rad2pm * ds
+                matrix = np_transition(move, ds, yaw_after, model, n, grid.cell_m, h, relocation, heading_var, stats)
                 whole = np.round(yaw_after / grid.bin_rad)
                 share = max(min(ds / full_measure_m, 1.0), standing)
                 w.update(
@@ -401,6 +403,99 @@ def test_filter_step_is_brute_force_bayes_through_the_motion_model(name, monkeyp
     assert stats["capped"] == (name == "saturated_noise")
     if name == "lagged_with_noise":
         assert stats["split_covers"]
+
+
+@pytest.mark.parametrize("known_start", [False, True])
+def test_filter_step_moved_by_the_lidar_odometry_is_brute_force_bayes(known_start, monkeypatch):
+    """7 frames of one stream down a curving street of buildings (``helpers.street``; the commands say
+    straight on), on a 6 x 6 grid of 2 m cells with 8 headings, random head outputs every frame, the scans
+    given. Every frame the belief and speed track equal a float64 brute force: each frame's motion the lidar
+    odometry's (``ego_motion.follow``'s poses from the same start, differenced here: the chord in the car's
+    axes turned to each bin's heading), the dense transition of :func:`np_transition`, its heading variance
+    the motion model's times the scale from a uniform start, or from a known start what the odometry's
+    heading variance grew in the frame (``follow``'s covariances; none where it fell), then the tempered
+    likelihood."""
+    monkeypatch.setattr(pose_belief, "AREA_ORIGIN_M", 0.0)
+    monkeypatch.setattr(pose_belief, "AREA_SIZE_M", 12.0)
+    grid = pose_belief.Grid(cell_m=2.0, heading_bins=8)
+    n, h, frames = grid.n, grid.heading_bins, 7
+    model = odometry_model(heading_noise_rad2pm=0.05, position_noise_m2pm=1.0, yaw_noise_rad2pm=0.02)
+    assert ego_motion.uses_scans(model)
+    floor, power, gain, relocation, heading_scale, full_measure_m, standing = 0.08, 0.6, 0.3, 0.02, 2.5, 1.5, 0.5
+    _, _, scans = street(np.full(frames - 1, 1.0), np.full(frames - 1, 0.1))  # 10 m/s, curving left
+    commands = np.zeros((frames, 1, 2), np.float32)  # frame t's prev_action: the pedal at 0, steering the curve
+    commands[..., 1] = math.atan(0.1 * WHEELBASE_M)
+    rng = np.random.default_rng(12)
+    heads = [
+        {
+            "place_logit": rng.normal(0, 1.5, (1, n * n)),
+            "heading_logit": rng.normal(0, 1.5, (1, h)),
+            "place_offset": rng.uniform(-0.5, 0.5, (1, n * n, 2)),
+            "heading_offset": rng.uniform(-0.5, 0.5, (1, h)),
+            "speed": rng.uniform(0.8, 1.2, 1),
+        }
+        for _ in range(frames)
+    ]
+    heads = [{k: jnp.asarray(v, jnp.float32) for k, v in head.items()} for head in heads]
+    head_speed = lambda t: 10.0 * float(heads[t]["speed"][0])
+    start_yaw = 0.7  # 0.3 rad past its bin's centre: the curve rolls it into the next bin
+    start_pose = jnp.asarray([[3.0, 4.0, math.cos(start_yaw), math.sin(start_yaw), 10.0]], jnp.float32)
+    start_pose = start_pose if known_start else None
+    odometry_start = start_pose if known_start else jnp.asarray([[0.0, 0.0, 1.0, 0.0, head_speed(0)]], jnp.float32)
+    poses, _, covariances = jax.jit(ego_motion.follow, static_argnums=0)(
+        model, odometry_start, jnp.asarray(commands[None, :, 0]), scans[None]
+    )
+    poses, heading_var_rad2 = np.asarray(poses[0], np.float64), np.asarray(covariances[0, :, 2, 2], np.float64)
+
+    settings = dict(floor=floor, power=power, speed_gain=gain, relocation=relocation)
+    settings.update(heading_noise_scale=heading_scale, full_measure_m=full_measure_m, stopped_share=standing)
+    step = jax.jit(
+        lambda state, head, action, first, scan: pose_belief.filter_step(
+            state, head, action, first, grid, model, start_pose=start_pose, scan=scan, **settings
+        )
+    )
+    state = pose_belief.init_state(1, grid)
+    centres = -np.pi + (np.arange(h) + 0.5) * grid.bin_rad
+    yaw_of = lambda pose: math.atan2(pose[3], pose[2])
+    stats = {"rolls": set(), "position_diffused": False, "split_covers": False, "capped": False}
+    heading_shares = []
+    for t in range(frames):
+        first = jnp.asarray([t == 0])
+        state, _ = step(state, heads[t], jnp.asarray(commands[t]), first, scans[t][None])
+        if t == 0:
+            if known_start:
+                belief, offset = (np.asarray(x[0], np.float64) for x in pose_belief.start_at(start_pose, grid))
+                speed = 10.0
+            else:
+                belief, offset, speed = np.ones((h, n, n)), 0.0, head_speed(0)
+            share = 1.0
+        else:
+            before, after = poses[t - 1], poses[t]
+            turn = lambda a, v: np.stack([np.cos(a) * v[0] - np.sin(a) * v[1], np.sin(a) * v[0] + np.cos(a) * v[1]], -1)
+            chord = turn(-yaw_of(before), after[:2] - before[:2])  # in the car's axes at the frame before
+            ds, dyaw = float(np.linalg.norm(chord)), float(wrap(yaw_of(after) - yaw_of(before)))
+            move = turn(centres + offset, chord)  # [h, 2]
+            if known_start:
+                heading_var = max(heading_var_rad2[t] - heading_var_rad2[t - 1], 0.0)
+            else:
+                heading_var = heading_scale * model.heading_noise_rad2pm * ds
+            heading_shares.append(0.5 * heading_var / grid.bin_rad**2)
+            matrix = np_transition(move, ds, offset + dyaw, model, n, grid.cell_m, h, relocation, heading_var, stats)
+            belief = (matrix @ belief.ravel()).reshape(h, n, n)
+            offset = offset + dyaw - np.round((offset + dyaw) / grid.bin_rad) * grid.bin_rad
+            speed = after[4] + gain * (head_speed(t) - after[4])
+            share = max(min(ds / full_measure_m, 1.0), standing)
+        head = {k: np.asarray(v[0], np.float64) for k, v in heads[t].items()}
+        place = (1 - floor) * softmax(head["place_logit"]) + floor / (n * n)
+        heading = (1 - floor) * softmax(head["heading_logit"]) + floor / h
+        belief = belief * (heading[:, None, None] * place.reshape(n, n)[None]) ** (power * share)
+        belief /= belief.sum()
+        np.testing.assert_allclose(state.belief[0], belief, rtol=2e-4, atol=1e-8, err_msg=f"frame {t}")
+        np.testing.assert_allclose(state.speed_mps[0], speed, rtol=1e-5, err_msg=f"frame {t}")
+        np.testing.assert_allclose(state.yaw_offset_rad[0], offset, atol=1e-5, err_msg=f"frame {t}")
+    # the test exercised what it claims: a roll, position noise, and a heading diffusion that moves mass
+    assert stats["rolls"] - {0} and stats["position_diffused"], stats
+    assert max(heading_shares) > 1e-3, heading_shares
 
 
 # ----------------------------------------------------------------------------- credible regions
