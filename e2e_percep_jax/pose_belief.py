@@ -23,8 +23,9 @@ the logged commands, or, given the lidar's scans, the lidar odometry's motion (t
 by matching the scans, :mod:`e2e_percep_jax.ego_motion`), each heading bin's mass moved by its own
 displacement (a bilinear split over the neighbouring cells, which keeps the mass's mean exact) and the
 common yaw change added to
-the offset, whole bins rolling the heading axis; then the model's process noise: heading mass diffused to
-the neighbouring bins, and position mass to the neighbouring cells where the split's own spread falls
+the offset, whole bins rolling the heading axis; then the process noise: heading mass diffused to the
+neighbouring bins (by the model's noise, or, from a known start with the scans, by the lidar odometry's own
+heading-error growth), and position mass to the neighbouring cells where the split's own spread falls
 short of it. Measurement: the head's place and heading probabilities, floored and tempered, multiplied in
 (Bayes' rule). The point estimate (:func:`estimate`):
 the belief's mode, its position the belief's mean over the 3 x 3 cells around the mode cell, its heading
@@ -62,7 +63,9 @@ SPEED_SCALE_MPS = 10.0
 # HEADING_NOISE_SCALE: the head's heading measurements of consecutive frames are correlated, so even raised to
 # MEASUREMENT_POWER they narrow the heading more than its errors warrant (at x1 the joint 95 % region held the
 # truth in 82-86 % of frames, at x4-x16 with power 0.125 in 92-97 %, at no cost in location). Chosen with
-# experiments/pose_filter_sweep.py on drives the evaluation does not use.
+# experiments/pose_filter_sweep.py on drives the evaluation does not use. A belief that starts from a known
+# pose and moves by the lidar odometry diffuses by the odometry's own heading-error growth instead
+# (filter_step).
 # A frame's measurement counts in full once the car drives FULL_MEASURE_M in it (5 m/s); below that its
 # power shrinks in proportion to the distance, down to STOPPED_SHARE of full when the car stands: a standing
 # car's frames repeat one view, and counted as independent they made the belief overconfident (the joint
