@@ -1,7 +1,8 @@
 """The pose belief (e2e_percep_jax/pose_belief.py): soft targets, mode + offset decoding, the histogram
 filter against brute-force Bayes (motion through a motion model with lag and process noise, or by the lidar
-odometry from a uniform or a known start, relocation, measurement, restarts), its credible regions against sorting, the known-start odometry against a NumPy
-integration of the motion model, and the filter on real drives of a world whose ego has a plant.
+odometry from a uniform or a known start, relocation, measurement, restarts), its credible regions against
+sorting, the known-start odometry against a NumPy integration of the motion model, and the filter on real
+drives of a world whose ego has a plant.
 
 The expectations are computed here in NumPy float64 from the motion model's equations as
 e2e_percep_jax/sim/motion.py's docstring states them; pose_belief's and motion.py's functions only produce the
@@ -75,6 +76,14 @@ def softmax(x):
     x = np.asarray(x, np.float64)
     e = np.exp(x - x.max())
     return e / e.sum()
+
+
+def np_measurement(place_logit, heading_logit, floor, n, h):
+    """The head's place and heading probabilities, each mixed with ``floor`` of uniform mass, as a product
+    over (heading bin, row, column) [h, n, n], float64 (before the power)."""
+    place = (1 - floor) * softmax(place_logit) + floor / (n * n)
+    heading = (1 - floor) * softmax(heading_logit) + floor / h
+    return heading[:, None, None] * place.reshape(n, n)[None]
 
 
 def wrap(a):
@@ -384,9 +393,8 @@ def test_filter_step_is_brute_force_bayes_through_the_motion_model(name, monkeyp
                     actuator=actuator,
                     actuator_set=True,
                 )
-            place = (1 - floor) * softmax(head["place_logit"]) + floor / (n * n)
-            heading = (1 - floor) * softmax(head["heading_logit"]) + floor / h
-            posterior = w["belief"] * (heading[:, None, None] * place.reshape(n, n)[None]) ** (power * share)
+            measured = np_measurement(head["place_logit"], head["heading_logit"], floor, n, h)
+            posterior = w["belief"] * measured ** (power * share)
             w["belief"] = posterior / posterior.sum()
             stats["shares"].add("full" if share == 1.0 else "part")
             where = f"frame {t} row {row}"
@@ -407,8 +415,8 @@ def test_filter_step_is_brute_force_bayes_through_the_motion_model(name, monkeyp
 
 @pytest.mark.parametrize("known_start", [False, True])
 def test_filter_step_moved_by_the_lidar_odometry_is_brute_force_bayes(known_start, monkeypatch):
-    """7 frames of one stream down a curving street of buildings (``helpers.street``; the commands say
-    straight on), on a 6 x 6 grid of 2 m cells with 8 headings, random head outputs every frame, the scans
+    """7 frames of one stream down a curving street of buildings (``helpers.street``; the commands steer
+    the same curve), on a 6 x 6 grid of 2 m cells with 8 headings, random head outputs every frame, the scans
     given. Every frame the belief and speed track equal a float64 brute force: each frame's motion the lidar
     odometry's (``ego_motion.follow``'s poses from the same start, differenced here: the chord in the car's
     axes turned to each bin's heading), the dense transition of :func:`np_transition`, its heading variance
@@ -486,9 +494,7 @@ def test_filter_step_moved_by_the_lidar_odometry_is_brute_force_bayes(known_star
             speed = after[4] + gain * (head_speed(t) - after[4])
             share = max(min(ds / full_measure_m, 1.0), standing)
         head = {k: np.asarray(v[0], np.float64) for k, v in heads[t].items()}
-        place = (1 - floor) * softmax(head["place_logit"]) + floor / (n * n)
-        heading = (1 - floor) * softmax(head["heading_logit"]) + floor / h
-        belief = belief * (heading[:, None, None] * place.reshape(n, n)[None]) ** (power * share)
+        belief = belief * np_measurement(head["place_logit"], head["heading_logit"], floor, n, h) ** (power * share)
         belief /= belief.sum()
         np.testing.assert_allclose(state.belief[0], belief, rtol=2e-4, atol=1e-8, err_msg=f"frame {t}")
         np.testing.assert_allclose(state.speed_mps[0], speed, rtol=1e-5, err_msg=f"frame {t}")
