@@ -1,6 +1,7 @@
 """Fixtures for every test module. Plain helpers that test modules import are in helpers.py."""
 
 import atexit
+import gc
 import os
 import shutil
 import tempfile
@@ -27,6 +28,7 @@ import helpers  # noqa: E402  (imports jax: after the cache is named; XLA reads 
 if helpers.OPTIMISATION_FLAG not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {helpers.OPTIMISATION_FLAG}=0".strip()
 
+import jax  # noqa: E402
 import pytest  # noqa: E402
 
 from e2e_percep_jax import config, xla_cpu  # noqa: E402
@@ -47,6 +49,18 @@ def start_first(request):
     for name in getattr(request.module, "START_FIRST", ()):
         if any(name in item.fixturenames for item in selected):
             request.getfixturevalue(name)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def release_compiled_programs():
+    """Drops every compiled program after a module's tests. XLA:CPU maps each program's code into memory
+    in pieces (~1,800 maps for one batch program at the suite's optimisation level 0), a worker that keeps
+    them all for its share of the suite passes Linux's 65,530 maps a process (`vm.max_map_count`), and
+    the next compile then dies inside LLVM with a segfault. Programs that later modules share come back
+    from the persistent compilation cache."""
+    yield
+    jax.clear_caches()
+    gc.collect()
 
 
 @pytest.fixture(scope="session", autouse=True)
