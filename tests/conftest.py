@@ -54,10 +54,11 @@ def start_first(request):
 @pytest.fixture(scope="module", autouse=True)
 def release_compiled_programs():
     """Drops every compiled program after a module's tests. XLA:CPU maps each program's code into memory
-    in pieces (~1,850 maps for one `make_batch` of the tiny config, at any optimisation level), a worker that keeps
-    them all for its share of the suite passes Linux's 65,530 maps a process (`vm.max_map_count`), and
-    the next compile then dies inside LLVM with a segfault. Programs that later modules share come back
-    from the persistent compilation cache."""
+    in pieces (~1,850 maps for one `make_batch` of the tiny config, at any optimisation level), a worker
+    that keeps them all for its share of the suite passes Linux's 65,530 maps a process
+    (`vm.max_map_count`), and the next compile then dies inside LLVM with a segfault. A program that a
+    later module needs again compiles again, or loads from the persistent compilation cache if it took
+    long enough to compile to be kept there."""
     yield
     jax.clear_caches()
     gc.collect()
