@@ -342,19 +342,32 @@ def _whole_cells(evaluations: list[dict] | None) -> bool:
 DETECTION_DRIVE_FIELDS = ("detection_drives", "detection_frames", "detection_pool")  # the pose drives' own stay
 
 
+def _only_detection_changed(runs: list[dict], name: str) -> bool:
+    """Whether the evaluation of ``runs`` is evaluation ``name`` with only detection's own drives changed
+    (``name`` then ``_detection_drives0`` ...): the pose drives, and detection scored on them, are the same."""
+    evaluation = protocol.from_metrics(runs[0], "")
+    unchanged = dataclasses.replace(evaluation, changes=())
+    return unchanged.name == name and all(field in DETECTION_DRIVE_FIELDS for field, _ in evaluation.changes)
+
+
 def _same_drives(ev: dict, name: str):
     """The runs of evaluation ``name`` in ``ev`` ({evaluation: runs}), or, where it has none, those of one
-    that changed only detection's own drives from it (``name`` then ``_detection_drives0`` ...): the pose
-    drives, and detection scored on them, are the same."""
+    that changed only detection's own drives from it."""
     if name in ev:
         return ev[name]
+    return next((runs for _, runs in sorted(ev.items()) if _only_detection_changed(runs, name)), None)
 
-    def same_but_detection(runs):
-        evaluation = protocol.from_metrics(runs[0], "")
-        unchanged = dataclasses.replace(evaluation, changes=())
-        return unchanged.name == name and all(field in DETECTION_DRIVE_FIELDS for field, _ in evaluation.changes)
 
-    return next((runs for _, runs in sorted(ev.items()) if same_but_detection(runs)), None)
+def _pose_runs(ev: dict, name: str):
+    """Each run's evaluation ``name``, or where that run has none, one that changed only detection's own
+    drives from it: the pose figures need the pose drives alone, so runs whose detection drives differ
+    still count together."""
+    candidates = [ev.get(name, [])] + [runs for n, runs in sorted(ev.items()) if n != name and _only_detection_changed(runs, name)]
+    by_run = {}
+    for runs in candidates:
+        for m in runs:
+            by_run.setdefault(m["run"], m)
+    return [by_run[run] for run in sorted(by_run)] or None
 
 
 def localisation(found: dict) -> str:
@@ -381,8 +394,8 @@ def localisation(found: dict) -> str:
                 rows.append([f"paper: {name}", f"{p['location_m']}", f"{p['heading_rad']}", "", "", "", "", ""])
             continue
         ev = found[method]
-        known = _same_drives(ev, "eval_known_start")
-        held_out = [_same_drives(ev, f"eval_town{t}_known_start") for t in towns]
+        known = _pose_runs(ev, "eval_known_start")
+        held_out = [_pose_runs(ev, f"eval_town{t}_known_start") for t in towns]
         drift = [_cell(known, "drift per 100 m (m)", digits=2)] + [
             _cell(e, "drift per 100 m (m)", digits=2)
             + (COMMANDS_ONLY if _commands_only(e) else "")
@@ -391,7 +404,7 @@ def localisation(found: dict) -> str:
         ]
         commands_only = commands_only or any(map(_commands_only, held_out))
         image_matcher = image_matcher or any(map(_image_matcher, held_out))
-        glob_ = _same_drives(ev, "eval")
+        glob_ = _pose_runs(ev, "eval")
         against = ""
         if glob_ and variant in paper:
             mean = mean_std([summary_metrics(m) for m in glob_])

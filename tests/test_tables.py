@@ -399,7 +399,8 @@ def test_groups_table_gives_each_group_its_boxes_seed_means_and_the_drives_inter
 def test_an_evaluation_without_detections_own_drives_fills_the_pose_cells(results, tmp_path):
     """A held-out known-start evaluation that only left out detection's own drives
     (``--eval.detection_drives=0``: its protocol's name gains ``_detection_drives0``) drove the same pose
-    drives, so its drift fills that town's cell; an evaluation that changed the pose drives does not. Town 0's
+    drives, so its drift fills that town's cell, also beside another run's evaluation with detection drives of
+    its own; an evaluation that changed the pose drives does not. Town 0's
     global protocol likewise, and a known start there, which also left them out, is not taken for it."""
     trained = config.get_config("cpu")
 
@@ -415,6 +416,11 @@ def test_an_evaluation_without_detections_own_drives_fills_the_pose_cells(result
         _write_run(tmp_path / "odo" / f"place_s{seed}", evaluation(seed, 3.0 + seed, detection_drives=0))
     tables.collect("odometry", [str(tmp_path / "odo" / f"place_s{s}") for s in (0, 1)], str(results))
     assert _row(tables.render(str(results))["localisation"], "`odometry`")[6] == "- / 3.50 ± 0.50"
+    # one run scored detection on drives of its own there, the other on the pose drives: both pose figures count
+    _write_run(tmp_path / "mixed" / "place_s0", evaluation(0, 3.0, detection_drives=160, detection_pool=2048))
+    _write_run(tmp_path / "mixed" / "place_s1", evaluation(1, 4.0, detection_drives=0))
+    tables.collect("mixed", [str(tmp_path / "mixed" / f"place_s{s}") for s in (0, 1)], str(results))
+    assert _row(tables.render(str(results))["localisation"], "`mixed`")[6] == "- / 3.50 ± 0.50"
     for seed in (0, 1):
         _write_run(tmp_path / "drives" / f"place_s{seed}", evaluation(seed, 3.0, num_worlds=2))
     tables.collect("drives", [str(tmp_path / "drives" / f"place_s{s}") for s in (0, 1)], str(results))
