@@ -362,7 +362,9 @@ def _pose_runs(ev: dict, name: str):
     """Each run's evaluation ``name``, or where that run has none, one that changed only detection's own
     drives from it: the pose figures need the pose drives alone, so runs whose detection drives differ
     still count together."""
-    candidates = [ev.get(name, [])] + [runs for n, runs in sorted(ev.items()) if n != name and _only_detection_changed(runs, name)]
+    candidates = [ev.get(name, [])] + [
+        runs for n, runs in sorted(ev.items()) if n != name and _only_detection_changed(runs, name)
+    ]
     by_run = {}
     for runs in candidates:
         for m in runs:
