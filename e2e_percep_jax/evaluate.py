@@ -600,6 +600,10 @@ class _Scores:
                 "pr_curves": {
                     key(t): {s: metrics_lib.curve_summary(results[t][s]) for s in subsets} for t in IOU_THRESHOLDS
                 },
+                # the remembered AP that a memory as good as sight would score beside these false positives
+                "remembered_ap_as_seen": {
+                    key(t): summary.defined(v) for t, v in self.det.remembered_ap_as_seen().items()
+                },
                 "score_threshold": ev.score_threshold,
                 "score_floor": detect.score_floor,
                 "nms_iou": detect.nms_iou,

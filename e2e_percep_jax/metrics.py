@@ -337,6 +337,25 @@ class DetectionAccumulator:
                 out[thr][subset] = PRCurve(ap, precision, recall, score[level], n[subset])
         return out
 
+    def remembered_ap_as_seen(self) -> dict:
+        """``{iou_threshold: AP}``: the remembered group's AP had its boxes been found as the lidar group's are
+        (at every score level the lidar group's recall), against every false positive of the scene as in the
+        groups' AP. What a memory as good as sight would score beside this perceiver's false positives: the
+        remembered AP's ceiling, set by precision, not memory. NaN without boxes in either group."""
+        counts, num_gt = self._stacked()
+        counts, num_gt = counts.sum(0), num_gt.sum(0)  # [T, 1 + G, S] highest scores first, [G]
+        lidar, remembered = GROUPS.index("lidar"), GROUPS.index("remembered")
+        out = {}
+        for thr, c in zip(self.iou_thresholds, counts):
+            if not num_gt[lidar] or not num_gt[remembered]:
+                out[thr] = float("nan")
+                continue
+            recall = np.cumsum(c[1 + lidar]) / num_gt[lidar]
+            found, cum_fp = recall * num_gt[remembered], np.cumsum(c[0])
+            precision = np.where(found + cum_fp > 0, found / np.maximum(found + cum_fp, 1e-300), 0.0)
+            out[thr] = average_precision(precision, recall)
+        return out
+
     def intervals(self, num_resamples: int = 1000, seed: int = 0, level: float = 0.95):
         """Bootstrap intervals of every AP over whole drives (:func:`bootstrap_interval`):
         ``{iou_threshold: {subset: (low, high)}}``."""

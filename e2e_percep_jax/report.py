@@ -79,6 +79,19 @@ def write(out_dir: str, metrics: dict, results) -> None:
     cv2.imwrite(os.path.join(out_dir, "pr_curves.png"), pictures.pr_curves_image(results))
 
 
+def _as_seen_lines(as_seen) -> list:
+    """report.md's line on the remembered AP's ceiling (none for an evaluation made before it was counted, or
+    without remembered boxes)."""
+    if as_seen is None or as_seen.get("0.1") is None:
+        return []
+    return [
+        "A memory as good as sight (each remembered box found as the lidar's boxes are, at every score) would "
+        "score remembered AP " + " / ".join(fmt(as_seen[t], True) for t in as_seen) + f" at IoU {' / '.join(as_seen)} "
+        "beside these false positives: the ceiling that precision, not memory, sets on that group's AP.",
+        "",
+    ]
+
+
 def _memory_lines(memory, seconds: float) -> list:
     """report.md's lines on what the perceiver kept of the vehicles it found in the ``seconds`` before (none
     for an evaluation made before they were counted)."""
@@ -205,6 +218,7 @@ def markdown(m: dict) -> str:
             ],
         ),
         "",
+        *_as_seen_lines(det.get("remembered_ap_as_seen")),
         *_memory_lines(det.get("memory"), remember_s),
         "## Table II: ego global pose error (in brackets: the 95 % bootstrap interval over the pose drives)",
         "",

@@ -291,6 +291,9 @@ def test_oracle_targets_through_the_decode_path_and_a_known_pose_offset(memory_r
     assert det["ap"]["0.5"]["all"] >= 0.99, det["ap"]
     assert det["ap"]["0.1"]["all"] >= 0.99 and det["ap"]["0.7"]["all"] >= 0.97, det["ap"]
     assert det["at_threshold"]["0.5"]["precision"] >= 0.99
+    # the remembered AP's ceiling at every IoU (metrics.DetectionAccumulator.remembered_ap_as_seen; these drives
+    # hold no remembered box, so it is undefined)
+    assert det["num_gt"]["remembered"] == 0 and det["remembered_ap_as_seen"] == dict.fromkeys(det["ap"])
     pose = m["pose"]
     for name, want in (("location_m", 5.0), ("heading_rad", 0.25), ("speed_mps", 1.5)):
         # float32 poses of a ~400 m town: ~1e-5 relative rounding

@@ -239,6 +239,36 @@ def test_groups_split_as_documented():
     assert math.isnan(res["camera_only"].ap) and math.isnan(res["unseen"].ap)
 
 
+def test_the_remembered_ap_as_seen_is_the_groups_ap_when_memory_matches_sight():
+    """Two closed forms of the ceiling: with as many remembered boxes as lidar ones and none of them found,
+    it is the lidar group's own AP (the same precision at every recall); with half as many remembered boxes,
+    one found at the score of each pair of lidar boxes (so the same recall at every score), it is the
+    remembered group's actual AP."""
+    rng = np.random.default_rng(5)
+    lidar, remembered = metrics.GROUPS.index("lidar"), metrics.GROUPS.index("remembered")
+    hidden_missed, hidden_found = metrics.DetectionAccumulator(THRESHOLDS), metrics.DetectionAccumulator(THRESHOLDS)
+    ghosts = np.stack([box(30, -12 + 6 * i, 0, 4.5, 2) for i in range(3)])  # they match nothing
+    for drive in range(4):
+        gt = np.stack([box(-20 + 8 * i, 8 * (i % 2), 0, 4.5, 2) for i in range(6)])
+        offset = rng.normal(0, 0.3, (6, 5)) * [1, 1, 0.05, 0, 0]
+        pair_scores, ghost_scores = rng.uniform(0.05, 1, 2), rng.uniform(0.05, 1, 3)
+        # 2 lidar boxes found, 2 remembered missed
+        group = np.array([lidar, lidar, remembered, remembered, lidar, lidar])
+        det = np.concatenate([gt[:2] + offset[:2], ghosts])
+        _frame(hidden_missed, det, np.concatenate([pair_scores, ghost_scores]), gt[:4], group=group[:4], drive=drive)
+        # 4 lidar boxes found in two pairs of equal score, 2 remembered ones at those scores, with the same errors
+        group = np.array([lidar, lidar, remembered, lidar, lidar, remembered])
+        det = np.concatenate([gt + offset[[0, 0, 0, 1, 1, 1]], ghosts])
+        scores = np.concatenate([pair_scores[[0, 0, 0, 1, 1, 1]], ghost_scores])
+        _frame(hidden_found, det, scores, gt, group=group, drive=drive)
+    assert hidden_found.num_gt()["lidar"] == 2 * hidden_found.num_gt()["remembered"]
+    for thr in THRESHOLDS:
+        assert hidden_missed.remembered_ap_as_seen()[thr] == pytest.approx(hidden_missed.results()[thr]["lidar"].ap)
+        assert hidden_found.remembered_ap_as_seen()[thr] == pytest.approx(hidden_found.results()[thr]["remembered"].ap)
+    assert hidden_missed.results()[0.5]["remembered"].ap == 0.0 < hidden_missed.remembered_ap_as_seen()[0.5]
+    assert math.isnan(metrics.DetectionAccumulator(THRESHOLDS).remembered_ap_as_seen()[0.5])
+
+
 def test_box_groups_partition_by_who_saw_the_box():
     never = np.iinfo(np.int32).max
     lidar = np.array([True, True, False, False, False, False, False])
