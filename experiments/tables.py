@@ -243,11 +243,27 @@ def _format(mean, std, n, digits=1) -> str:
     return f"{mean:.{digits}f}" + (f" ± {std:.{digits}f}" if n > 1 else "")
 
 
-def _cell(evaluations: list[dict] | None, row: str, digits: int = 1) -> str:
-    """Mean ± std over the runs of one summary row, or "" where no run has it."""
+def _bounds(evaluations: list[dict], get, scale: float, digits: int) -> str:
+    """ " [low, high]": each run's 95 % interval over drives (``get(metrics)``: (low, high), or None for an
+    evaluation made before it had one) times ``scale``, its bounds averaged over the runs; "" unless every run
+    has it."""
+    bounds = [get(m) for m in evaluations]
+    if not bounds or any(b is None or None in b for b in bounds):
+        return ""
+    low, high = (scale * np.mean([b[i] for b in bounds]) for i in (0, 1))
+    return f" [{low:.{digits}f}, {high:.{digits}f}]"
+
+
+def _cell(evaluations: list[dict] | None, row: str, digits: int = 1, interval: str | None = None) -> str:
+    """Mean ± std over the runs of one summary row, or "" where no run has it; with ``interval`` (a key of
+    metrics.json's ``pose.interval95``), then the interval over drives (:func:`_bounds`)."""
     if not evaluations:
         return ""
-    return _format(*mean_std([summary_metrics(m) for m in evaluations]).get(row, (None, None, 0)), digits=digits)
+    cell = _format(*mean_std([summary_metrics(m) for m in evaluations]).get(row, (None, None, 0)), digits=digits)
+    if not cell or interval is None:
+        return cell
+    scale = 100.0 if row.endswith("(%)") else 1.0
+    return cell + _bounds(evaluations, lambda m: m["pose"].get("interval95", {}).get(interval), scale, digits)
 
 
 def _error_by_frames(metrics: dict, lo: int, hi: int) -> float | None:
@@ -398,8 +414,8 @@ def localisation(found: dict) -> str:
         ev = found[method]
         known = _pose_runs(ev, "eval_known_start")
         held_out = [_pose_runs(ev, f"eval_town{t}_known_start") for t in towns]
-        drift = [_cell(known, "drift per 100 m (m)", digits=2)] + [
-            _cell(e, "drift per 100 m (m)", digits=2)
+        drift = [_cell(known, "drift per 100 m (m)", digits=2, interval="drift_per_100m")] + [
+            _cell(e, "drift per 100 m (m)", digits=2, interval="drift_per_100m")
             + (COMMANDS_ONLY if _commands_only(e) else "")
             + (IMAGE_MATCHER if _image_matcher(e) else "")
             for e in held_out
@@ -417,15 +433,30 @@ def localisation(found: dict) -> str:
         on_commands = _commands_only(glob_) or _commands_only(known)
         row = [
             f"`{method}`{EARLIER_FILTER if earlier else ''}{TOWN0_COMMANDS if on_commands else ''}",
-            " / ".join(filter(None, [_cell(glob_, "location mean (m)"), _cell(glob_, "location p90 (m)")])),
-            _cell(glob_, "heading mean (rad)", digits=3),
-            " / ".join(filter(None, [_cell(glob_, f"location within {m} m (%)") for m in (5, 10)])),
             " / ".join(
                 filter(
                     None,
                     [
-                        _cell(glob_, "truth in the 95 % region, place (%)"),
-                        _cell(glob_, "truth in the 95 % region, place + heading (%)"),
+                        _cell(glob_, "location mean (m)", interval="location_m_mean"),
+                        _cell(glob_, "location p90 (m)", interval="location_m_p90"),
+                    ],
+                )
+            ),
+            _cell(glob_, "heading mean (rad)", digits=3, interval="heading_rad_mean"),
+            " / ".join(
+                filter(
+                    None,
+                    [_cell(glob_, f"location within {m} m (%)", interval=f"location_within_{m}m") for m in (5, 10)],
+                )
+            ),
+            " / ".join(
+                filter(
+                    None,
+                    [
+                        _cell(glob_, "truth in the 95 % region, place (%)", interval="coverage_place"),
+                        _cell(
+                            glob_, "truth in the 95 % region, place + heading (%)", interval="coverage_place_heading"
+                        ),
                     ],
                 )
             )
@@ -526,11 +557,7 @@ def _interval_cell(evaluations: list[dict], iou: str, subset: str) -> str:
     """Mean ± std over the runs of an AP (%), then in brackets the 95 % interval over drives of one run (its
     bounds averaged over the runs)."""
     ap = _cell(evaluations, f"AP@{iou} {subset} (%)")
-    bounds = [m["detection"]["ap_interval95"][iou][subset] for m in evaluations]
-    if not ap or any(b is None for pair in bounds for b in pair):
-        return ap
-    low, high = (100.0 * np.mean([pair[i] for pair in bounds]) for i in (0, 1))
-    return f"{ap} [{low:.1f}, {high:.1f}]"
+    return ap and ap + _bounds(evaluations, lambda m: m["detection"]["ap_interval95"][iou][subset], 100.0, 1)
 
 
 def groups(found: dict) -> str:
