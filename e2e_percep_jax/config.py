@@ -94,6 +94,11 @@ class DataConfig:
     # a step than the B sequences' few. 0 = none. 32 cost 7-10 % of a step and halved the `cpu` preset's
     # location error at 3,000 steps (two seeds; BUILD_NOTES, "Localisation sooner").
     place_frames: int = 32
+    # A memory lever: the share of training sequences in which one vehicle that the lidar sees in the first
+    # frame vanishes from every sensor from a random later frame to the last, while the targets keep it
+    # (batch.vanishing): a remembered vehicle made on purpose, as 11-frame sequences hold almost none.
+    # 0 = the paper.
+    vanish_share: float = 0.0
     # Carried state (needs K > 1): no hand-over inside a drive, and the latent filter state at the end of
     # one segment starts the drive's next, gradients cut between them (truncated BPTT over K segments).
     carry_state: bool = False
@@ -399,6 +404,8 @@ def validate(cfg: Config) -> Config:
     for name in ("observation_drop_share", "lidar_shadow_share"):
         if not 0.0 <= getattr(cfg.train, name) < 1.0:
             raise ValueError(f"--train.{name}={getattr(cfg.train, name)}: must lie in [0, 1)")
+    if not 0.0 <= cfg.data.vanish_share <= 1.0:
+        raise ValueError(f"--data.vanish_share={cfg.data.vanish_share}: must lie in [0, 1]")
     seeds = {
         "world.town_seed": cfg.world.town_seed,
         "train.seed": cfg.train.seed,

@@ -98,6 +98,9 @@ CASES = {
     "train lidar_shadow_share negative": Case(
         "train", ["--train.lidar_shadow_share=-0.1"], "--train.lidar_shadow_share=-0.1: must lie in [0, 1)"
     ),
+    "train vanish_share above one": Case(
+        "train", ["--data.vanish_share=1.5"], "--data.vanish_share=1.5: must lie in [0, 1]"
+    ),
     "train remembered_weight zero": Case(
         "train", ["--train.remembered_weight=0"], "--train.remembered_weight=0.0: must be positive"
     ),

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from helpers import frame_contract
 
-from e2e_percep_jax import config
+from e2e_percep_jax import config, metrics
 from e2e_percep_jax.sim import batch, rollout, sensors, world
 
 CFG = config.get_config("tiny")
@@ -197,3 +197,43 @@ def test_carried_state_drives_continue_without_hand_over(town):
         np.asarray(stream[per_drive]["pose"])[:, 0, :2] - np.asarray(stream[0]["pose"])[:, -1, :2], axis=-1
     )
     assert (step_m < 2.0).all(), step_m
+
+
+@pytest.mark.slow
+def test_a_vanishing_vehicle_leaves_every_sensor_and_stays_in_the_targets(town):
+    # --data.vanish_share=1: each sequence's chosen vehicle is hidden from its chosen frame on. Checked against
+    # the same key without vanishing (the same worlds: hiding changes what the sensors see, never the traffic)
+    # and, frame by frame, against the sensors of a world state with that vehicle driven out of the town.
+    cfg = config.replace(CFG, world=dict(num_vehicles=100), data=dict(vanish_share=1.0, batch_size=4))
+    key = batch.batch_key(0, 0)
+    states = batch.warm_up(key, town, cfg)
+    hidden = np.asarray(batch.vanishing(states, jax.random.fold_in(key, batch.VANISH_STREAM), town, cfg))
+    plain = jax.tree.map(np.asarray, batch.make_batch(key, town, config.replace(cfg, data=dict(vanish_share=0.0))))
+    vanished = jax.tree.map(np.asarray, batch.make_batch(key, town, cfg))
+    for field in ("det_cls", "det_reg", "boxes", "boxes_valid", "pose", "action", "roadmap"):
+        np.testing.assert_array_equal(vanished[field], plain[field], err_msg=field)
+    assert not hidden[:, 0].any()  # the first frame is never hidden
+    assert (hidden.sum(-1) <= 1).all()  # one vehicle a sequence
+    with_vehicle = (plain["boxes_lidar_visible"][:, 0] & plain["boxes_valid"][:, 0]).any(-1)
+    assert with_vehicle.sum() >= 2, "the test needs sequences whose lidar sees a vehicle in the first frame"
+    np.testing.assert_array_equal(hidden.any((1, 2)), with_vehicle)  # share 1: every sequence that can
+    seen_now = vanished["boxes_lidar_visible"] | vanished["boxes_camera_visible"]
+    assert not seen_now[hidden].any()
+    np.testing.assert_array_equal(vanished["boxes_lidar_visible"][~hidden], plain["boxes_lidar_visible"][~hidden])
+    group = metrics.box_groups(
+        vanished["boxes_lidar_visible"], vanished["boxes_camera_visible"], vanished["boxes_frames_since_seen"]
+    )
+    assert (np.asarray(group)[hidden] == metrics.GROUPS.index("remembered")).all()  # seen in frame 0, not since
+    _, _, frame_states = jax.vmap(
+        lambda s: rollout.drive(s, town, cfg.data.seq_len + 1, cfg.data.image_size, with_states=True)
+    )(states)
+    for b, t in zip(*np.nonzero(hidden.any(-1))):
+        vehicle = 1 + int(np.argmax(hidden[b, t]))  # the world's row (row 0 is the ego)
+        state = jax.tree.map(lambda x: x[b, t], frame_states)
+        gone = state._replace(veh_box=state.veh_box.at[vehicle, :2].set(-1e5))
+        want = sensors.observe(gone, town, cfg.data.image_size, scan=False)
+        for field in ("lidar", "camera"):
+            np.testing.assert_array_equal(vanished[field][b, t], np.asarray(want[field]), err_msg=f"{field} {b} {t}")
+    for b, t in zip(*np.nonzero(~hidden.any(-1))):
+        np.testing.assert_array_equal(vanished["lidar"][b, t], plain["lidar"][b, t])
+        np.testing.assert_array_equal(vanished["camera"][b, t], plain["camera"][b, t])

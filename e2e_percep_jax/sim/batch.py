@@ -15,6 +15,11 @@ and takes its batches from them in turn (step s from drive slot s % K), so succe
 independent worlds; a drive is revisited every K steps, K times, then replaced by a fresh one. Batch s is still a function of (seed, s)
 alone: a stream resumed at s re-drives each slot's worlds from their reset, hand-overs included, without
 observing.
+
+Opt-in, ``--data.vanish_share`` > 0 (a memory lever): in that share of the sequences one vehicle the lidar
+sees in the first frame vanishes from every sensor from a random later frame on, while the targets keep it
+(:func:`vanishing`). Hiding changes what the sensors see, never the traffic, so the batch's worlds, targets
+and commands are those of the same key without it.
 """
 
 import functools
@@ -26,6 +31,7 @@ from e2e_percep_jax import config as config_lib
 from e2e_percep_jax.sim import rollout, sensors, world
 
 PLACE_STREAM = 2**20  # fold_in data of the place frames' key: above every segment index
+VANISH_STREAM = 2**21  # fold_in data of the vanishing vehicles' key: above the place stream's
 
 
 def warm_up(key, town, cfg: config_lib.Config):
@@ -37,9 +43,36 @@ def warm_up(key, town, cfg: config_lib.Config):
     return jax.vmap(one)(jax.random.split(key, cfg.data.batch_size))
 
 
-def _drive_on(states, town, cfg: config_lib.Config):
-    """(states T+1 steps later, batch of the T+1 frames from ``states``)."""
-    return jax.vmap(lambda s: rollout.drive(s, town, cfg.data.seq_len + 1, cfg.data.image_size))(states)
+def vanishing(states, key, town, cfg: config_lib.Config):
+    """The vehicles hidden from the sensors in each frame of the B sequences from ``states``, bool
+    [B, T+1, N], or None when ``data.vanish_share`` is 0: in that share of the sequences, one vehicle in view
+    whose box a lidar beam ends on in the first frame (drawn uniformly among them; none if there is none)
+    vanishes from every sensor from a frame drawn uniformly in [1, T] to the last. The targets keep it, so
+    the sequence holds a remembered vehicle (``metrics.box_groups``: seen earlier, by neither sensor now)."""
+    if not cfg.data.vanish_share:
+        return None
+    frames = cfg.data.seq_len + 1
+
+    def one(state, k):
+        k_on, k_vehicle, k_frame = jax.random.split(k, 3)
+        first = sensors.observe(state, town, cfg.data.image_size, scan=False)  # XLA keeps its lidar alone
+        seen = first["boxes_lidar_visible"] & first["boxes_valid"]  # [N]
+        vehicle = jax.random.categorical(k_vehicle, jnp.where(seen, 0.0, -jnp.inf))
+        on = (jax.random.uniform(k_on) < cfg.data.vanish_share) & jnp.any(seen)
+        gone = jnp.arange(frames) >= jax.random.randint(k_frame, (), 1, frames)  # [T+1]
+        return on & gone[:, None] & (jnp.arange(seen.shape[0]) == vehicle)[None]
+
+    return jax.vmap(one)(states, jax.random.split(key, cfg.data.batch_size))
+
+
+def _drive_on(states, key, town, cfg: config_lib.Config):
+    """(states T+1 steps later, batch of the T+1 frames from ``states``, with the vanishing vehicles that
+    ``key`` draws)."""
+    drive = functools.partial(rollout.drive, town=town, num_frames=cfg.data.seq_len + 1, image_size=cfg.data.image_size)
+    hidden = vanishing(states, key, town, cfg)
+    if hidden is None:
+        return jax.vmap(drive)(states)
+    return jax.vmap(lambda s, h: drive(s, hidden=h))(states, hidden)
 
 
 def place_points(key, town, num: int):
@@ -82,7 +115,7 @@ def make_batch(key, town, cfg: config_lib.Config):
     ``cfg`` is static (hashable frozen dataclasses); the same key, town and config give a bit-identical
     batch.
     """
-    states, frames = _drive_on(warm_up(key, town, cfg), town, cfg)
+    states, frames = _drive_on(warm_up(key, town, cfg), jax.random.fold_in(key, VANISH_STREAM), town, cfg)
     return _with_places(frames, states, jax.random.fold_in(key, PLACE_STREAM), town, cfg)
 
 
@@ -112,7 +145,8 @@ def start_drive(drive_key, town, cfg: config_lib.Config, segments):
 def drive_segment(states, drive_key, segment, town, cfg: config_lib.Config):
     """(states after, batch): segment ``segment`` of a drive, seen by the egos its hand-over picks (with the
     place stream, its place frames from the worlds after the segment)."""
-    states, frames = _drive_on(_hand_over(states, drive_key, segment, town, cfg), town, cfg)
+    states = _hand_over(states, drive_key, segment, town, cfg)
+    states, frames = _drive_on(states, jax.random.fold_in(drive_key, VANISH_STREAM + segment), town, cfg)
     return states, _with_places(frames, states, jax.random.fold_in(drive_key, PLACE_STREAM + segment), town, cfg)
 
 

@@ -93,7 +93,13 @@ def advance(state: world.WorldState, town, num_steps) -> world.WorldState:
 
 
 def drive(
-    state: world.WorldState, town, num_frames: int, image_size: int, with_states: bool = False, scans: bool = False
+    state: world.WorldState,
+    town,
+    num_frames: int,
+    image_size: int,
+    with_states: bool = False,
+    scans: bool = False,
+    hidden=None,
 ):
     """Drives ``num_frames`` world steps from ``state``, observing before each step.
 
@@ -102,6 +108,7 @@ def drive(
     frame, so drives chain; :class:`Frames` [num_frames, ...], its ``lidar_scan`` cast only with ``scans``:
     the lidar odometry's, which no model reads, at a quarter of a frame's cost; else None),
     and with ``with_states`` the world states the frames saw ([num_frames, ...]) as a third element.
+    ``hidden``, bool [num_frames, N] or None: the vehicles no sensor sees in each frame (``sensors.observe``).
 
     The world is stepped first and the sensors observe all recorded states at once: one wide vmapped
     pass instead of one narrow pass per scan step (the same frames, and a few % faster).
@@ -112,7 +119,10 @@ def drive(
         return next_state, (state, next_state.ego_action)
 
     last, (states, actions) = jax.lax.scan(body, state, None, length=num_frames)
-    frames = jax.vmap(lambda s: sensors.observe(s, town, image_size, scans))(states)
+    if hidden is None:
+        frames = jax.vmap(lambda s: sensors.observe(s, town, image_size, scans))(states)
+    else:
+        frames = jax.vmap(lambda s, h: sensors.observe(s, town, image_size, scans, h))(states, hidden)
     frames.setdefault("lidar_scan", None)
     frames = Frames(**frames, action=actions, boxes_frames_since_seen=frames_since_seen(frames))
     return (last, frames, states) if with_states else (last, frames)

@@ -589,7 +589,10 @@ def observe_scan(state: WorldState, town: Town):
     return render_scan(scan_obstacles(state, town, buildings, boxes))
 
 
-def observe(state: WorldState, town: Town, image_size: int, scan: bool = True):
+OUT_OF_REACH_M = -1e4  # where a hidden vehicle's box is put for the sensors: beyond every sensor's reach
+
+
+def observe(state: WorldState, town: Town, image_size: int, scan: bool = True, hidden=None):
     """One frame of the contract (:class:`rollout.Frames`) except ``action``, which belongs to the transition t -> t+1
     and is added by ``batch.rollout`` from the next state.
 
@@ -600,15 +603,20 @@ def observe(state: WorldState, town: Town, image_size: int, scan: bool = True):
     boxes_lidar_visible (some lidar beam ends on the box), boxes_camera_visible (the camera image shows
     some of it) bool [N], N = surrounding vehicles (``veh_box.shape[0] - 1``), in the world's vehicle order.
     Who saw a vehicle in earlier frames is the rollout's (``rollout.frames_since_seen``).
+
+    ``hidden``, bool [N] or None: vehicles that no sensor sees in this frame (their boxes are moved out of
+    every sensor's reach, so beams and pixels pass where they stand), while the targets and ``boxes`` keep
+    them: training's vanishing vehicles (``batch.vanishing``).
     """
     town = jax.tree.map(jnp.asarray, town)  # NumPy fields cannot be indexed by traced indices
     ego = state.veh_box[EGO]
     ego_xy, ego_yaw = ego[:2], ego[2]
     boxes, buildings = _in_ego_frame(state, town)
-    seen_by_lidar = lidar_obstacles(state, town, buildings, boxes)
+    sensed = boxes if hidden is None else boxes.at[:, :2].set(jnp.where(hidden[:, None], OUT_OF_REACH_M, boxes[:, :2]))
+    seen_by_lidar = lidar_obstacles(state, town, buildings, sensed)
     lidar, returned = render_lidar(seen_by_lidar, image_size)
     n = boxes.shape[0]
-    seen_by_camera = camera_obstacles(state, town, buildings, boxes)
+    seen_by_camera = camera_obstacles(state, town, buildings, sensed)
     camera, shown = render_camera(seen_by_camera, town, ego_xy, ego_yaw, image_size)
     vehicles = lambda obstacles, flags: (
         _mark(jnp.where(obstacles.is_vehicle & flags, obstacles.vehicle_index, -1), n) > 0
@@ -629,5 +637,5 @@ def observe(state: WorldState, town: Town, image_size: int, scan: bool = True):
         "boxes_camera_visible": vehicles(seen_by_camera, shown),
     }
     if scan:
-        frame["lidar_scan"] = render_scan(scan_obstacles(state, town, buildings, boxes))
+        frame["lidar_scan"] = render_scan(scan_obstacles(state, town, buildings, sensed))
     return frame
