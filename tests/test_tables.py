@@ -363,6 +363,7 @@ def test_readme_blocks_are_filled_and_checked(results, tmp_path):
         "# x\n<!-- table:localisation:begin -->\nold\n<!-- table:localisation:end -->\ntext\n"
         "<!-- table:detection:begin --><!-- table:detection:end -->\n"
         "<!-- table:groups:begin --><!-- table:groups:end -->\n"
+        "<!-- table:targets:begin --><!-- table:targets:end -->\n"
         "<!-- table:learning_curve:begin --><!-- table:learning_curve:end -->\n"
     )
     cmd = [sys.executable, os.path.join(ROOT, "experiments", "tables.py"), f"--results={results}", f"--readme={readme}"]
@@ -413,6 +414,59 @@ def test_groups_table_gives_each_group_its_boxes_seed_means_and_the_drives_inter
     ]
     assert rows[0].startswith("| `cpu` | 0 |") and rows[3].endswith("| 55.0 ± 5.0 [45.0, 75.0] |")
     assert "`cpu`" not in rendered["detection"]
+
+
+def _by_group_metrics(seed, *, label="full", lidar=0.9, remembered=0.05, location=1.5, lr_decay_share=None):
+    """An evaluation split by who saw each box: lidar and remembered AP as given at every IoU."""
+    m = _metrics(seed, label=label, location=location)
+    if lr_decay_share is not None:
+        m["config"]["train"]["lr_decay_share"] = lr_decay_share
+    aps = dict(all=lidar, lidar=lidar, camera_only=0.0, remembered=remembered, unseen=0.3)
+    ious = ("0.1", "0.3", "0.5", "0.7")
+    m["detection"] = {
+        "groups": list(aps)[1:],
+        "ap": dict.fromkeys(ious, aps),
+        "ap_interval95": dict.fromkeys(ious, {k: [v, v] for k, v in aps.items()}),
+        "num_gt": dict.fromkeys(aps, 100),
+        "num_drives_with_boxes": dict.fromkeys(aps, 10),
+    }
+    return m
+
+
+def test_targets_name_what_each_method_misses_against_the_baselines_at_its_recipe(tmp_path):
+    """The latent's targets: lidar AP at least the detector's at every IoU, remembered AP@0.1 at least 50 % and
+    the tracker's + 10 points, location <= 2 m, heading <= 0.03 rad (each fixture's is 0.05); the baselines
+    are those trained at the method's recipe, and a method at a recipe without them says so."""
+    detector, tracker = "single-frame detector", "single-frame detector + Kalman tracker (coasting)"
+    runs = {
+        "detector": [_by_group_metrics(0, label=detector, lidar=0.93)],
+        "tracker": [_by_group_metrics(0, label=tracker, lidar=0.92, remembered=0.45)],
+        "latent": [_by_group_metrics(s, lidar=0.95, remembered=0.56 + 0.02 * s, location=1.5 + s) for s in (0, 1)],
+        "weak": [_by_group_metrics(0, lidar=0.90, remembered=0.52, location=2.5)],
+        "constant": [_by_group_metrics(0, lr_decay_share=0.0)],
+    }
+    for method, evaluations in runs.items():  # a baseline's run is named after it
+        dirs = (
+            [tmp_path / "runs" / method / f"s{i}" for i in range(len(evaluations))]
+            if len(evaluations) > 1
+            else [tmp_path / "runs" / method]
+        )
+        for run_dir, m in zip(dirs, evaluations):
+            _write_run(run_dir, {"eval": m})
+        tables.collect(method, list(map(str, dirs)), str(tmp_path / "out"))
+    table = tables.render(str(tmp_path / "out"))["targets"]
+    latent = _row(table, "`latent`")
+    assert latent[1:4] == [
+        "95.0 ± 0.0 / 95.0 ± 0.0 / 95.0 ± 0.0 / 95.0 ± 0.0",
+        "57.0 ± 1.0 / 57.0 ± 1.0",
+        "2.0 ± 0.5 / 0.050 ± 0.000",
+    ]
+    assert latent[4] == "heading (0.03 rad) |"  # 2.0 m is within the target; 57 % is over 50 % and 45 + 10
+    weak = _row(table, "`weak`")[4]
+    assert weak.startswith("lidar at IoU 0.1, 0.3, 0.5, 0.7 (under `detector`); remembered AP@0.1 (50 % and `tracker`")
+    assert "location (2.0 m)" in weak
+    assert _row(table, "`constant`")[4].startswith("lidar: no detector at this recipe; remembered: no tracker")
+    assert _row(table, "`detector`")[4] == " |"  # the baselines are the bars, not measured against them
 
 
 def test_an_evaluation_without_detections_own_drives_fills_the_pose_cells(results, tmp_path):
