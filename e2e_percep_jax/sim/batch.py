@@ -69,10 +69,7 @@ def _drive_on(states, key, town, cfg: config_lib.Config):
     """(states T+1 steps later, batch of the T+1 frames from ``states``, with the vanishing vehicles that
     ``key`` draws)."""
     drive = functools.partial(rollout.drive, town=town, num_frames=cfg.data.seq_len + 1, image_size=cfg.data.image_size)
-    hidden = vanishing(states, key, town, cfg)
-    if hidden is None:
-        return jax.vmap(drive)(states)
-    return jax.vmap(lambda s, h: drive(s, hidden=h))(states, hidden)
+    return jax.vmap(lambda s, h: drive(s, hidden=h))(states, vanishing(states, key, town, cfg))
 
 
 def place_points(key, town, num: int):

@@ -119,10 +119,8 @@ def drive(
         return next_state, (state, next_state.ego_action)
 
     last, (states, actions) = jax.lax.scan(body, state, None, length=num_frames)
-    if hidden is None:
-        frames = jax.vmap(lambda s: sensors.observe(s, town, image_size, scans))(states)
-    else:
-        frames = jax.vmap(lambda s, h: sensors.observe(s, town, image_size, scans, h))(states, hidden)
+    # hidden None is an empty pytree: vmap passes it through as None
+    frames = jax.vmap(lambda s, h: sensors.observe(s, town, image_size, scans, h))(states, hidden)
     frames.setdefault("lidar_scan", None)
     frames = Frames(**frames, action=actions, boxes_frames_since_seen=frames_since_seen(frames))
     return (last, frames, states) if with_states else (last, frames)
