@@ -53,15 +53,21 @@ def test_config_json_round_trips(name):
 
 
 def test_the_defaults_are_the_recipe_every_training_preset_shares():
-    """Config() trains what the presets train (the place stream, the belief head, the decaying rate and the
-    clip); only the tests' `tiny` keeps the reference's optimiser and fresh worlds."""
+    """Config() trains what the presets train (the place stream, the belief head, the bird-eye grid, the
+    decaying rate and the clip); only the tests' `tiny` keeps the reference's optimiser and fresh worlds."""
     default = config_lib.Config()
-    recipe = lambda c: (c.model.pose_head, c.model.pose_hidden_dim, c.data.place_frames, c.data.batches_per_drive)
+    recipe = lambda c: (
+        c.model.pose_head,
+        c.model.pose_hidden_dim,
+        c.model.latent,
+        c.data.place_frames,
+        c.data.batches_per_drive,
+    )
     optimiser = lambda c: dataclasses.replace(c.train, num_steps=0, checkpoint_every=0)
     for name in ("paper", "cpu", "demo"):
         cfg = config_lib.get_config(name)
         assert recipe(cfg) == recipe(default) and optimiser(cfg) == optimiser(default), name
-    assert recipe(default) == ("belief", 512, 32, 10)
+    assert recipe(default) == ("belief", 512, "bev", 32, 10)
 
 
 def test_a_run_saved_before_the_recipes_fields_reads_back_as_it_ran():
@@ -71,7 +77,7 @@ def test_a_run_saved_before_the_recipes_fields_reads_back_as_it_ran():
         del saved[section][name]
     del saved["model"]["detection_input"]
     cfg = config_lib.Config.from_dict(saved)
-    assert (cfg.model.pose_head, cfg.model.pose_hidden_dim) == ("regression", 0)
+    assert (cfg.model.pose_head, cfg.model.pose_hidden_dim, cfg.model.latent) == ("regression", 0, "vector")
     assert (cfg.data.batches_per_drive, cfg.data.place_frames) == (1, 0)
     assert (cfg.train.lr_decay_share, cfg.train.max_grad_norm, cfg.train.pose_weight) == (0.0, 0.0, 1.0)
     assert cfg.model.detection_input == "latent" and cfg.model.feature_dim == 128  # saved fields kept

@@ -90,7 +90,8 @@ def dense(cin, cout):
 def test_paper_parameter_count_by_hand():
     """R = 128 with the paper's widths; every layer written out (with the regression pose head it equals the
     torch peer's count; the belief head replaces that head)."""
-    cfg = with_sizes(config.get_config("paper"), pose_head="regression")
+    paper = with_sizes(config.get_config("paper"), latent="vector")  # the paper's latent, not the default grid
+    cfg = with_sizes(paper, pose_head="regression")
     encoder = (
         conv(5, 3, 32) + conv(3, 32, 64) + conv(3, 64, 128) + conv(3, 128, 256) + conv(3, 256, 256) + conv(4, 256, 256)
     )
@@ -120,9 +121,9 @@ def test_paper_parameter_count_by_hand():
     # The belief head: features 512 + z1 32 + z2 256 in; logit and (x, y) offset per 10 m cell of the
     # 480 m area (48 x 48), logit and offset per heading bin (36), speed.
     belief = dense(800, 256) + dense(256, 256) + dense(256, 3 * 48 * 48 + 2 * 36 + 1)
-    cfg = with_sizes(config.get_config("paper"), pose_hidden_dim=256)
+    cfg = with_sizes(paper, pose_hidden_dim=256)
     assert count("full") == full - pose + belief
-    cfg = config.get_config("paper")  # the preset's belief head is 512 wide
+    cfg = paper  # the preset's belief head is 512 wide
     assert count("full") == full - pose + dense(800, 512) + dense(512, 512) + dense(512, 3 * 48 * 48 + 2 * 36 + 1)
 
 

@@ -38,12 +38,13 @@ def train_size(spec: str) -> tuple:
 
 
 def paper_config(batch_size, seq_len, image_size):
-    """The paper's network (default widths) at the given (B, T, R), without the place stream: the peer's
-    model and batch (``--what=place`` adds the stream)."""
+    """The paper's network (default widths, the vector latent) at the given (B, T, R), without the place
+    stream: the peer's model and batch (``--what=place`` adds the stream)."""
     return config_lib.validate(
         config_lib.replace(
             config_lib.get_config("paper"),
             data=dict(batch_size=batch_size, seq_len=seq_len, image_size=image_size, place_frames=0),
+            model=dict(latent="vector"),
         )
     )
 
