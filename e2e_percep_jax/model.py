@@ -474,9 +474,9 @@ class FilterState:
         before its first).
     first: bool [B], the next frame starts the stream: its filter restarts, the pose belief's included
         (``state.replace(first=state.first.at[i].set(True))`` restarts stream i, e.g. at a new drive).
-    grid: with ``--model.latent=bev``, float32 [B, G, G, C]: the bird-eye grid's sample of each stream's last
-        frame, in that frame's ego axes (:mod:`e2e_percep_jax.bev_latent`; zeros before the first); None with
-        the vector latent.
+    grid: with the bird-eye latent (``--model.latent=bev``, the default), float32 [B, G, G, C]: the grid's
+        sample of each stream's last frame, in that frame's ego axes (:mod:`e2e_percep_jax.bev_latent`; zeros
+        before the first); None with the vector latent (``--model.latent=vector``).
     pose: the pose belief's histogram filter (:class:`pose_belief.PoseBeliefState`), which the inference
         API (``api.Perceiver``) keeps with the belief pose head; None otherwise, and in the latent filter
         of this module (:func:`filter_step`, :func:`filter_sequence`).
