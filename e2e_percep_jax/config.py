@@ -51,6 +51,11 @@ LATENTS = ("vector", "bev")
 # into the prior (a Kalman update), its precision scaled by that same share: a cell the lidar cannot see keeps
 # its prior, and a view the network is unsure of (a sliver of a car) moves the cell only as far as it is sure.
 GRID_UPDATES = ("learned", "lidar_gated", "lidar_fused")
+# What the lidar image's decoder reads (latent "bev"): latent_and_grid, z beside the grid, as the PIXOR and roadmap
+# decoders do; latent, z alone, so that the grid answers only to the boxes, the roadmap and its KL. The lidar
+# image has no returns from a vehicle the lidar cannot see, so a grid that reconstructs it is taught to erase the
+# vehicles an occluder hides, which the boxes ask it to keep (BUILD_NOTES, "A grid that no longer draws the lidar").
+LIDAR_DECODER_INPUTS = ("latent_and_grid", "latent")
 DEFAULT_TOWN_SEED = 0
 
 
@@ -133,6 +138,7 @@ class ModelConfig:
     grid_cells: int = 16
     grid_channels: int = 8
     grid_update: str = "learned"  # one of GRID_UPDATES
+    lidar_decoder_input: str = "latent_and_grid"  # one of LIDAR_DECODER_INPUTS
 
     @property
     def histogram_belief(self) -> bool:
@@ -378,6 +384,15 @@ def validate(cfg: Config) -> Config:
     if cfg.model.grid_update != "learned" and cfg.model.latent != "bev":
         raise ValueError(
             f"--model.grid_update={cfg.model.grid_update!r} updates the bird-eye grid: needs --model.latent=bev"
+        )
+    if cfg.model.lidar_decoder_input not in LIDAR_DECODER_INPUTS:
+        raise ValueError(
+            f"--model.lidar_decoder_input={cfg.model.lidar_decoder_input!r}: choose one of {LIDAR_DECODER_INPUTS}"
+        )
+    if cfg.model.lidar_decoder_input != "latent_and_grid" and cfg.model.latent != "bev":
+        raise ValueError(
+            f"--model.lidar_decoder_input={cfg.model.lidar_decoder_input!r} keeps the bird-eye grid from the lidar "
+            "decoder: needs --model.latent=bev"
         )
     # The filter moves a heading bin's mass by at most one cell a step (pose_belief.predict): 2 m is above
     # the world's fastest step (12 m/s x 0.1 s); above 40 m a cell is as large as a block.

@@ -11,6 +11,7 @@ With ``model.latent="bev"`` a bird-eye grid s_t [B, G, G, C] (C Gaussians per ce
     motion t-1 -> t predicted from (features t, z t-1, action t-1); s_t-1 warped by it (bev_latent.warp)
     prior p(s_t | warped s_t-1, action t-1) and posterior q(s_t | warped s_t-1, lidar map t, features t), per cell
     the PIXOR, lidar and roadmap decoders read s_t where their trunks reach G x G
+    (with ``model.lidar_decoder_input="latent"`` the lidar decoder reads z alone)
     (with ``model.detection_input="grid"`` the PIXOR decoder reads s_t alone, z zeroed)
 
 Layers match the eager PyTorch peer that ``experiments/bench.py`` times against, layer for layer, so the
@@ -431,10 +432,12 @@ class PerceptionModel(nn.Module):
     def decode(self, z, features=None, grid=None):
         """Latent [N, Z] (and the frame's features [N, 2F], read by the PIXOR decoder with
         ``detection_input="latent_and_features"``; the bird-eye grid [N, G, G, C], read by the bird-eye
-        decoders: PIXOR, lidar and roadmap, PIXOR without z with ``detection_input="grid"``) -> dict: built
+        decoders: PIXOR, lidar and roadmap, PIXOR without z with ``detection_input="grid"``, lidar without the
+        grid with ``lidar_decoder_input="latent"``) -> dict: built
         image means [N, R, R, 3], det_logit / det_cls [N, R, R, 1] (logit / probability), det_reg
         [N, R, R, 6], and with a regression pose head pose_normalised [N, 5] (:func:`normalise_pose` units)."""
-        out = {k: dec(z, None if k == "camera" else grid) for k, dec in self.image_decoders.items()}
+        grid_readers = ("lidar", "roadmap") if self.cfg.lidar_decoder_input == "latent_and_grid" else ("roadmap",)
+        out = {k: dec(z, grid if k in grid_readers else None) for k, dec in self.image_decoders.items()}
         detection_input = z
         if self.cfg.detection_input == "latent_and_features":
             detection_input = jnp.concatenate([z, features], -1)

@@ -112,6 +112,11 @@ CASES = {
     "train grid_update without the grid": Case(
         "train", ["--model.grid_update=lidar_gated"], "--model.grid_update='lidar_gated' updates the bird-eye grid"
     ),
+    "train lidar_decoder_input": Case(
+        "train",
+        ["--model.latent=bev", "--model.lidar_decoder_input=features"],
+        "--model.lidar_decoder_input='features': choose one of",
+    ),
     "train detection from the grid without the grid": Case(
         "train", ["--model.detection_input=grid"], "--model.detection_input=grid reads the bird-eye grid"
     ),

@@ -265,3 +265,28 @@ def test_the_pixor_decoder_reads_the_grid_alone_when_asked(params):
     assert not np.allclose(other_grid["det_logit"], got["det_logit"], atol=1e-3)
     with pytest.raises(ValueError, match="--model.detection_input=grid"):
         config_lib.validate(config_lib.replace(TINY, model=dict(detection_input="grid")))
+
+
+def test_the_lidar_decoder_reads_z_alone_when_asked():
+    """``lidar_decoder_input="latent"``: the lidar image no longer moves with the grid, the PIXOR and roadmap maps
+    still do; the lidar decoder's parameters are then shaped as the camera decoder's (no grid channels joined)."""
+    apart = config_lib.replace(CFG, model=dict(lidar_decoder_input="latent"))
+    params = model.init_params(jax.random.PRNGKey(0), apart)
+    m, g = CFG.model, CFG.model.grid_cells
+    rng = np.random.default_rng(0)
+    z1, z2 = (rng.normal(size=(2, d)).astype(np.float32) for d in (m.z1_dim, m.z2_dim))
+    grid = rng.normal(size=(2, g, g, m.grid_channels)).astype(np.float32)
+    filtered = {"z1": z1, "z2": z2, "features": None, "grid": grid}
+    got = model.decode(params, filtered, apart)
+    other_grid = model.decode(params, dict(filtered, grid=-grid), apart)
+    np.testing.assert_array_equal(other_grid["lidar"], got["lidar"])
+    for moved in ("det_logit", "roadmap"):
+        assert not np.allclose(other_grid[moved], got[moved], atol=1e-3), moved
+    other_z = model.decode(params, dict(filtered, z1=-z1, z2=-z2), apart)
+    assert not np.allclose(other_z["lidar"], got["lidar"], atol=1e-3)
+    decoders = params["params"]
+    shapes = lambda name: jax.tree.map(np.shape, decoders[name])
+    assert shapes("image_decoders_lidar") == shapes("image_decoders_camera")
+    assert shapes("image_decoders_roadmap") != shapes("image_decoders_camera")
+    with pytest.raises(ValueError, match="--model.lidar_decoder_input='latent' keeps the bird-eye grid"):
+        config_lib.validate(config_lib.replace(TINY, model=dict(lidar_decoder_input="latent")))
