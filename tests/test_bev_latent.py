@@ -246,15 +246,21 @@ def test_a_gated_grid_keeps_its_prior_in_every_cell_the_lidar_cannot_see(grid_up
     np.testing.assert_allclose(out["q_grid_loc"][:, 0][:, seen], np.asarray(expected)[:, seen], rtol=1e-5, atol=1e-6)
 
 
+def _decoder_inputs(seed=0):
+    """A filter's outputs for :func:`model.decode` at ``CFG``'s sizes: random z1, z2 and grid for 2 frames."""
+    m, g = CFG.model, CFG.model.grid_cells
+    rng = np.random.default_rng(seed)
+    z1, z2 = (rng.normal(size=(2, d)).astype(np.float32) for d in (m.z1_dim, m.z2_dim))
+    grid = rng.normal(size=(2, g, g, m.grid_channels)).astype(np.float32)
+    return {"z1": z1, "z2": z2, "features": None, "grid": grid}
+
+
 def test_the_pixor_decoder_reads_the_grid_alone_when_asked(params):
     """``detection_input="grid"``: the PIXOR maps are the latent decoder's (same parameters) at z = 0, so no z
     moves them and the grid does; the lidar and roadmap decoders still read z beside the grid."""
     grid_only = config_lib.replace(CFG, model=dict(detection_input="grid"))
-    m, g = CFG.model, CFG.model.grid_cells
-    rng = np.random.default_rng(0)
-    z1, z2 = (rng.normal(size=(2, d)).astype(np.float32) for d in (m.z1_dim, m.z2_dim))
-    grid = rng.normal(size=(2, g, g, m.grid_channels)).astype(np.float32)
-    filtered = {"z1": z1, "z2": z2, "features": None, "grid": grid}
+    filtered = _decoder_inputs()
+    z1, z2, grid = filtered["z1"], filtered["z2"], filtered["grid"]
     got = model.decode(params, filtered, grid_only)
     zeros = model.decode(params, dict(filtered, z1=0 * z1, z2=0 * z2), CFG)
     np.testing.assert_allclose(got["det_logit"], zeros["det_logit"], rtol=1e-5, atol=1e-6)
@@ -272,11 +278,8 @@ def test_the_lidar_decoder_reads_z_alone_when_asked():
     still do; the lidar decoder's parameters are then shaped as the camera decoder's (no grid channels joined)."""
     apart = config_lib.replace(CFG, model=dict(lidar_decoder_input="latent"))
     params = model.init_params(jax.random.PRNGKey(0), apart)
-    m, g = CFG.model, CFG.model.grid_cells
-    rng = np.random.default_rng(0)
-    z1, z2 = (rng.normal(size=(2, d)).astype(np.float32) for d in (m.z1_dim, m.z2_dim))
-    grid = rng.normal(size=(2, g, g, m.grid_channels)).astype(np.float32)
-    filtered = {"z1": z1, "z2": z2, "features": None, "grid": grid}
+    filtered = _decoder_inputs()
+    z1, z2, grid = filtered["z1"], filtered["z2"], filtered["grid"]
     got = model.decode(params, filtered, apart)
     other_grid = model.decode(params, dict(filtered, grid=-grid), apart)
     np.testing.assert_array_equal(other_grid["lidar"], got["lidar"])
