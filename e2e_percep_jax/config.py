@@ -107,6 +107,11 @@ class DataConfig:
     # (batch.vanishing): a remembered vehicle made on purpose, as 11-frame sequences hold almost none.
     # 0 = the paper.
     vanish_share: float = 0.0
+    # Another: the share of training sequences in which a phantom wall slides across the line of sight to
+    # one vehicle the lidar sees in the first frame, from a random later frame on, so the beams stop short
+    # and the vehicle lies in its shadow while the targets keep it (batch.occluding): an occlusion made as
+    # the world makes one, where vanishing lets the beams pass. 0 = the paper.
+    occluder_share: float = 0.0
     # Carried state (needs K > 1): no hand-over inside a drive, and the latent filter state at the end of
     # one segment starts the drive's next, gradients cut between them (truncated BPTT over K segments).
     carry_state: bool = False
@@ -432,8 +437,9 @@ def validate(cfg: Config) -> Config:
     for name in ("observation_drop_share", "lidar_shadow_share"):
         if not 0.0 <= getattr(cfg.train, name) < 1.0:
             raise ValueError(f"--train.{name}={getattr(cfg.train, name)}: must lie in [0, 1)")
-    if not 0.0 <= cfg.data.vanish_share <= 1.0:
-        raise ValueError(f"--data.vanish_share={cfg.data.vanish_share}: must lie in [0, 1]")
+    for name in ("vanish_share", "occluder_share"):
+        if not 0.0 <= getattr(cfg.data, name) <= 1.0:
+            raise ValueError(f"--data.{name}={getattr(cfg.data, name)}: must lie in [0, 1]")
     seeds = {
         "world.town_seed": cfg.world.town_seed,
         "train.seed": cfg.train.seed,

@@ -101,6 +101,9 @@ CASES = {
     "train vanish_share above one": Case(
         "train", ["--data.vanish_share=1.5"], "--data.vanish_share=1.5: must lie in [0, 1]"
     ),
+    "train occluder_share negative": Case(
+        "train", ["--data.occluder_share=-0.5"], "--data.occluder_share=-0.5: must lie in [0, 1]"
+    ),
     "train remembered_weight zero": Case(
         "train", ["--train.remembered_weight=0"], "--train.remembered_weight=0.0: must be positive"
     ),

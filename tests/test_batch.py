@@ -237,3 +237,47 @@ def test_a_vanishing_vehicle_leaves_every_sensor_and_stays_in_the_targets(town):
     for b, t in zip(*np.nonzero(~hidden.any(-1))):
         np.testing.assert_array_equal(vanished["lidar"][b, t], plain["lidar"][b, t])
         np.testing.assert_array_equal(vanished["camera"][b, t], plain["camera"][b, t])
+
+
+@pytest.mark.slow
+def test_a_phantom_wall_hides_a_vehicle_in_its_shadow_and_it_stays_in_the_targets(town):
+    # --data.occluder_share=1: in every sequence that can, a wall slides across the line of sight to the
+    # chosen vehicle from the chosen frame on. Checked against the same key without it (the same worlds and
+    # targets), and against the sensors' own account of who saw the vehicle.
+    cfg = config.replace(CFG, world=dict(num_vehicles=100), data=dict(occluder_share=1.0, batch_size=8, seq_len=8))
+    key = batch.batch_key(0, 0)
+    states = batch.warm_up(key, town, cfg)
+    occluder = jax.tree.map(
+        np.asarray, batch.occluding(states, jax.random.fold_in(key, batch.OCCLUDER_STREAM), town, cfg)
+    )
+    plain = jax.tree.map(np.asarray, batch.make_batch(key, town, config.replace(cfg, data=dict(occluder_share=0.0))))
+    walled = jax.tree.map(np.asarray, batch.make_batch(key, town, cfg))
+    for field in ("det_cls", "det_reg", "boxes", "boxes_valid", "pose", "action", "roadmap"):
+        np.testing.assert_array_equal(walled[field], plain[field], err_msg=field)
+    cover, vehicle = occluder["cover"], occluder["vehicle"][:, 0]
+    on = cover.any(-1)
+    first = np.arange(cover.shape[0]), vehicle
+    eligible = plain["boxes_lidar_visible"][:, 0] & plain["boxes_valid"][:, 0]
+    eligible &= np.linalg.norm(plain["boxes"][:, 0, :, :2], axis=-1) >= batch.OCCLUDED_MIN_DISTANCE_M
+    assert on.sum() >= 2, "the test needs sequences whose lidar sees a vehicle 10 m away in the first frame"
+    np.testing.assert_array_equal(on, eligible.any(-1))  # share 1: every sequence that can
+    assert eligible[first][on].all()
+    assert not cover[:, 0].any()  # the first frame is never covered
+    # the wall slides in over OCCLUDER_SLIDE_FRAMES frames and then stays
+    ramps = np.diff(cover[on], axis=-1)
+    assert (ramps >= 0).all() and ((cover[on] > 0) & (cover[on] < 1)).sum(-1).max() <= batch.OCCLUDER_SLIDE_FRAMES - 1
+    assert (cover == 1.0).any(), "the test needs a sequence that ends behind a full wall"
+    for b in np.flatnonzero(on):
+        covered = cover[b] == 1.0
+        v = vehicle[b]
+        assert not (walled["boxes_lidar_visible"][b, covered, v] | walled["boxes_camera_visible"][b, covered, v]).any()
+        group = metrics.box_groups(
+            walled["boxes_lidar_visible"][b, :, v],
+            walled["boxes_camera_visible"][b, :, v],
+            walled["boxes_frames_since_seen"][b, :, v],
+        )
+        assert (np.asarray(group)[covered] == metrics.GROUPS.index("remembered")).all()
+        for t in np.flatnonzero(covered):  # the beams now stop at the wall: the lidar image changed
+            assert (walled["lidar"][b, t] != plain["lidar"][b, t]).any()
+    np.testing.assert_array_equal(walled["lidar"][cover == 0], plain["lidar"][cover == 0])
+    np.testing.assert_array_equal(walled["camera"][cover == 0], plain["camera"][cover == 0])

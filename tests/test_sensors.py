@@ -238,6 +238,28 @@ def test_lidar_nothing_behind_a_wall():
     assert not image[behind].any()
 
 
+@pytest.mark.parametrize(
+    "vehicle_box", [[14.0, 0.0, 0.0, 4.6, 1.9], [-9.0, 12.0, 1.2, 6.0, 2.5], [30.0, -20.0, 2.8, 4.0, 1.8]]
+)
+def test_the_phantom_occluder_stands_between_both_sensors_and_the_vehicle(vehicle_box):
+    # Brute force: the segment from the lidar (the ego centre) and from the camera (0.8 m ahead) to every
+    # corner and the centre of the vehicle's box crosses the full wall before it reaches them; half a wall
+    # slides in from its side; no wall at cover 0.
+    box = jnp.asarray(vehicle_box, jnp.float32)
+    targets = np.concatenate([np.asarray(geo.box_corners(box)), np.asarray(box[None, :2])])  # [5, 2]
+    wall = np.asarray(sensors.occluder_box(box, 1.0, 1.0))
+    for origin_x in (0.0, sensors.CAMERA_X_M):
+        s_in, *_ = sensors.ray_box_slab(origin_x, 0.0, targets[:, 0] - origin_x, targets[:, 1], jnp.asarray(wall))
+        assert (np.asarray(s_in) < 0.9).all(), (origin_x, s_in)  # s = 1 at the target
+    along = np.asarray(box[:2]) / np.linalg.norm(box[:2])
+    for side in (1.0, -1.0):
+        half = np.asarray(sensors.occluder_box(box, 0.5, side))
+        assert half[4] == pytest.approx(0.5 * wall[4])
+        offset = half[:2] - wall[:2]
+        assert side * (along[0] * offset[1] - along[1] * offset[0]) == pytest.approx(0.25 * wall[4], rel=1e-4)
+    assert (np.asarray(sensors.occluder_box(box, 0.0, 1.0))[:2] == sensors.OUT_OF_REACH_M).all()
+
+
 # ----------------------------------------------------------------------------- roadmap
 
 

@@ -18,8 +18,11 @@ observing.
 
 Opt-in, ``--data.vanish_share`` > 0 (a memory lever): in that share of the sequences one vehicle the lidar
 sees in the first frame vanishes from every sensor from a random later frame on, while the targets keep it
-(:func:`vanishing`). Hiding changes what the sensors see, never the traffic, so the batch's worlds, targets
-and commands are those of the same key without it.
+(:func:`vanishing`). Opt-in, ``--data.occluder_share`` > 0 (another): in that share of the sequences a
+phantom wall slides in across the line of sight to one vehicle the lidar sees in the first frame, from a
+random later frame on, so its beams stop short and the vehicle lies in the wall's shadow while the targets
+keep it (:func:`occluding`). Both change what the sensors see, never the traffic, so the batch's worlds,
+targets and commands are those of the same key without them.
 """
 
 import functools
@@ -32,6 +35,9 @@ from e2e_percep_jax.sim import rollout, sensors, world
 
 PLACE_STREAM = 2**20  # fold_in data of the place frames' key: above every segment index
 VANISH_STREAM = 2**21  # fold_in data of the vanishing vehicles' key: above the place stream's
+OCCLUDER_STREAM = 2**22  # fold_in data of the phantom occluders' key: above the vanishing vehicles'
+OCCLUDER_SLIDE_FRAMES = 3  # frames (0.3 s) over which a phantom wall slides across a vehicle: a sliver first
+OCCLUDED_MIN_DISTANCE_M = 6.0  # a vehicle occluded on purpose is at least this far in the first frame
 
 
 def warm_up(key, town, cfg: config_lib.Config):
@@ -43,33 +49,69 @@ def warm_up(key, town, cfg: config_lib.Config):
     return jax.vmap(one)(jax.random.split(key, cfg.data.batch_size))
 
 
+def _seen_vehicle(state, key, share, town, cfg: config_lib.Config, min_distance_m=0.0):
+    """(whether this sequence draws one, the vehicle drawn, the frame [1, T] from which it is lost): with
+    probability ``share``, one vehicle in view, at least ``min_distance_m`` away, whose box a lidar beam ends
+    on in ``state``'s frame, drawn uniformly among them (none if there is none)."""
+    k_on, k_vehicle, k_frame = jax.random.split(key, 3)
+    first = sensors.observe(state, town, cfg.data.image_size, scan=False)  # XLA keeps its lidar alone
+    far = jnp.linalg.norm(first["boxes"][:, :2], axis=-1) >= min_distance_m
+    seen = first["boxes_lidar_visible"] & first["boxes_valid"] & far  # [N]
+    vehicle = jax.random.categorical(k_vehicle, jnp.where(seen, 0.0, -jnp.inf))
+    on = (jax.random.uniform(k_on) < share) & jnp.any(seen)
+    return on, vehicle, jax.random.randint(k_frame, (), 1, cfg.data.seq_len + 1)
+
+
 def vanishing(states, key, town, cfg: config_lib.Config):
     """The vehicles hidden from the sensors in each frame of the B sequences from ``states``, bool
-    [B, T+1, N], or None when ``data.vanish_share`` is 0: in that share of the sequences, one vehicle in view
-    whose box a lidar beam ends on in the first frame (drawn uniformly among them; none if there is none)
-    vanishes from every sensor from a frame drawn uniformly in [1, T] to the last. The targets keep it, so
-    the sequence holds a remembered vehicle (``metrics.box_groups``: seen earlier, by neither sensor now)."""
+    [B, T+1, N], or None when ``data.vanish_share`` is 0: in that share of the sequences, one vehicle the
+    lidar sees in the first frame (:func:`_seen_vehicle`) vanishes from every sensor from a frame drawn
+    uniformly in [1, T] to the last. The targets keep it, so the sequence holds a remembered vehicle
+    (``metrics.box_groups``: seen earlier, by neither sensor now)."""
     if not cfg.data.vanish_share:
         return None
-    frames = cfg.data.seq_len + 1
 
     def one(state, k):
-        k_on, k_vehicle, k_frame = jax.random.split(k, 3)
-        first = sensors.observe(state, town, cfg.data.image_size, scan=False)  # XLA keeps its lidar alone
-        seen = first["boxes_lidar_visible"] & first["boxes_valid"]  # [N]
-        vehicle = jax.random.categorical(k_vehicle, jnp.where(seen, 0.0, -jnp.inf))
-        on = (jax.random.uniform(k_on) < cfg.data.vanish_share) & jnp.any(seen)
-        gone = jnp.arange(frames) >= jax.random.randint(k_frame, (), 1, frames)  # [T+1]
-        return on & gone[:, None] & (jnp.arange(seen.shape[0]) == vehicle)[None]
+        on, vehicle, start = _seen_vehicle(state, k, cfg.data.vanish_share, town, cfg)
+        gone = jnp.arange(cfg.data.seq_len + 1) >= start  # [T+1]
+        return on & gone[:, None] & (jnp.arange(cfg.world.num_vehicles) == vehicle)[None]
 
     return jax.vmap(one)(states, jax.random.split(key, cfg.data.batch_size))
 
 
-def _drive_on(states, key, town, cfg: config_lib.Config):
-    """(states T+1 steps later, batch of the T+1 frames from ``states``, with the vanishing vehicles that
-    ``key`` draws)."""
+def occluding(states, key, town, cfg: config_lib.Config):
+    """The phantom wall of each frame of the B sequences from ``states`` (``sensors.observe``'s
+    ``occluder``: ``vehicle`` int32, ``cover`` and ``side`` float32, each [B, T+1]), or None when
+    ``data.occluder_share`` is 0: in that share of the sequences, one vehicle the lidar sees in the first
+    frame, at least ``OCCLUDED_MIN_DISTANCE_M`` away (:func:`_seen_vehicle`), is covered by a wall that,
+    from a frame drawn uniformly in [1, T], slides across its line of sight from a random side over
+    ``OCCLUDER_SLIDE_FRAMES`` frames and stays to the last, following it. The beams stop at the wall and the
+    vehicle lies in its shadow, as behind a building, while the targets keep it."""
+    if not cfg.data.occluder_share:
+        return None
+    frames = cfg.data.seq_len + 1
+
+    def one(state, k):
+        k_draw, k_side = jax.random.split(k)
+        on, vehicle, start = _seen_vehicle(state, k_draw, cfg.data.occluder_share, town, cfg, OCCLUDED_MIN_DISTANCE_M)
+        cover = jnp.clip((jnp.arange(frames) - start + 1) / OCCLUDER_SLIDE_FRAMES, 0.0, 1.0)
+        side = jnp.where(jax.random.bernoulli(k_side), 1.0, -1.0)
+        return {
+            "vehicle": jnp.full(frames, vehicle, jnp.int32),
+            "cover": jnp.where(on, cover, 0.0).astype(jnp.float32),
+            "side": jnp.full(frames, side, jnp.float32),
+        }
+
+    return jax.vmap(one)(states, jax.random.split(key, cfg.data.batch_size))
+
+
+def _drive_on(states, key, stream, town, cfg: config_lib.Config):
+    """(states T+1 steps later, batch of the T+1 frames from ``states``, with the vanishing vehicles and
+    phantom occluders that ``key`` draws, folded with ``stream`` + each one's stream)."""
     drive = functools.partial(rollout.drive, town=town, num_frames=cfg.data.seq_len + 1, image_size=cfg.data.image_size)
-    return jax.vmap(lambda s, h: drive(s, hidden=h))(states, vanishing(states, key, town, cfg))
+    hidden = vanishing(states, jax.random.fold_in(key, VANISH_STREAM + stream), town, cfg)
+    occluder = occluding(states, jax.random.fold_in(key, OCCLUDER_STREAM + stream), town, cfg)
+    return jax.vmap(lambda s, h, o: drive(s, hidden=h, occluder=o))(states, hidden, occluder)
 
 
 def place_points(key, town, num: int):
@@ -112,7 +154,7 @@ def make_batch(key, town, cfg: config_lib.Config):
     ``cfg`` is static (hashable frozen dataclasses); the same key, town and config give a bit-identical
     batch.
     """
-    states, frames = _drive_on(warm_up(key, town, cfg), jax.random.fold_in(key, VANISH_STREAM), town, cfg)
+    states, frames = _drive_on(warm_up(key, town, cfg), key, 0, town, cfg)
     return _with_places(frames, states, jax.random.fold_in(key, PLACE_STREAM), town, cfg)
 
 
@@ -143,7 +185,7 @@ def drive_segment(states, drive_key, segment, town, cfg: config_lib.Config):
     """(states after, batch): segment ``segment`` of a drive, seen by the egos its hand-over picks (with the
     place stream, its place frames from the worlds after the segment)."""
     states = _hand_over(states, drive_key, segment, town, cfg)
-    states, frames = _drive_on(states, jax.random.fold_in(drive_key, VANISH_STREAM + segment), town, cfg)
+    states, frames = _drive_on(states, drive_key, segment, town, cfg)
     return states, _with_places(frames, states, jax.random.fold_in(drive_key, PLACE_STREAM + segment), town, cfg)
 
 

@@ -100,6 +100,7 @@ def drive(
     with_states: bool = False,
     scans: bool = False,
     hidden=None,
+    occluder=None,
 ):
     """Drives ``num_frames`` world steps from ``state``, observing before each step.
 
@@ -108,7 +109,8 @@ def drive(
     frame, so drives chain; :class:`Frames` [num_frames, ...], its ``lidar_scan`` cast only with ``scans``:
     the lidar odometry's, which no model reads, at a quarter of a frame's cost; else None),
     and with ``with_states`` the world states the frames saw ([num_frames, ...]) as a third element.
-    ``hidden``, bool [num_frames, N] or None: the vehicles no sensor sees in each frame (``sensors.observe``).
+    ``hidden``, bool [num_frames, N] or None: the vehicles no sensor sees in each frame; ``occluder``, a dict
+    of arrays [num_frames] or None: a phantom wall in each frame (both ``sensors.observe``'s).
 
     The world is stepped first and the sensors observe all recorded states at once: one wide vmapped
     pass instead of one narrow pass per scan step (the same frames, and a few % faster).
@@ -119,8 +121,8 @@ def drive(
         return next_state, (state, next_state.ego_action)
 
     last, (states, actions) = jax.lax.scan(body, state, None, length=num_frames)
-    # hidden None is an empty pytree: vmap passes it through as None
-    frames = jax.vmap(lambda s, h: sensors.observe(s, town, image_size, scans, h))(states, hidden)
+    # None is an empty pytree: vmap passes it through as None
+    frames = jax.vmap(lambda s, h, o: sensors.observe(s, town, image_size, scans, h, o))(states, hidden, occluder)
     frames.setdefault("lidar_scan", None)
     frames = Frames(**frames, action=actions, boxes_frames_since_seen=frames_since_seen(frames))
     return (last, frames, states) if with_states else (last, frames)

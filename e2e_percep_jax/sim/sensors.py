@@ -590,9 +590,49 @@ def observe_scan(state: WorldState, town: Town):
 
 
 OUT_OF_REACH_M = -1e4  # where a hidden vehicle's box is put for the sensors: beyond every sensor's reach
+# Training's phantom occluder (``batch.occluding``): a wall across the line of sight to one vehicle, taller
+# than the lidar (2.1 m) and every vehicle, so its shadow covers the whole vehicle behind it.
+OCCLUDER_HEIGHT_M = 4.0
+OCCLUDER_THICKNESS_M = 1.0
+OCCLUDER_MARGIN_M = 1.0  # on each side of the vehicle's shadow at the wall: the camera sits 0.8 m ahead of the lidar
+OCCLUDER_COLOR = (128, 128, 128)
 
 
-def observe(state: WorldState, town: Town, image_size: int, scan: bool = True, hidden=None):
+def occluder_box(vehicle_box_ego, cover, side):
+    """A phantom wall [5] (ego frame) across the line of sight to the vehicle ``vehicle_box_ego`` [5],
+    halfway to it (at least 3 m from the ego), thick ``OCCLUDER_THICKNESS_M``. At ``cover`` 1 it spans the
+    vehicle's bounding circle as seen from the ego, plus ``OCCLUDER_MARGIN_M`` a side: no beam or pixel
+    reaches the vehicle. Below 1 it is that share of its full width, slid in from ``side`` (+1: from the
+    left of the line of sight, -1: from the right), so an occlusion begins with a sliver as a real one does;
+    at 0 it is out of every sensor's reach."""
+    xy = vehicle_box_ego[:2]
+    distance_m = jnp.maximum(jnp.linalg.norm(xy), 1e-3)
+    along = xy / distance_m
+    across = jnp.stack([-along[1], along[0]])  # to the left of the line of sight
+    wall_m = jnp.maximum(0.5 * distance_m, 3.0)
+    radius_m = 0.5 * jnp.hypot(vehicle_box_ego[3], vehicle_box_ego[4])
+    full_m = 2.0 * (radius_m * wall_m / distance_m + OCCLUDER_MARGIN_M)
+    width_m = cover * full_m
+    centre = wall_m * along + side * 0.5 * (full_m - width_m) * across
+    centre = jnp.where(cover > 0.0, centre, OUT_OF_REACH_M)
+    yaw = jnp.arctan2(along[1], along[0])
+    return jnp.stack([centre[0], centre[1], yaw, jnp.asarray(OCCLUDER_THICKNESS_M), width_m])
+
+
+def _with_occluder(town: Town, buildings_ego, vehicle_boxes_ego, occluder):
+    """(town, buildings [NB(+1), 5] in the ego frame) with ``occluder``'s wall (:func:`observe`) as one more
+    building, or as they were when it is None."""
+    if occluder is None:
+        return town, buildings_ego
+    wall = occluder_box(vehicle_boxes_ego[occluder["vehicle"]], occluder["cover"], occluder["side"])
+    town = town._replace(
+        building_height_m=jnp.append(town.building_height_m, OCCLUDER_HEIGHT_M),
+        building_color=jnp.concatenate([town.building_color, jnp.asarray([OCCLUDER_COLOR], town.building_color.dtype)]),
+    )
+    return town, jnp.concatenate([buildings_ego, wall[None].astype(buildings_ego.dtype)])
+
+
+def observe(state: WorldState, town: Town, image_size: int, scan: bool = True, hidden=None, occluder=None):
     """One frame of the contract (:class:`rollout.Frames`) except ``action``, which belongs to the transition t -> t+1
     and is added by ``batch.rollout`` from the next state.
 
@@ -607,11 +647,17 @@ def observe(state: WorldState, town: Town, image_size: int, scan: bool = True, h
     ``hidden``, bool [N] or None: vehicles that no sensor sees in this frame (their boxes are moved out of
     every sensor's reach, so beams and pixels pass where they stand), while the targets and ``boxes`` keep
     them: training's vanishing vehicles (``batch.vanishing``).
+
+    ``occluder``, a dict of ``vehicle`` (int, the index into the N vehicles), ``cover`` and ``side`` (float),
+    or None: a phantom wall (:func:`occluder_box`) across the line of sight to that vehicle, which both
+    sensors see as a building while the roadmap and the targets do not: training's occluded vehicles
+    (``batch.occluding``).
     """
     town = jax.tree.map(jnp.asarray, town)  # NumPy fields cannot be indexed by traced indices
     ego = state.veh_box[EGO]
     ego_xy, ego_yaw = ego[:2], ego[2]
     boxes, buildings = _in_ego_frame(state, town)
+    town, buildings = _with_occluder(town, buildings, boxes, occluder)
     sensed = boxes if hidden is None else boxes.at[:, :2].set(jnp.where(hidden[:, None], OUT_OF_REACH_M, boxes[:, :2]))
     seen_by_lidar = lidar_obstacles(state, town, buildings, sensed)
     lidar, returned = render_lidar(seen_by_lidar, image_size)
