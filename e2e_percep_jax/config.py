@@ -369,14 +369,18 @@ def validate(cfg: Config) -> Config:
         raise ValueError(
             f"--model.conv_channels has {len(cfg.model.conv_channels)} widths; image_size {r} needs {n_layers}"
         )
-    if cfg.model.variant not in VARIANTS:
-        raise ValueError(f"--model.variant={cfg.model.variant!r}: choose one of {VARIANTS}")
-    if cfg.model.pose_head not in POSE_HEADS:
-        raise ValueError(f"--model.pose_head={cfg.model.pose_head!r}: choose one of {POSE_HEADS}")
-    if cfg.model.detection_input not in DETECTION_INPUTS:
-        raise ValueError(f"--model.detection_input={cfg.model.detection_input!r}: choose one of {DETECTION_INPUTS}")
-    if cfg.model.latent not in LATENTS:
-        raise ValueError(f"--model.latent={cfg.model.latent!r}: choose one of {LATENTS}")
+    choices = {
+        "variant": VARIANTS,
+        "pose_head": POSE_HEADS,
+        "pose_filter": POSE_FILTERS,
+        "detection_input": DETECTION_INPUTS,
+        "latent": LATENTS,
+        "grid_update": GRID_UPDATES,
+        "lidar_decoder_input": LIDAR_DECODER_INPUTS,
+    }
+    for name, allowed in choices.items():
+        if getattr(cfg.model, name) not in allowed:
+            raise ValueError(f"--model.{name}={getattr(cfg.model, name)!r}: choose one of {allowed}")
     if cfg.model.detection_input == "grid" and cfg.model.latent != "bev":
         raise ValueError("--model.detection_input=grid reads the bird-eye grid: needs --model.latent=bev")
     g = cfg.model.grid_cells
@@ -384,15 +388,9 @@ def validate(cfg: Config) -> Config:
         raise ValueError(f"--model.grid_cells={g}: must be a power of two in [4, data.image_size / 2 = {r // 2}]")
     if cfg.model.latent == "bev" and cfg.model.grid_channels < 1:
         raise ValueError(f"--model.grid_channels={cfg.model.grid_channels}: must be >= 1")
-    if cfg.model.grid_update not in GRID_UPDATES:
-        raise ValueError(f"--model.grid_update={cfg.model.grid_update!r}: choose one of {GRID_UPDATES}")
     if cfg.model.grid_update != "learned" and cfg.model.latent != "bev":
         raise ValueError(
             f"--model.grid_update={cfg.model.grid_update!r} updates the bird-eye grid: needs --model.latent=bev"
-        )
-    if cfg.model.lidar_decoder_input not in LIDAR_DECODER_INPUTS:
-        raise ValueError(
-            f"--model.lidar_decoder_input={cfg.model.lidar_decoder_input!r}: choose one of {LIDAR_DECODER_INPUTS}"
         )
     if cfg.model.lidar_decoder_input != "latent_and_grid" and cfg.model.latent != "bev":
         raise ValueError(
@@ -462,8 +460,6 @@ def validate(cfg: Config) -> Config:
         raise ValueError(f"--train.lr_decay_share={cfg.train.lr_decay_share}: must lie in [0, 1) (0: constant)")
     if not cfg.train.max_grad_norm >= 0:
         raise ValueError(f"--train.max_grad_norm={cfg.train.max_grad_norm}: must be >= 0 (0: no clipping)")
-    if cfg.model.pose_filter not in POSE_FILTERS:
-        raise ValueError(f"--model.pose_filter={cfg.model.pose_filter!r}: choose one of {POSE_FILTERS}")
     if cfg.model.pose_hidden_dim < 0:
         raise ValueError(f"--model.pose_hidden_dim={cfg.model.pose_hidden_dim}: must be >= 0 (0: --model.hidden_dim)")
     if cfg.data.place_frames < 0:

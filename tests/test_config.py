@@ -105,3 +105,23 @@ def test_after_a_failed_restore_the_unawaited_reads_warn_no_more(failed_restore)
     argv = [sys.executable, "-c", UNAWAITED_PROGRAM, "after a failed restore" if failed_restore else "no restore"]
     err = subprocess.run(argv, capture_output=True, text=True, timeout=60).stderr
     assert ("coroutine 'read' was never awaited" in err) != failed_restore, err
+
+
+@pytest.mark.parametrize(
+    "name, allowed",
+    [
+        ("variant", config_lib.VARIANTS),
+        ("pose_head", config_lib.POSE_HEADS),
+        ("pose_filter", config_lib.POSE_FILTERS),
+        ("detection_input", config_lib.DETECTION_INPUTS),
+        ("latent", config_lib.LATENTS),
+        ("grid_update", config_lib.GRID_UPDATES),
+        ("lidar_decoder_input", config_lib.LIDAR_DECODER_INPUTS),
+    ],
+)
+def test_each_choice_field_takes_its_choices_and_names_itself_otherwise(name, allowed):
+    cfg = config_lib.replace(config_lib.get_config("tiny"), model=dict(latent="bev"))
+    for value in allowed:
+        config_lib.validate(config_lib.replace(cfg, model={name: value}))
+    with pytest.raises(ValueError, match=rf"^--model\.{name}='nonsense': choose one of \("):
+        config_lib.validate(config_lib.replace(cfg, model={name: "nonsense"}))
