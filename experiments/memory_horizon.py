@@ -1,6 +1,6 @@
 """How long a trained latent keeps the vehicles it found once every sensor is hidden from its filter.
 
-    python experiments/memory_horizon.py --workdir=runs/cpu-bev [--drives=64 --seen=20 --hidden=30]
+    python experiments/memory_horizon.py --workdir=runs/cpu-bev [--drives=64 --seen=20 --hidden=30 --choose_from=0]
 
 The occluded groups of the evaluation need a vehicle that a sensor lost while the filter saw the rest of the
 frame, which few drives hold. This asks the question underneath on any drive: ``--drives`` worlds of the
@@ -17,6 +17,14 @@ bootstrap interval over drives. Beside them, chance: the same vehicles matched b
 detections of another drive at the same frame (drive d + 1's for drive d), which is what a decoder that knew
 only where vehicles usually stand would find. Prints a table and writes JSON to ``--out`` (default
 ``<workdir>/memory_horizon.json``).
+
+Beside it, where the seeing run loses a vehicle: the followed vehicles that the world itself hides in the
+frames after (in view, seen by neither sensor, while the filter sees the rest of the frame), pooled over
+k. For the bird-eye grid, two more decodings of those frames tell the grid from z: the seeing run's z with
+the hidden run's grid (``grid_kept``), and the hidden run's z with the seeing run's grid (``z_kept``). If
+``grid_kept`` finds what ``sight`` loses, the grid's posterior is what erases an occluded car. Random drives
+hold few such box-frames: ``--choose_from=M`` drives the sensors alone over M reset keys and keeps the
+``--drives`` that hold the most (:func:`hidden_by_the_world`), as the evaluation chooses its detection drives.
 
 The run's detection decoder must read the latent (``--model.detection_input`` latent or grid): one that reads
 the frame's features (``latent_and_features``) would see through the hiding.
@@ -42,6 +50,7 @@ flags.DEFINE_integer("seed", 7000, "the worlds' reset keys")
 flags.DEFINE_integer("drives", 64, "drives (worlds)")
 flags.DEFINE_integer("seen", 20, "frames the filter sees first")
 flags.DEFINE_integer("hidden", 30, "frames hidden from it after them")
+flags.DEFINE_integer("choose_from", 0, "choose the drives among this many for the world's occlusions (0: no)")
 flags.DEFINE_string("out", None, "the JSON written (default: <workdir>/memory_horizon.json)")
 FLAGS = flags.FLAGS
 
@@ -50,6 +59,14 @@ STANDING_M = 0.5  # a followed vehicle that moved less than this in the town is 
 DRIVES_AT_ONCE = 16  # drives filtered and decoded together (bounds the PIXOR maps' memory)
 REPORTED_K = (1, 2, 3, 5, 10, 15, 20, 30)  # the table's rows (frames since the last seen one)
 RUNS = ("memory", "sight", "chance")
+HYBRIDS = ("grid_kept", "z_kept")  # the grid's decodings with one part from each run (the module's docstring)
+
+
+def hidden_by_the_world(lidar_visible, camera_visible, valid, last_seen: int):
+    """Box-frames per drive [D] after frame ``last_seen`` in which a vehicle that the lidar saw there is in
+    view and seen by neither sensor (each bool [D, T, N])."""
+    hidden = valid[:, last_seen + 1 :] & ~(lidar_visible | camera_visible)[:, last_seen + 1 :]
+    return (hidden & lidar_visible[:, last_seen, None]).sum((1, 2))
 
 
 def main(argv):
@@ -61,6 +78,8 @@ def main(argv):
         )
     if FLAGS.drives < 1 or FLAGS.seen < 1 or FLAGS.hidden < 1:
         raise app.UsageError("--drives, --seen and --hidden must each be >= 1")
+    if FLAGS.choose_from and FLAGS.choose_from < FLAGS.drives:
+        raise app.UsageError(f"--choose_from={FLAGS.choose_from}: must be 0 or at least --drives={FLAGS.drives}")
     _, params, step = checkpoint.restore_params(FLAGS.workdir, cfg)
     town = town_lib.build_town(cfg.world.town_seed)
     frames_per_drive, last_seen = FLAGS.seen + FLAGS.hidden, FLAGS.seen - 1
@@ -71,31 +90,62 @@ def main(argv):
         state = rollout.advance(world.reset(key, town, cfg.world), town, cfg.data.warmup_steps)
         return rollout.drive(state, town, frames_per_drive, cfg.data.image_size)[1]
 
+    filtered_by = jax.jit(
+        lambda camera, lidar, action, observed: model_lib.filter_sequence(
+            params, camera, lidar, action, None, cfg, observed=observed
+        )
+    )
+
     @jax.jit
-    def candidates(camera, lidar, action, observed):
-        filtered = model_lib.filter_sequence(params, camera, lidar, action, None, cfg, observed=observed)
+    def candidates(filtered):
         out = model_lib.decode(params, filtered, cfg)
         return detection.candidates(out["det_cls"], out["det_reg"], detect.top_k, detect.score_floor)[:2]
 
-    keys = jax.random.split(jax.random.PRNGKey(FLAGS.seed), FLAGS.drives)
-    detections = {"memory": [], "sight": []}  # per run, drive and frame from the last seen: (boxes, scores)
+    keys = jax.random.split(jax.random.PRNGKey(FLAGS.seed), FLAGS.choose_from or FLAGS.drives)
+    if FLAGS.choose_from:
+        sees = lambda f: (f.boxes_lidar_visible, f.boxes_camera_visible, f.boxes_valid)
+        counts = np.concatenate(
+            [
+                hidden_by_the_world(*jax.device_get(sees(jax.vmap(record)(keys[i : i + DRIVES_AT_ONCE]))), last_seen)
+                for i in range(0, FLAGS.choose_from, DRIVES_AT_ONCE)
+            ]
+        )
+        keys = keys[np.sort(np.argsort(-counts, kind="stable")[: FLAGS.drives])]
+    runs = ("memory", "sight") + (HYBRIDS if cfg.model.latent == "bev" else ())
+    detections = {run: [] for run in runs}  # per run, drive and frame from the last seen: (boxes, scores)
     truth = []
     for first in range(0, FLAGS.drives, DRIVES_AT_ONCE):
         frames = jax.vmap(record)(keys[first : first + DRIVES_AT_ONCE])
         d = frames.camera.shape[0]
         seen_first = jnp.broadcast_to(jnp.arange(frames_per_drive) <= last_seen, (d, frames_per_drive))
         truth.append(
-            jax.tree.map(np.asarray, (frames.boxes, frames.boxes_valid, frames.pose, frames.boxes_lidar_visible))
+            jax.tree.map(
+                np.asarray,
+                (
+                    frames.boxes,
+                    frames.boxes_valid,
+                    frames.pose,
+                    frames.boxes_lidar_visible | frames.boxes_camera_visible,
+                    frames.boxes_lidar_visible,
+                ),
+            )
         )
-        for run, observed in (("memory", seen_first), ("sight", None)):
-            cand_boxes, cand_scores = jax.device_get(candidates(frames.camera, frames.lidar, frames.action, observed))
+        filtered = {
+            "memory": filtered_by(frames.camera, frames.lidar, frames.action, seen_first),
+            "sight": filtered_by(frames.camera, frames.lidar, frames.action, None),
+        }
+        if "grid_kept" in runs:
+            filtered["grid_kept"] = dict(filtered["sight"], grid=filtered["memory"]["grid"])
+            filtered["z_kept"] = dict(filtered["memory"], grid=filtered["sight"]["grid"])
+        for run in runs:
+            cand_boxes, cand_scores = jax.device_get(candidates(filtered[run]))
             for i in range(d):
                 detections[run].append([])
                 for t in range(last_seen, frames_per_drive):
                     boxes, scores = detection.frame_detections(cand_boxes[i, t], cand_scores[i, t], detect.score_floor)
                     keep = scores >= cfg.eval.score_threshold
                     detections[run][-1].append((boxes[keep], scores[keep]))
-    boxes, valid, pose, lidar_visible = (np.concatenate(x) for x in zip(*truth))
+    boxes, valid, pose, seen_now, lidar_visible = (np.concatenate(x) for x in zip(*truth))
 
     def found_by(dets, drive_of):  # bool [D, frames from the last seen, N]: drive_of(d)'s detections on d
         return np.array(
@@ -119,7 +169,15 @@ def main(argv):
     moved = np.linalg.norm(town_xy[:, last_seen + 1 :] - town_xy[:, last_seen, None], axis=-1)
     after = slice(last_seen + 1, None)
     result = metrics.kept_shares(
-        {run: f[:, 1:] for run, f in found.items()}, valid[:, after], followed, moved < STANDING_M
+        {run: found[run][:, 1:] for run in RUNS}, valid[:, after], followed, moved < STANDING_M
+    )
+    # the world's occlusions, box-frames pooled over k: [D, K, N] -> [D, 1, K N] (k-major, as np.tile repeats)
+    pooled = lambda x: x.reshape(len(x), 1, -1)
+    hidden_by_world = metrics.kept_shares(
+        {run: pooled(found[run][:, 1:]) for run in runs},
+        pooled(valid[:, after] & ~seen_now[:, after]),
+        np.tile(followed, (1, frames_per_drive - FLAGS.seen)),
+        pooled(moved < STANDING_M),
     )
     result = dict(
         workdir=os.path.abspath(FLAGS.workdir),
@@ -129,10 +187,12 @@ def main(argv):
         seen=FLAGS.seen,
         hidden=FLAGS.hidden,
         seed=FLAGS.seed,
+        choose_from=FLAGS.choose_from,
         followed=int(followed.sum()),
         score_threshold=cfg.eval.score_threshold,
         match_iou=MATCH_IOU,
         **result,
+        hidden_by_the_world=hidden_by_world,
     )
     out = FLAGS.out or os.path.join(FLAGS.workdir, "memory_horizon.json")
     with open(out, "w") as f:
@@ -146,6 +206,12 @@ def main(argv):
             s, m = result["standing"], result["moving"]
             cells = [", ".join([str(e["boxes"][k - 1])] + [pct(e[run][k - 1]) for run in RUNS]) for e in (s, m)]
             print(f"| {k} | " + " | ".join(cells) + " |")
+    print("followed vehicles the world hides while the filter sees (box-frames pooled over k):")
+    print("| vehicles | box-frames | " + " | ".join(f"{run} %" for run in runs) + " |")
+    print("|---|---|" + "---|" * len(runs))
+    for name in ("standing", "moving", "all"):
+        e = hidden_by_world[name]
+        print(f"| {name} | {e['boxes'][0]} | " + " | ".join(pct(e[run][0]) for run in runs) + " |")
     print(f"wrote {out}")
 
 

@@ -2,6 +2,7 @@
 against loops and hand-made frames."""
 
 import numpy as np
+from helpers import load_experiment
 
 from e2e_percep_jax import metrics
 
@@ -82,3 +83,20 @@ def test_drives_that_all_agree_give_an_interval_of_one_point():
             low, high = np.array(result[name][f"{run}_interval95"]).T
             np.testing.assert_allclose(low, result[name][run])
             np.testing.assert_allclose(high, result[name][run])
+
+
+def test_the_drives_are_chosen_by_a_box_by_box_count_of_what_the_world_hides():
+    rng = np.random.default_rng(5)
+    d, t, n, last_seen = 5, 9, 6, 3
+    lidar, camera, valid = (rng.random((d, t, n)) < p for p in (0.5, 0.3, 0.8))
+    want = [
+        sum(
+            valid[i, j, v] and not (lidar[i, j, v] or camera[i, j, v]) and lidar[i, last_seen, v]
+            for j in range(last_seen + 1, t)
+            for v in range(n)
+        )
+        for i in range(d)
+    ]
+    np.testing.assert_array_equal(
+        load_experiment("memory_horizon").hidden_by_the_world(lidar, camera, valid, last_seen), want
+    )
