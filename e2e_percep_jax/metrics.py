@@ -495,6 +495,13 @@ class MemoryAccumulator:
         return out
 
 
+def hidden_by_the_world(lidar_visible, camera_visible, valid, last_seen: int):
+    """The memory horizon's choice of drives: box-frames per drive [D] after frame ``last_seen`` in which a
+    vehicle that the lidar saw there is in view and seen by neither sensor (each bool [D, T, N])."""
+    hidden = valid[:, last_seen + 1 :] & ~(lidar_visible | camera_visible)[:, last_seen + 1 :]
+    return (hidden & lidar_visible[:, last_seen, None]).sum((1, 2))
+
+
 def kept_shares(found: dict, in_view, followed, standing, num_resamples: int = 1000) -> dict:
     """The memory horizon (``experiments/memory_horizon.py``): the shares of followed vehicles found k frames
     after the last frame the filter saw, by each run. found: {run:

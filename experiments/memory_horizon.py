@@ -24,7 +24,7 @@ k. For the bird-eye grid, two more decodings of those frames tell the grid from 
 the hidden run's grid (``grid_kept``), and the hidden run's z with the seeing run's grid (``z_kept``). If
 ``grid_kept`` finds what ``sight`` loses, the grid's posterior is what erases an occluded car. Random drives
 hold few such box-frames: ``--choose_from=M`` drives the sensors alone over M reset keys and keeps the
-``--drives`` that hold the most (:func:`hidden_by_the_world`), as the evaluation chooses its detection drives.
+``--drives`` that hold the most (``metrics.hidden_by_the_world``), as the evaluation chooses its detection drives.
 
 The run's detection decoder must read the latent (``--model.detection_input`` latent or grid): one that reads
 the frame's features (``latent_and_features``) would see through the hiding.
@@ -60,13 +60,6 @@ DRIVES_AT_ONCE = 16  # drives filtered and decoded together (bounds the PIXOR ma
 REPORTED_K = (1, 2, 3, 5, 10, 15, 20, 30)  # the table's rows (frames since the last seen one)
 RUNS = ("memory", "sight", "chance")
 HYBRIDS = ("grid_kept", "z_kept")  # the grid's decodings with one part from each run (the module's docstring)
-
-
-def hidden_by_the_world(lidar_visible, camera_visible, valid, last_seen: int):
-    """Box-frames per drive [D] after frame ``last_seen`` in which a vehicle that the lidar saw there is in
-    view and seen by neither sensor (each bool [D, T, N])."""
-    hidden = valid[:, last_seen + 1 :] & ~(lidar_visible | camera_visible)[:, last_seen + 1 :]
-    return (hidden & lidar_visible[:, last_seen, None]).sum((1, 2))
 
 
 def main(argv):
@@ -106,7 +99,9 @@ def main(argv):
         sees = lambda f: (f.boxes_lidar_visible, f.boxes_camera_visible, f.boxes_valid)
         counts = np.concatenate(
             [
-                hidden_by_the_world(*jax.device_get(sees(jax.vmap(record)(keys[i : i + DRIVES_AT_ONCE]))), last_seen)
+                metrics.hidden_by_the_world(
+                    *jax.device_get(sees(jax.vmap(record)(keys[i : i + DRIVES_AT_ONCE]))), last_seen
+                )
                 for i in range(0, FLAGS.choose_from, DRIVES_AT_ONCE)
             ]
         )

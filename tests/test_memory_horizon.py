@@ -1,8 +1,8 @@
-"""The memory horizon's counting (``metrics.matched_scores``, ``metrics.kept_shares``; ``experiments/memory_horizon.py``)
+"""The memory horizon's counting (``metrics.matched_scores``, ``metrics.kept_shares``,
+``metrics.hidden_by_the_world``; ``experiments/memory_horizon.py``)
 against loops and hand-made frames."""
 
 import numpy as np
-from helpers import load_experiment
 
 from e2e_percep_jax import metrics
 
@@ -97,6 +97,4 @@ def test_the_drives_are_chosen_by_a_box_by_box_count_of_what_the_world_hides():
         )
         for i in range(d)
     ]
-    np.testing.assert_array_equal(
-        load_experiment("memory_horizon").hidden_by_the_world(lidar, camera, valid, last_seen), want
-    )
+    np.testing.assert_array_equal(metrics.hidden_by_the_world(lidar, camera, valid, last_seen), want)

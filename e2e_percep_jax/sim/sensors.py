@@ -602,7 +602,8 @@ def occluder_box(vehicle_box_ego, cover, side):
     """A phantom wall [5] (ego frame) across the line of sight to the vehicle ``vehicle_box_ego`` [5],
     halfway to it (at least 3 m from the ego), thick ``OCCLUDER_THICKNESS_M``. At ``cover`` 1 it spans the
     vehicle's bounding circle as seen from the ego, plus ``OCCLUDER_MARGIN_M`` a side: no beam or pixel
-    reaches the vehicle. Below 1 it is that share of its full width, slid in from ``side`` (+1: from the
+    reaches the vehicle while that circle lies beyond the wall (a vehicle that comes within about 6 m of the
+    ego reaches in front of it and shows). Below 1 it is that share of its full width, slid in from ``side`` (+1: from the
     left of the line of sight, -1: from the right), so an occlusion begins with a sliver as a real one does;
     at 0 it is out of every sensor's reach."""
     xy = vehicle_box_ego[:2]
