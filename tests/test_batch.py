@@ -269,7 +269,8 @@ def test_a_phantom_wall_hides_a_vehicle_in_its_shadow_and_it_stays_in_the_target
     # a full wall hides the vehicle while its bounding circle lies beyond the wall (sensors.occluder_box)
     box = walled["boxes"][np.arange(len(vehicle)), :, vehicle]  # [B, T+1, 5]
     distance_m = np.linalg.norm(box[..., :2], axis=-1)
-    beyond = distance_m - 0.5 * np.hypot(box[..., 3], box[..., 4]) >= np.maximum(0.5 * distance_m, 3.0) + 0.5
+    wall_far_face_m = np.maximum(0.5 * distance_m, sensors.OCCLUDER_MIN_RANGE_M) + 0.5 * sensors.OCCLUDER_THICKNESS_M
+    beyond = distance_m - 0.5 * np.hypot(box[..., 3], box[..., 4]) >= wall_far_face_m
     assert ((cover == 1.0) & beyond).any(), "the test needs a vehicle behind a full wall"
     for b in np.flatnonzero(on):
         covered = (cover[b] == 1.0) & beyond[b]

@@ -594,13 +594,14 @@ OUT_OF_REACH_M = -1e4  # where a hidden vehicle's box is put for the sensors: be
 # than the lidar (2.1 m) and every vehicle, so its shadow covers the whole vehicle behind it.
 OCCLUDER_HEIGHT_M = 4.0
 OCCLUDER_THICKNESS_M = 1.0
+OCCLUDER_MIN_RANGE_M = 3.0  # the nearest a wall stands to the ego: beyond the camera (0.8 m ahead) and the ego's nose
 OCCLUDER_MARGIN_M = 1.0  # on each side of the vehicle's shadow at the wall: the camera sits 0.8 m ahead of the lidar
 OCCLUDER_COLOR = (128, 128, 128)
 
 
 def occluder_box(vehicle_box_ego, cover, side):
     """A phantom wall [5] (ego frame) across the line of sight to the vehicle ``vehicle_box_ego`` [5],
-    halfway to it (at least 3 m from the ego), thick ``OCCLUDER_THICKNESS_M``. At ``cover`` 1 it spans the
+    halfway to it (at least ``OCCLUDER_MIN_RANGE_M`` from the ego), thick ``OCCLUDER_THICKNESS_M``. At ``cover`` 1 it spans the
     vehicle's bounding circle as seen from the ego, plus ``OCCLUDER_MARGIN_M`` a side: no beam or pixel
     reaches the vehicle while that circle lies beyond the wall (a vehicle that comes within about 6 m of the
     ego reaches in front of it and shows). Below 1 it is that share of its full width, slid in from ``side`` (+1: from the
@@ -610,7 +611,7 @@ def occluder_box(vehicle_box_ego, cover, side):
     distance_m = jnp.maximum(jnp.linalg.norm(xy), 1e-3)
     along = xy / distance_m
     across = jnp.stack([-along[1], along[0]])  # to the left of the line of sight
-    wall_m = jnp.maximum(0.5 * distance_m, 3.0)
+    wall_m = jnp.maximum(0.5 * distance_m, OCCLUDER_MIN_RANGE_M)
     radius_m = 0.5 * jnp.hypot(vehicle_box_ego[3], vehicle_box_ego[4])
     full_m = 2.0 * (radius_m * wall_m / distance_m + OCCLUDER_MARGIN_M)
     width_m = cover * full_m
