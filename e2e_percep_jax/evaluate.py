@@ -272,6 +272,18 @@ def _program_config(cfg: Config) -> Config:
 
 
 @functools.lru_cache(maxsize=8)
+def default_perceiver(cfg: Config, workdir: str | None):
+    """What :func:`evaluate` drives unless told otherwise: the filtered model of run ``workdir`` (its motion
+    model, and the lidar odometry's calibration fitted first if missing), or the exact bicycle's without one."""
+    if not workdir:
+        return Perceiver(cfg)
+    if cfg.model.histogram_belief:
+        # the lidar odometry moves the belief; on a town the head does not know it is the pose, with its spread
+        ev = cfg.eval
+        calibration.ensure_scans(cfg, workdir, spread=ev.known_start and ev.town_seed != cfg.world.town_seed)
+    return run_perceiver(cfg, workdir)
+
+
 def chunk_program(cfg: Config, perceiver, sample: bool, detect: detection.Settings, heads=None):
     """:func:`make_chunk_fn` once per program config (:func:`_program_config`), perceiver and settings;
     jax.jit then compiles it once per shape of its arguments."""
@@ -360,6 +372,27 @@ def record_detections(cfg: Config, params, perceiver, detect: detection.Settings
     return frames
 
 
+def record_pictured_drive(cfg: Config, params, perceiver, key, detect: detection.Settings = detection.Settings()):
+    """One drive from reset key ``key``, ``cfg.eval.detection_frames`` frames long, driven and detected as
+    :func:`evaluate` drives a detection drive (alone, so it is the pictured world every frame): a list per
+    frame of dicts (NumPy) holding the frame's images (camera, lidar, roadmap, and the perceiver's
+    ``recon_<name>`` where it has them), its true boxes, boxes_valid and boxes_group, and the detections after
+    NMS, ``pred_boxes`` [M, 5] and ``pred_scores`` [M]. For pictures of a chosen moment of a drive."""
+    town = town_lib.build_town(cfg.eval.town_seed)
+    program = chunk_program(_program_config(cfg), perceiver, False, detect)
+    sample_root = jax.random.fold_in(jax.random.PRNGKey(cfg.eval.seed), SAMPLE_STREAM)
+    frames = []
+    keys = jnp.asarray(key)[None]
+    for out, rows in _drive_chunks(program, params, perceiver, keys, town, cfg, cfg.eval.detection_frames, sample_root):
+        pictured = [k for k in out if k in ("camera", "lidar", "roadmap") or k.startswith("recon_")]
+        for t, _ in rows:
+            boxes, scores = _frame_boxes(out, t, 0, detect)
+            frame = {k: out[k][t, 0] for k in pictured}  # [C, 2, ...]: world 0 is the first pictured
+            frame.update({k: out[k][t, 0] for k in ("boxes", "boxes_valid", "boxes_group")})
+            frames.append(dict(frame, pred_boxes=boxes, pred_scores=scores))
+    return frames
+
+
 class _Progress:
     """One log line per chunk: frames scored of all, their rate (chunks of driven frames only) and the time
     left."""
@@ -433,10 +466,7 @@ def evaluate(
     filtered = filtered and cfg.model.histogram_belief
     program_cfg = _program_config(cfg)
     if perceiver is None:
-        if workdir and cfg.model.histogram_belief:
-            # the lidar odometry moves the belief; on a town the head does not know it is the pose, with its spread
-            calibration.ensure_scans(cfg, workdir, spread=ev.known_start and ev.town_seed != cfg.world.town_seed)
-        perceiver = run_perceiver(program_cfg, workdir) if workdir else Perceiver(program_cfg)
+        perceiver = default_perceiver(program_cfg, workdir)
     program = chunk_program(program_cfg, perceiver, sample, detect, heads)
     sample_root = jax.random.fold_in(jax.random.PRNGKey(ev.seed), SAMPLE_STREAM)
     det_keys, det_remembered = detection_start_keys(cfg, town) if num_det else (None, None)

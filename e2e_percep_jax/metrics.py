@@ -502,6 +502,37 @@ def hidden_by_the_world(lidar_visible, camera_visible, valid, last_seen: int):
     return (hidden & lidar_visible[:, last_seen, None]).sum((1, 2))
 
 
+class Occlusion(NamedTuple):
+    """One vehicle hidden from both sensors after the lidar saw it (:func:`occlusions`): its box ``slot``, the
+    first ``frame`` it is hidden, the ``hidden`` frames it stays in the remembered group, the score of the
+    detection matched to it in the frame before (``score_before``, -inf for none) and in each hidden frame
+    (``scores`` float [hidden])."""
+
+    slot: int
+    frame: int
+    hidden: int
+    score_before: float
+    scores: np.ndarray
+
+
+def occlusions(group, valid, score, min_hidden: int) -> list:
+    """Every stretch of at least ``min_hidden`` frames in which a vehicle is remembered right after a frame in
+    which the lidar saw it, for one drive: ``group`` int [T, N] (indices into :data:`GROUPS`), ``valid`` bool
+    [T, N], ``score`` float [T, N] (each box's matched detection score, :func:`matched_scores`; -inf for none),
+    boxes in their vehicle slots. Ordered by slot, then frame."""
+    remembered = np.asarray(valid, bool) & (np.asarray(group) == GROUPS.index("remembered"))
+    lidar = np.asarray(valid, bool) & (np.asarray(group) == GROUPS.index("lidar"))
+    events = []
+    for slot in range(remembered.shape[1]):
+        for frame in np.nonzero(lidar[:-1, slot] & remembered[1:, slot])[0] + 1:
+            ends = np.nonzero(~remembered[frame:, slot])[0]
+            hidden = int(ends[0]) if len(ends) else remembered.shape[0] - frame
+            if hidden >= min_hidden:
+                scores = np.asarray(score[frame : frame + hidden, slot], np.float64)
+                events.append(Occlusion(slot, int(frame), hidden, float(score[frame - 1, slot]), scores))
+    return events
+
+
 def kept_shares(found: dict, in_view, followed, standing, num_resamples: int = 1000) -> dict:
     """The memory horizon (``experiments/memory_horizon.py``): the shares of followed vehicles found k frames
     after the last frame the filter saw, by each run. found: {run:

@@ -6,7 +6,8 @@
   (cyan, brighter for higher scores) over the dimmed roadmap;
 - the town map of a drive (:func:`map_panel`): its true path, the estimates and the pose belief;
 - an evaluation's pictures: the paper's Fig. 6 rows (:func:`example_rows`) and the PR curves
-  (:func:`pr_curves_image`), drawn by :func:`line_chart`, as the learning curves are.
+  (:func:`pr_curves_image`), drawn by :func:`line_chart`, as the learning curves are;
+- one vehicle passing out of both sensors' sight, frame by frame (:func:`occlusion_strip`).
 """
 
 import cv2
@@ -270,6 +271,52 @@ def example_rows(frame, pred_boxes, pred_scores, panel_px=192):
         view = bottom[:, i * panel_px : (i + 1) * panel_px]
         title(view, name if key is None or f"recon_{key}" in frame else f"{name}: not decoded")
     return np.concatenate([top, bottom], 0)
+
+
+FOLLOWED_RGB = (255, 255, 255)  # the vehicle an occlusion strip follows
+
+
+def strip_frames(occlusion: metrics_lib.Occlusion, num_frames: int, columns: int = 7) -> list:
+    """The frames an occlusion strip shows: the two before the vehicle is hidden, ``columns`` - 3 spread
+    over its hidden stretch (first and last included), and the frame after it, within the drive's
+    ``num_frames``."""
+    start, hidden = occlusion.frame, occlusion.hidden
+    inside = np.linspace(start, start + hidden - 1, max(columns - 3, 2)).round().astype(int)
+    frames = [start - 2, start - 1, *inside, start + hidden]
+    return sorted({f for f in frames if 0 <= f < num_frames})
+
+
+def occlusion_strip(frames, occlusion: metrics_lib.Occlusion, score_threshold: float, panel_px: int = 160):
+    """uint8 [3 * panel_px, C * panel_px, 3]: one vehicle passing out of both sensors' sight, frame by frame
+    (:func:`strip_frames`, one column each). Rows: the camera; the lidar; the decoded boxes (cyan, brighter
+    for higher scores) over the reconstructed roadmap (else the true one, dimmed) with the true boxes in
+    their groups' colours. The followed vehicle is outlined in white in the lidar and boxes rows, and each
+    column's title counts frames from the last one in which the lidar saw it and says who sees it now and
+    whether a detection at ``score_threshold`` or above is matched to it (IoU 0.1).
+    ``frames``: a drive as :func:`evaluate.record_pictured_drive` records it."""
+    up = lambda im, how: cv2.resize(np.asarray(im), (panel_px, panel_px), interpolation=how)
+    thickness = max(2, panel_px // 80)
+    columns = []
+    for f in strip_frames(occlusion, len(frames)):
+        frame = frames[f]
+        followed = np.asarray(frame["boxes"])[occlusion.slot]
+        lidar = draw_boxes(up(frame["lidar"], cv2.INTER_NEAREST), followed, FOLLOWED_RGB, thickness)
+        roadmap = frame.get("recon_roadmap")
+        roadmap = up(frame["roadmap"], cv2.INTER_NEAREST) // 2 if roadmap is None else up(roadmap, cv2.INTER_LINEAR)
+        boxes = draw_ground_truth(roadmap, frame)
+        draw_predictions(boxes, frame["pred_boxes"], frame["pred_scores"])
+        draw_boxes(boxes, followed, FOLLOWED_RGB, thickness)
+        valid = bool(np.asarray(frame["boxes_valid"])[occlusion.slot])
+        score = metrics_lib.matched_scores(
+            frame["pred_boxes"], frame["pred_scores"], followed[None], np.array([valid]), 0.1
+        )[0]
+        group = metrics_lib.GROUPS[box_groups(frame)[occlusion.slot]] if valid else "out of view"
+        found = f"found {score:.2f}" if score >= score_threshold else "not found"
+        column = np.concatenate([up(frame["camera"], cv2.INTER_LINEAR), lidar, boxes], 0)
+        # frames counted from the last one in which the lidar saw the vehicle
+        title(column, f"{f - occlusion.frame + 1:+d} {group}, {found}")
+        columns.append(column)
+    return np.concatenate(columns, 1)
 
 
 def line_chart(series, title, x_label, x_range, y_range, log_y=False, size=360):

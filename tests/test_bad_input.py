@@ -53,13 +53,13 @@ def length(line):
 
 
 class Case(NamedTuple):
-    """``target``: train | evaluate (the launchers, with ``args`` their flags), load (``e2e.load`` with
+    """``target``: train | evaluate | occlusion_strip (the launchers, with ``args`` their flags), load (``e2e.load`` with
     ``args`` its keywords), init | init under jit | init traced (``Perceiver.init(*args)``; under jit with
     the batch size static, or traced), step | step under jit (``Perceiver.step``, ``args`` replacing some
     of its good inputs, each made by a function), accepted (a step that must succeed and equal the same
     step on float32 arrays). ``expect``: how the error message starts, or with a leading "…" a part of
     it. ``damage``: what is done to the run copied for the row (:func:`damage`); launcher rows without it
-    get a fresh --workdir (train) or an intact copy (evaluate). ``env``: more environment for a launcher."""
+    get a fresh --workdir (train) or an intact copy (the others). ``env``: more environment for a launcher."""
 
     target: str
     args: Any
@@ -234,6 +234,16 @@ CASES = {
     "evaluate negative town seed": Case("evaluate", ["--eval.town_seed=-1"], "--eval.town_seed=-1: must be >= 0"),
     "evaluate no workdir": Case("evaluate", ["--workdir="], "--workdir is required"),
     "evaluate not a run": Case("evaluate", ["--workdir=/nonexistent/run"], "/nonexistent/run: no config.json"),
+    # ---------------------------------------------------------------- experiments/occlusion_strip.py on the run
+    "occlusion strip drives": Case(
+        "occlusion_strip", ["--drives=0"], "--drives=0 and --min_hidden=10 must each be >= 1"
+    ),
+    "occlusion strip without detection drives": Case(
+        "occlusion_strip", [], "…: its evaluation has no detection drives to search"
+    ),
+    "occlusion strip not a run": Case(
+        "occlusion_strip", ["--workdir=/nonexistent/run"], "/nonexistent/run: no config.json"
+    ),
 }
 # Every damaged run through both readers, e2e.load and the evaluation launcher: each names the checkpoint or the
 # config.json it could not use (training's resume is in the "train resume" rows above and the tests at the end).
@@ -342,7 +352,7 @@ CASES.update(
         "accepted: action as float64": Case("accepted", {"action": lambda: np.array([[0.5, -0.1], [0.0, 0.2]])}),
     }
 )
-LAUNCHERS = ("train", "evaluate")
+LAUNCHERS = ("train", "evaluate", "occlusion_strip")
 
 
 # ----------------------------------------------------------------------------- the run and its damages
@@ -453,7 +463,7 @@ def launched(run, tmp_path_factory):
         if case.target not in LAUNCHERS:
             continue
         workdir = str(root / str(i))
-        if case.damage is not None or case.target == "evaluate":
+        if case.damage is not None or case.target != "train":  # the others read the trained run
             shutil.copytree(run[0], workdir)
             damage(workdir, case.damage or "none", run[1])
         started[name] = (pool.submit(_launcher_run, case, workdir, env), snapshot(workdir))

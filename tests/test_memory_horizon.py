@@ -1,5 +1,6 @@
 """The memory horizon's counting (``metrics.matched_scores``, ``metrics.kept_shares``,
-``metrics.hidden_by_the_world``; ``experiments/memory_horizon.py``)
+``metrics.hidden_by_the_world``; ``experiments/memory_horizon.py``) and the occlusions the strips
+follow (``metrics.occlusions``; ``experiments/occlusion_strip.py``)
 against loops and hand-made frames."""
 
 import numpy as np
@@ -98,3 +99,47 @@ def test_the_drives_are_chosen_by_a_box_by_box_count_of_what_the_world_hides():
         for i in range(d)
     ]
     np.testing.assert_array_equal(metrics.hidden_by_the_world(lidar, camera, valid, last_seen), want)
+
+
+def _occlusions_looped(group, valid, score, min_hidden):
+    lidar, remembered = metrics.GROUPS.index("lidar"), metrics.GROUPS.index("remembered")
+    found = []
+    t_len, n = group.shape
+    for slot in range(n):
+        for t in range(1, t_len):
+            if valid[t - 1, slot] and group[t - 1, slot] == lidar and valid[t, slot] and group[t, slot] == remembered:
+                h = 0
+                while t + h < t_len and valid[t + h, slot] and group[t + h, slot] == remembered:
+                    h += 1
+                if h >= min_hidden:
+                    found.append((slot, t, h, score[t - 1, slot], list(score[t : t + h, slot])))
+    return found
+
+
+def test_occlusions_are_the_remembered_stretches_right_after_the_lidar_by_hand_and_by_a_loop():
+    lidar, camera, remembered, unseen = range(4)
+    group = np.array(
+        [
+            [lidar, lidar, remembered, remembered, remembered, lidar, remembered, remembered],
+            [unseen, camera, remembered, remembered, remembered, remembered, remembered, remembered],
+        ]
+    ).T  # [T, N]: slot 1 was last seen by the camera, never hidden after the lidar
+    valid = np.ones_like(group, bool)
+    score = np.arange(16, dtype=float).reshape(8, 2)
+    events = metrics.occlusions(group, valid, score, min_hidden=2)
+    assert [(e.slot, e.frame, e.hidden, e.score_before) for e in events] == [(0, 2, 3, 2.0), (0, 6, 2, 10.0)]
+    np.testing.assert_array_equal(events[0].scores, [4.0, 6.0, 8.0])
+    assert [(e.frame, e.hidden) for e in metrics.occlusions(group, valid, score, min_hidden=3)] == [(2, 3)]
+    valid[3, 0] = False  # out of view in the middle: the stretch ends there
+    assert [(e.frame, e.hidden) for e in metrics.occlusions(group, valid, score, min_hidden=1)] == [(2, 1), (6, 2)]
+
+    rng = np.random.default_rng(5)
+    for _ in range(30):
+        group = rng.choice(4, size=(40, 6), p=[0.3, 0.1, 0.5, 0.1])
+        valid = rng.random((40, 6)) < 0.9
+        score = rng.random((40, 6))
+        got = [
+            (e.slot, e.frame, e.hidden, e.score_before, list(e.scores))
+            for e in metrics.occlusions(group, valid, score, 2)
+        ]
+        assert got == _occlusions_looped(group, valid, score, 2)

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from e2e_percep_jax import pictures
+from e2e_percep_jax import metrics, pictures
 from e2e_percep_jax.sim import geometry as geo
 
 VIEW_PX = 256  # the panel is drawn at a higher resolution than any frame; R only sets the scale below
@@ -180,3 +180,39 @@ def test_line_chart_legend_keeps_each_text_clear_of_its_neighbour():
     long = "cpu-no_roadmap_recon-constant-rate-and-more"
     (row_a, col_a), (row_b, col_b) = swatches([long, long])
     assert col_a == col_b and row_b > row_a  # one under the other
+
+
+def test_an_occlusion_strip_shows_the_two_frames_before_its_hidden_stretch_spread_and_the_one_after():
+    occ = metrics.Occlusion(slot=0, frame=10, hidden=8, score_before=0.9, scores=np.zeros(8))
+    # linspace(10, 17, 4) = 10, 12.33, 14.67, 17
+    assert pictures.strip_frames(occ, num_frames=30) == [8, 9, 10, 12, 15, 17, 18]
+    assert pictures.strip_frames(occ._replace(frame=1, hidden=3), num_frames=4) == [0, 1, 2, 3]
+
+
+def test_an_occlusion_strip_outlines_the_followed_vehicle_in_every_column_where_it_stands():
+    """Each column's lidar and boxes rows show the white outline on the followed box's pixels: its edge's
+    centre, as the geometry module projects it, lies on a lit white pixel; a column without the vehicle in
+    view (its box moved out of the view) has no white outline."""
+    panel_px, frames = 96, []
+    for t in range(5):
+        frame = _one_box_per_group()
+        frame.pop("boxes_lidar_visible")
+        frame["boxes_group"] = np.array([0 if t < 2 else 2, 1, 2, 3])
+        frame.update(
+            pred_boxes=frame["boxes"][:1] if t < 3 else np.zeros((0, 5)), pred_scores=np.ones(1 if t < 3 else 0)
+        )
+        frames.append(frame)
+    frames[4]["boxes"] = frames[4]["boxes"] + [100.0, 0, 0, 0, 0]  # driven out of the view
+    occ = metrics.Occlusion(slot=0, frame=2, hidden=2, score_before=1.0, scores=np.array([1.0, -np.inf]))
+    strip = pictures.occlusion_strip(frames, occ, score_threshold=0.5, panel_px=panel_px)
+    assert strip.shape == (3 * panel_px, 5 * panel_px, 3)  # frames 0-3 and the one after
+    white = lambda view: np.all(view >= 250, -1)
+    # the middle of the box's right side (its y - width / 2), in panel pixels
+    edge = geo.ego_to_bev_px(np.array(BOX[:2]) + 1.0 * np.array([np.sin(BOX[2]), -np.cos(BOX[2])]), panel_px)
+    row, col = np.floor(edge).astype(int)
+    for c in range(5):
+        column = strip[:, c * panel_px : (c + 1) * panel_px]
+        for r in (1, 2):  # the lidar and boxes rows
+            view = column[r * panel_px : (r + 1) * panel_px]
+            near = white(view[row - 1 : row + 2, col - 1 : col + 2]).any()
+            assert near == (c < 4), (c, r)
