@@ -271,7 +271,6 @@ def _program_config(cfg: Config) -> Config:
     )
 
 
-@functools.lru_cache(maxsize=8)
 def default_perceiver(cfg: Config, workdir: str | None):
     """What :func:`evaluate` drives unless told otherwise: the filtered model of run ``workdir`` (its motion
     model, and the lidar odometry's calibration fitted first if missing), or the exact bicycle's without one."""
@@ -284,6 +283,7 @@ def default_perceiver(cfg: Config, workdir: str | None):
     return run_perceiver(cfg, workdir)
 
 
+@functools.lru_cache(maxsize=8)
 def chunk_program(cfg: Config, perceiver, sample: bool, detect: detection.Settings, heads=None):
     """:func:`make_chunk_fn` once per program config (:func:`_program_config`), perceiver and settings;
     jax.jit then compiles it once per shape of its arguments."""

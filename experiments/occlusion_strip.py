@@ -55,7 +55,7 @@ def main(argv):
     most = least = None  # (share of hidden frames found, hidden frames, drive, occlusion, frames)
     for drive in busiest[: FLAGS.drives]:
         frames = eval_lib.record_pictured_drive(cfg, params, perceiver, keys[drive])
-        stacked = {k: np.stack([f[k] for f in frames]) for k in ("boxes", "boxes_valid", "boxes_group")}
+        stacked = {k: np.stack([f[k] for f in frames]) for k in ("boxes_valid", "boxes_group")}
         score = np.stack(
             [
                 metrics.matched_scores(f["pred_boxes"], f["pred_scores"], f["boxes"], f["boxes_valid"], MATCH_IOU)
