@@ -202,6 +202,13 @@ class EvalConfig:
     town_seed: int = DEFAULT_TOWN_SEED
     chunk_steps: int = 100  # world steps (warm-up or frames) per scanned chunk; memory is flat in num_frames
     score_threshold: float = 0.5
+    # How PIXOR maps become scored boxes (e2e_percep_jax.detection): top_k candidates a frame kept on the
+    # device, the lowest score accumulated into the PR curves, the greedy NMS's rotated-IoU threshold (0.1
+    # lifts the remembered group's AP: BUILD_NOTES, "A tighter NMS"). Part of the protocol: a change names
+    # its own directory.
+    top_k: int = 64
+    score_floor: float = 0.05
+    nms_iou: float = 0.3
     # The pose protocol: False = global (the belief starts uniform over the town); True = known start (the
     # belief starts at each drive's true first pose, then follows the actions alone: odometry).
     known_start: bool = False
@@ -488,6 +495,12 @@ def validate(cfg: Config) -> Config:
         )
     if not 0.0 < cfg.eval.score_threshold < 1.0:
         raise ValueError(f"--eval.score_threshold={cfg.eval.score_threshold}: must lie in (0, 1)")
+    if cfg.eval.top_k < 1:
+        raise ValueError(f"--eval.top_k={cfg.eval.top_k}: must be positive")
+    if not 0.0 <= cfg.eval.score_floor < 1.0:
+        raise ValueError(f"--eval.score_floor={cfg.eval.score_floor}: must lie in [0, 1)")
+    if not 0.0 < cfg.eval.nms_iou <= 1.0:
+        raise ValueError(f"--eval.nms_iou={cfg.eval.nms_iou}: must lie in (0, 1]")
     return cfg
 
 

@@ -14,35 +14,22 @@ with the model):
 
 The host then keeps candidates with score >= ``score_floor`` whose centre lies in the BEV view (the
 same rule that makes a ground truth valid, ``geometry.in_bev_view``) and runs greedy NMS on exact
-rotated IoU (``nms_iou``): :func:`frame_detections`. The inference API's ``Perceiver.boxes`` decodes
+rotated IoU (``nms_iou``): :func:`frame_detections`. The three settings are the evaluation's
+(``eval.top_k``, ``eval.score_floor``, ``eval.nms_iou``: part of its protocol). The inference API's ``Perceiver.boxes`` decodes
 whole maps at one score threshold instead: :func:`thresholded_boxes`.
 """
-
-import dataclasses
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from e2e_percep_jax import metrics as metrics_lib
+from e2e_percep_jax.config import EvalConfig
 from e2e_percep_jax.sim import geometry as geo
 from e2e_percep_jax.sim import pixor
 
 DEDUP_CELL_M = 0.5
-TOP_K = 64
-SCORE_FLOOR = 0.05
-NMS_IOU = metrics_lib.NMS_IOU
-
-
-@dataclasses.dataclass(frozen=True)
-class Settings:
-    """How the evaluation turns PIXOR maps into detections: ``top_k`` candidates per frame kept on the
-    device, the lowest score accumulated into the PR curves (``score_floor``) and the NMS's rotated-IoU
-    threshold (``nms_iou``)."""
-
-    top_k: int = TOP_K
-    score_floor: float = SCORE_FLOOR
-    nms_iou: float = NMS_IOU
+NMS_IOU = EvalConfig.nms_iou  # the evaluation's, and the inference API's by default
 
 
 def candidates(det_cls, det_reg, top_k: int, floor: float):
@@ -76,7 +63,7 @@ def candidates(det_cls, det_reg, top_k: int, floor: float):
     return top_boxes, top, top[..., -1] >= floor
 
 
-def frame_detections(cand_boxes, cand_scores, floor=SCORE_FLOOR, nms_iou=NMS_IOU):
+def frame_detections(cand_boxes, cand_scores, floor: float, nms_iou: float):
     """One frame's candidates ``[k, 5]``, ``[k]`` (NumPy) -> (boxes ``[M, 5]``, scores ``[M]``) after the
     score floor, the BEV-view rule (``geometry.in_bev_view``) and greedy rotated NMS at
     ``nms_iou``, highest score first."""

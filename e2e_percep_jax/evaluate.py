@@ -165,14 +165,14 @@ def _to_uint8(image):
     return (jnp.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(jnp.uint8)
 
 
-def make_chunk_fn(cfg: Config, town, perceiver, sample: bool, detect: detection.Settings, heads=None):
+def make_chunk_fn(cfg: Config, town, perceiver, sample: bool, heads=None):
     """Jitted ``chunk(params, world_state, perceiver_state, since, key, warm) -> (world_state,
     perceiver_state, since, out)``: ``cfg.eval.chunk_steps`` frames of all E worlds
     (:func:`rollout.drive_perceiving`; ``since``: frames since each vehicle was seen), the chunk's first
     ``warm`` frames only stepping the worlds (traffic warm-up). jax.jit's own cache keeps one compiled
     program per E and params' shapes.
 
-    ``out`` holds per frame [C, E, ...]: cand_boxes [k, 5], cand_scores [k] (k = ``detect.top_k``),
+    ``out`` holds per frame [C, E, ...]: cand_boxes [k, 5], cand_scores [k] (k = ``eval.top_k``),
     saturated, the true boxes / boxes_valid, boxes_group (each box's index into ``metrics.GROUPS``) and
     pose, pose_pred (metres) and pose_nll
     (the perceiver's negative log-likelihood of the true pose, NaN if it has none); ``pictured`` int32
@@ -208,7 +208,7 @@ def make_chunk_fn(cfg: Config, town, perceiver, sample: bool, detect: detection.
         if heads is not None:
             outputs = heads(outputs, frame)
         cand_boxes, cand_scores, saturated = detection.candidates(
-            outputs.det_cls, outputs.det_reg, detect.top_k, detect.score_floor
+            outputs.det_cls, outputs.det_reg, cfg.eval.top_k, cfg.eval.score_floor
         )
         nll = jnp.full(frame["pose"].shape[:1], jnp.nan) if pose_nll is None else pose_nll(pstate, frame["pose"])
         cover = (
@@ -264,11 +264,10 @@ def make_chunk_fn(cfg: Config, town, perceiver, sample: bool, detect: detection.
 
 def _program_config(cfg: Config) -> Config:
     """``cfg`` with the evaluation fields the chunk program does not read at their defaults: evaluations that
-    differ only in frames, seeds, drives or thresholds share one program."""
+    differ only in frames, seeds, drives, the operating score or the NMS share one program."""
     ev = cfg.eval
-    return dataclasses.replace(
-        cfg, eval=EvalConfig(chunk_steps=ev.chunk_steps, town_seed=ev.town_seed, known_start=ev.known_start)
-    )
+    kept = ("chunk_steps", "town_seed", "known_start", "top_k", "score_floor")
+    return dataclasses.replace(cfg, eval=EvalConfig(**{name: getattr(ev, name) for name in kept}))
 
 
 def default_perceiver(cfg: Config, workdir: str | None):
@@ -284,10 +283,10 @@ def default_perceiver(cfg: Config, workdir: str | None):
 
 
 @functools.lru_cache(maxsize=8)
-def chunk_program(cfg: Config, perceiver, sample: bool, detect: detection.Settings, heads=None):
-    """:func:`make_chunk_fn` once per program config (:func:`_program_config`), perceiver and settings;
+def chunk_program(cfg: Config, perceiver, sample: bool, heads=None):
+    """:func:`make_chunk_fn` once per program config (:func:`_program_config`), perceiver, sampling and heads;
     jax.jit then compiles it once per shape of its arguments."""
-    return make_chunk_fn(cfg, town_lib.build_town(cfg.eval.town_seed), perceiver, sample, detect, heads)
+    return make_chunk_fn(cfg, town_lib.build_town(cfg.eval.town_seed), perceiver, sample, heads)
 
 
 def _drive_chunks(program, params, perceiver, keys, town, cfg: Config, num_frames: int, sample_root):
@@ -329,12 +328,10 @@ def _detection_drives(program, params, perceiver, keys, town, cfg: Config, sampl
             yield out, rows, drives
 
 
-def _frame_boxes(out, t, w, detect: detection.Settings):
+def _frame_boxes(out, t, w, ev: EvalConfig):
     """(boxes [M, 5], scores [M]) of frame t of world w in a chunk's outputs: its candidates after the score
-    floor and NMS (``detection.frame_detections``), as every evaluation and recording scores them."""
-    return detection.frame_detections(
-        out["cand_boxes"][t, w], out["cand_scores"][t, w], detect.score_floor, detect.nms_iou
-    )
+    floor and NMS of ``ev`` (``detection.frame_detections``), as every evaluation and recording scores them."""
+    return detection.frame_detections(out["cand_boxes"][t, w], out["cand_scores"][t, w], ev.score_floor, ev.nms_iou)
 
 
 class RecordedFrame(NamedTuple):
@@ -350,7 +347,7 @@ class RecordedFrame(NamedTuple):
     boxes_group: np.ndarray
 
 
-def record_detections(cfg: Config, params, perceiver, detect: detection.Settings = detection.Settings(), log=print):
+def record_detections(cfg: Config, params, perceiver, log=print):
     """``perceiver``'s detections on ``cfg``'s detection drives (``cfg.eval.detection_drives`` >= 1),
     driven, detected and grouped as :func:`evaluate` does, before any host-side step: a list per drive of
     :class:`RecordedFrame`. For tuning a ``host_fn`` (a tracker) on drives an evaluation does not use: the
@@ -358,7 +355,7 @@ def record_detections(cfg: Config, params, perceiver, detect: detection.Settings
     if cfg.eval.detection_drives < 1:
         raise ValueError(f"--eval.detection_drives={cfg.eval.detection_drives}: recording needs detection drives")
     town = town_lib.build_town(cfg.eval.town_seed)
-    program = chunk_program(_program_config(cfg), perceiver, False, detect)
+    program = chunk_program(_program_config(cfg), perceiver, False)
     keys, _ = detection_start_keys(cfg, town)
     sample_root = jax.random.fold_in(jax.random.PRNGKey(cfg.eval.seed), SAMPLE_STREAM)
     frames = [[] for _ in keys]
@@ -367,26 +364,26 @@ def record_detections(cfg: Config, params, perceiver, detect: detection.Settings
         for t, _ in rows:
             for w, d in enumerate(drives):
                 truth = (out[k][t, w] for k in ("pose", "boxes", "boxes_valid", "boxes_group"))
-                frames[d].append(RecordedFrame(*_frame_boxes(out, t, w, detect), *truth))
+                frames[d].append(RecordedFrame(*_frame_boxes(out, t, w, cfg.eval), *truth))
         progress.chunk(len(rows) * len(drives), f"recorded drives {drives[0] + 1}-{drives[-1] + 1}")
     return frames
 
 
-def record_pictured_drive(cfg: Config, params, perceiver, key, detect: detection.Settings = detection.Settings()):
+def record_pictured_drive(cfg: Config, params, perceiver, key):
     """One drive from reset key ``key``, ``cfg.eval.detection_frames`` frames long, driven and detected as
     :func:`evaluate` drives a detection drive (alone, so it is the pictured world every frame): a list per
     frame of dicts (NumPy) holding the frame's images (camera, lidar, roadmap, and the perceiver's
     ``recon_<name>`` where it has them), its true boxes, boxes_valid and boxes_group, and the detections after
     NMS, ``pred_boxes`` [M, 5] and ``pred_scores`` [M]. For pictures of a chosen moment of a drive."""
     town = town_lib.build_town(cfg.eval.town_seed)
-    program = chunk_program(_program_config(cfg), perceiver, False, detect)
+    program = chunk_program(_program_config(cfg), perceiver, False)
     sample_root = jax.random.fold_in(jax.random.PRNGKey(cfg.eval.seed), SAMPLE_STREAM)
     frames = []
     keys = jnp.asarray(key)[None]
     for out, rows in _drive_chunks(program, params, perceiver, keys, town, cfg, cfg.eval.detection_frames, sample_root):
         pictured = [k for k in out if k in ("camera", "lidar", "roadmap") or k.startswith("recon_")]
         for t, _ in rows:
-            boxes, scores = _frame_boxes(out, t, 0, detect)
+            boxes, scores = _frame_boxes(out, t, 0, cfg.eval)
             frame = {k: out[k][t, 0] for k in pictured}  # [C, 2, ...]: world 0 is the first pictured
             frame.update({k: out[k][t, 0] for k in ("boxes", "boxes_valid", "boxes_group")})
             frames.append(dict(frame, pred_boxes=boxes, pred_scores=scores))
@@ -424,7 +421,6 @@ def evaluate(
     sample: bool = False,
     video_frames: int = 300,
     num_examples: int = 2,
-    detect: detection.Settings = detection.Settings(),
     workdir: str | None = None,
     checkpoint_step: int | None = None,
     heads=None,
@@ -441,8 +437,8 @@ def evaluate(
     :class:`~e2e_percep_jax.api.PerceiverOutputs`), and optionally ``pose_nll(state, pose)`` and
     ``pose_coverage(state, pose)`` (default: the filtered model, with the motion model of the run in
     ``workdir``, or the exact bicycle without one: :func:`api.run_perceiver`);
-    ``sample``: latents sampled, not their means; ``detect``: the candidates, score floor and NMS
-    (:class:`detection.Settings`); ``heads``: see :func:`make_chunk_fn`; ``host_fn(d)``, called once per
+    ``sample``: latents sampled, not their means (the candidates, score floor and NMS are ``cfg.eval``'s);
+    ``heads``: see :func:`make_chunk_fn`; ``host_fn(d)``, called once per
     drive d before it starts (the pose drives 0..E-1, then detection's E..E+D-1), returns a function
     ``(boxes [M, 5], scores [M], pose_pred [5], pose [5]) -> (boxes, scores, pose_pred)`` that
     post-processes each of that drive's frames in order, after NMS and before scoring (pose: the frame's true
@@ -467,13 +463,13 @@ def evaluate(
     program_cfg = _program_config(cfg)
     if perceiver is None:
         perceiver = default_perceiver(program_cfg, workdir)
-    program = chunk_program(program_cfg, perceiver, sample, detect, heads)
+    program = chunk_program(program_cfg, perceiver, sample, heads)
     sample_root = jax.random.fold_in(jax.random.PRNGKey(ev.seed), SAMPLE_STREAM)
     det_keys, det_remembered = detection_start_keys(cfg, town) if num_det else (None, None)
     if num_det:
         log(f"eval: detection's {num_det} drives chosen of {max(ev.detection_pool, num_det)} candidates")
     progress = _Progress(ev.num_frames + num_det * ev.detection_frames, log)
-    scores = _Scores(cfg, town, out_dir, per_world, detect, video_frames=video_frames, num_examples=num_examples)
+    scores = _Scores(cfg, town, out_dir, per_world, video_frames=video_frames, num_examples=num_examples)
 
     t0 = time.perf_counter()
     hosts = None if host_fn is None else [host_fn(w) for w in range(e)]
@@ -533,9 +529,9 @@ class _Scores:
     true and estimated poses, errors, the belief's NLL of the truth and its 95 % regions' coverage; the
     pictures. ``per_world`` [E]: each pose drive's frames to score."""
 
-    def __init__(self, cfg: Config, town, out_dir: str, per_world, detect, *, video_frames: int, num_examples: int):
+    def __init__(self, cfg: Config, town, out_dir: str, per_world, *, video_frames: int, num_examples: int):
         e, n = len(per_world), per_world.max()
-        self.cfg, self.per_world, self.detect = cfg, per_world, detect
+        self.cfg, self.per_world = cfg, per_world
         self.det = metrics_lib.DetectionAccumulator(IOU_THRESHOLDS)
         self.memory = metrics_lib.MemoryAccumulator(cfg.eval.score_threshold)
         self.pose = metrics_lib.PoseErrorAccumulator()
@@ -557,7 +553,7 @@ class _Scores:
         """Frame t of world w's boxes and scores after NMS and ``host``, and the pose ``host`` replaces (None
         for none)."""
         self.saturated += bool(out["saturated"][t, w])
-        boxes, scores = _frame_boxes(out, t, w, self.detect)
+        boxes, scores = _frame_boxes(out, t, w, self.cfg.eval)
         return (boxes, scores, None) if host is None else host(boxes, scores, out["pose_pred"][t, w], out["pose"][t, w])
 
     def _score_boxes(self, out, t, w, boxes, scores, drive, frame):
@@ -595,7 +591,7 @@ class _Scores:
         """metrics.json's detection, pose and baseline sections (``has_cover``: whether the perceiver has a
         belief whose regions were counted; ``remembered_chosen``: the remembered boxes of each detection drive
         chosen, None without detection drives)."""
-        ev, detect = self.cfg.eval, self.detect
+        ev = self.cfg.eval
         scored = lambda values: [v[:n] for v, n in zip(values, self.per_world)]
         drives_true, drives_pred = scored(self.true), scored(self.pred)
         cover = scored(self.cover) if has_cover else None
@@ -635,9 +631,9 @@ class _Scores:
                     key(t): summary.defined(v) for t, v in self.det.remembered_ap_as_seen().items()
                 },
                 "score_threshold": ev.score_threshold,
-                "score_floor": detect.score_floor,
-                "nms_iou": detect.nms_iou,
-                "top_k": detect.top_k,
+                "score_floor": ev.score_floor,
+                "nms_iou": ev.nms_iou,
+                "top_k": ev.top_k,
                 "dedup_cell_m": detection.DEDUP_CELL_M,
                 "topk_saturated_frac": self.saturated / max(num_frames, 1),
                 # of the remembered boxes, those whose vehicle was found in the 3 s before, and of those the

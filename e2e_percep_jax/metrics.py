@@ -42,7 +42,6 @@ GROUPS = (
 )
 SUBSETS = ("all",) + GROUPS
 REMEMBER_FRAMES = 30  # 3 s at 10 Hz
-NMS_IOU = 0.3  # the evaluation's and the inference API's greedy NMS threshold (rotated IoU)
 
 
 def _as_boxes(boxes):
@@ -389,6 +388,9 @@ def matched_scores(boxes, scores, gt_boxes, gt_valid, iou: float) -> np.ndarray:
     return best
 
 
+FOUND_IOU = 0.1  # a vehicle counts as found at the groups' loosest IoU: where it is, not its box's fit
+
+
 class MemoryAccumulator:
     """What a perceiver keeps of the vehicles it found, frame by frame, per drive.
 
@@ -406,7 +408,7 @@ class MemoryAccumulator:
     is counted from the last frame the lidar saw it in the drive (``found_last_lidar``, ``kept_last_lidar``).
     A vehicle not found then may still have had a box under the operating threshold: ``scored_last_lidar``
     counts those matched then by a detection at any score the caller passes (the evaluation's floor,
-    ``detection.SCORE_FLOOR``), which tells a decoder that scores a partly seen car low from one that has lost it.
+    ``eval.score_floor``), which tells a decoder that scores a partly seen car low from one that has lost it.
     Each drive's frames must come in order, and its boxes in the same vehicle slots every frame (the frame
     contract's order).
     """
@@ -434,7 +436,7 @@ class MemoryAccumulator:
         "share_scored_last_lidar": ("scored_last_lidar", "remembered"),
     }
 
-    def __init__(self, score_threshold: float, iou: float = 0.1):
+    def __init__(self, score_threshold: float, iou: float = FOUND_IOU):
         self.score_threshold, self.iou = float(score_threshold), float(iou)
         # per drive and slot: the frame it was last found; whether it was found the last frame a sensor saw it,
         # and the last frame the lidar saw it (at the threshold, and at any score); whether the camera alone saw

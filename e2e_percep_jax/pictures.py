@@ -292,7 +292,7 @@ def occlusion_strip(frames, occlusion: metrics_lib.Occlusion, score_threshold: f
     for higher scores) over the reconstructed roadmap (else the true one, dimmed) with the true boxes in
     their groups' colours. The followed vehicle is outlined in white in the lidar and boxes rows, and each
     column's title counts frames from the last one in which the lidar saw it and says who sees it now and
-    whether a detection at ``score_threshold`` or above is matched to it (IoU 0.1).
+    whether a detection at ``score_threshold`` or above is matched to it (``metrics.FOUND_IOU``).
     ``frames``: a drive as :func:`evaluate.record_pictured_drive` records it."""
     up = lambda im, how: cv2.resize(np.asarray(im), (panel_px, panel_px), interpolation=how)
     thickness = max(2, panel_px // 80)
@@ -308,7 +308,7 @@ def occlusion_strip(frames, occlusion: metrics_lib.Occlusion, score_threshold: f
         draw_boxes(boxes, followed, FOLLOWED_RGB, thickness)
         valid = bool(np.asarray(frame["boxes_valid"])[occlusion.slot])
         score = metrics_lib.matched_scores(
-            frame["pred_boxes"], frame["pred_scores"], followed[None], np.array([valid]), 0.1
+            frame["pred_boxes"], frame["pred_scores"], followed[None], np.array([valid]), metrics_lib.FOUND_IOU
         )[0]
         group = metrics_lib.GROUPS[box_groups(frame)[occlusion.slot]] if valid else "out of view"
         found = f"found {score:.2f}" if score >= score_threshold else "not found"

@@ -7,7 +7,8 @@ launchers let it change (:data:`EVALUATION_FIELDS`). :func:`of` turns the pair i
 - ``known_start``: the pose belief starts at each drive's true first pose (an odometry) or knows nothing;
 - ``changes``: every other evaluation field that differs from the run's own, as (field, value) pairs in a
   fixed order: another car (the plant's ``world.ego_*``), other drives (``eval.seed``, ``eval.num_worlds``,
-  the detection drives), another reading of the belief (``model.pose_filter``);
+  the detection drives), another reading of the boxes (``eval.score_threshold``, ``eval.nms_iou``, ...) or
+  of the belief (``model.pose_filter``);
 - the drive set itself (``drives``: the pose drives and detection's), as the evaluation ran it.
 
 Its :attr:`Protocol.name` is the evaluation's directory in the run (``eval``, ``eval_town7_known_start``,
@@ -30,6 +31,7 @@ EVALUATION_FIELDS = (
     *(("world", name) for name in config_lib.PLANT_FIELDS),
     *(("eval", name) for name in DRIVE_FIELDS),
     ("eval", "score_threshold"),
+    *(("eval", name) for name in ("top_k", "score_floor", "nms_iou")),
     ("model", "pose_filter"),
 )
 

@@ -6,8 +6,9 @@ examples.png, drive.mp4.
     python experiments/evaluate.py --workdir=runs/demo [--eval.num_frames=2000 --sample --video_frames=300]
 
 The run's config.json is the config; ``--eval.<field>`` flags override its evaluation section
-(number of frames, worlds, start-key seed, town, chunk size, score threshold, the pose protocol:
-``--eval.known_start`` starts the pose belief at each drive's true first pose), and
+(number of frames, worlds, start-key seed, town, chunk size, the operating score, the detection
+candidates, score floor and NMS threshold, the pose protocol: ``--eval.known_start`` starts the pose
+belief at each drive's true first pose), and
 ``--model.pose_filter`` (``none``: the belief head read frame by frame, without the histogram filter).
 Other fields are the trained model's and cannot change. A bad flag prints one line and exits with status 1.
 """
@@ -32,9 +33,6 @@ flags.DEFINE_integer("step", None, "checkpoint step to evaluate (default: the la
 flags.DEFINE_boolean("sample", False, "filter with posterior samples instead of the posterior mean")
 flags.DEFINE_integer("video_frames", 300, "frames of world 0 in drive.mp4 (0: no video)")
 flags.DEFINE_integer("num_examples", 2, "example frames in examples.png")
-flags.DEFINE_integer("top_k", None, "detection candidates per frame kept on the device")
-flags.DEFINE_float("score_floor", None, "lowest detection score accumulated into the PR curves")
-flags.DEFINE_float("nms_iou", None, "rotated-IoU threshold of the greedy NMS")
 FLAGS = flags.FLAGS
 # Fields outside --eval.* that change no parameter (the protocol's: the world's plant, the same network in
 # another car, and the pose filter)
@@ -60,16 +58,9 @@ def main(argv):
         cfg = config_lib.validate(config_lib.replace(config_lib.run_config(FLAGS.workdir), **overrides))
         if FLAGS.video_frames < 0 or FLAGS.num_examples < 0:
             raise ValueError("--video_frames and --num_examples must be >= 0")
-        for name, ok, bounds in (
-            ("top_k", lambda v: v > 0, "must be positive"),
-            ("score_floor", lambda v: 0.0 <= v < 1.0, "must lie in [0, 1)"),
-            ("nms_iou", lambda v: 0.0 < v <= 1.0, "must lie in (0, 1]"),
-        ):
-            if FLAGS[name].value is not None and not ok(FLAGS[name].value):
-                raise ValueError(f"--{name}={FLAGS[name].value}: {bounds}")
         # Imported once the flags are valid: a bad flag exits in a fraction of a second, not after ~3 s of
         # imports (orbax, flax, distrax, OpenCV).
-        from e2e_percep_jax import checkpoint, detection, report
+        from e2e_percep_jax import checkpoint, report
         from e2e_percep_jax import evaluate as eval_lib
         from e2e_percep_jax.sim import world
 
@@ -77,9 +68,6 @@ def main(argv):
         cfg, params, step = checkpoint.restore_params(FLAGS.workdir, cfg, FLAGS.step)
     except (ValueError, FileNotFoundError) as e:
         sys.exit(f"error: {e}")
-    detect = detection.Settings(
-        **{k: FLAGS[k].value for k in ("top_k", "score_floor", "nms_iou") if FLAGS[k].value is not None}
-    )
     eval_lib.evaluate(
         cfg,
         params,
@@ -89,7 +77,6 @@ def main(argv):
         num_examples=FLAGS.num_examples,
         workdir=os.path.abspath(FLAGS.workdir),
         checkpoint_step=step,
-        detect=detect,
         log=lambda s: print(s, flush=True),
     )
 

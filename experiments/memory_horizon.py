@@ -10,7 +10,7 @@ once seeing every frame, once seeing the first ``--seen`` only, its posterior th
 (``model.filter_sequence``'s ``observed``; the ego-motion head of the bird-eye grid still reads each frame's
 features, so the grid is warped by the motion as it is when a vehicle is occluded). Followed: every vehicle
 the lidar sees in the last seen frame and the decoder finds there (a detection at the operating score,
-``eval.score_threshold``, matched at IoU 0.1). For each k = 1..``--hidden`` frames later, of the followed
+``eval.score_threshold``, matched at ``metrics.FOUND_IOU``, 0.1). For each k = 1..``--hidden`` frames later, of the followed
 vehicles still in view: the share found with the sensors hidden (memory) and with them on (sight), standing
 vehicles (moved under 0.5 m in the town since the last seen frame) and moving ones apart, each with a 95 %
 bootstrap interval over drives. Beside them, chance: the same vehicles matched by the hidden run's
@@ -54,7 +54,6 @@ flags.DEFINE_integer("choose_from", 0, "choose the drives among this many for th
 flags.DEFINE_string("out", None, "the JSON written (default: <workdir>/memory_horizon.json)")
 FLAGS = flags.FLAGS
 
-MATCH_IOU = 0.1  # the groups' loosest IoU: where a kept vehicle is, not its box's fit
 STANDING_M = 0.5  # a followed vehicle that moved less than this in the town is standing
 DRIVES_AT_ONCE = 16  # drives filtered and decoded together (bounds the PIXOR maps' memory)
 REPORTED_K = (1, 2, 3, 5, 10, 15, 20, 30)  # the table's rows (frames since the last seen one)
@@ -76,7 +75,7 @@ def main(argv):
     _, params, step = checkpoint.restore_params(FLAGS.workdir, cfg)
     town = town_lib.build_town(cfg.world.town_seed)
     frames_per_drive, last_seen = FLAGS.seen + FLAGS.hidden, FLAGS.seen - 1
-    detect = detection.Settings()
+    ev = cfg.eval  # how candidates become boxes: the evaluation's top_k, floor and NMS
 
     @jax.jit
     def record(key):
@@ -92,7 +91,7 @@ def main(argv):
     @jax.jit
     def candidates(filtered):
         out = model_lib.decode(params, filtered, cfg)
-        return detection.candidates(out["det_cls"], out["det_reg"], detect.top_k, detect.score_floor)[:2]
+        return detection.candidates(out["det_cls"], out["det_reg"], ev.top_k, ev.score_floor)[:2]
 
     keys = jax.random.split(jax.random.PRNGKey(FLAGS.seed), FLAGS.choose_from or FLAGS.drives)
     if FLAGS.choose_from:
@@ -137,7 +136,9 @@ def main(argv):
             for i in range(d):
                 detections[run].append([])
                 for t in range(last_seen, frames_per_drive):
-                    boxes, scores = detection.frame_detections(cand_boxes[i, t], cand_scores[i, t], detect.score_floor)
+                    boxes, scores = detection.frame_detections(
+                        cand_boxes[i, t], cand_scores[i, t], ev.score_floor, ev.nms_iou
+                    )
                     keep = scores >= cfg.eval.score_threshold
                     detections[run][-1].append((boxes[keep], scores[keep]))
     boxes, valid, pose, seen_now, lidar_visible = (np.concatenate(x) for x in zip(*truth))
@@ -147,7 +148,7 @@ def main(argv):
             [
                 [
                     metrics.matched_scores(
-                        *dets[drive_of(i)][k], boxes[i, last_seen + k], valid[i, last_seen + k], MATCH_IOU
+                        *dets[drive_of(i)][k], boxes[i, last_seen + k], valid[i, last_seen + k], metrics.FOUND_IOU
                     )
                     > -np.inf
                     for k in range(len(dets[i]))
@@ -185,7 +186,7 @@ def main(argv):
         choose_from=FLAGS.choose_from,
         followed=int(followed.sum()),
         score_threshold=cfg.eval.score_threshold,
-        match_iou=MATCH_IOU,
+        match_iou=metrics.FOUND_IOU,
         **result,
         hidden_by_the_world=hidden_by_world,
     )

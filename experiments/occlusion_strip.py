@@ -5,7 +5,7 @@
 Drives the run's detection drives (the evaluation's, chosen for their remembered boxes; the busiest first)
 one at a time, as the evaluation drives them, and finds the occlusions (``metrics.occlusions``): a vehicle
 the lidar saw, then seen by neither sensor for at least ``--min_hidden`` frames, which the decoder had found
-(a detection at the operating score, ``eval.score_threshold``, matched at IoU 0.1) in the last frame the
+(a detection at the operating score, ``eval.score_threshold``, matched at ``metrics.FOUND_IOU``, 0.1) in the last frame the
 lidar saw it. Of those, it draws two strips (``pictures.occlusion_strip``): the one found in the largest
 share of its hidden frames (the longest of those), and the one found in the smallest share (the longest of
 those). It stops once it holds one found in every hidden frame and one found in none, or after ``--drives``
@@ -28,8 +28,6 @@ flags.DEFINE_integer("drives", 16, "detection drives searched at most, the busie
 flags.DEFINE_integer("min_hidden", 10, "frames a vehicle stays hidden from both sensors, at least")
 flags.DEFINE_string("out", None, "the PNG written (default: <workdir>/eval/occlusion.png)")
 FLAGS = flags.FLAGS
-
-MATCH_IOU = 0.1  # the groups' loosest IoU: where a kept vehicle is, not its box's fit
 
 
 def main(argv):
@@ -58,7 +56,9 @@ def main(argv):
         stacked = {k: np.stack([f[k] for f in frames]) for k in ("boxes_valid", "boxes_group")}
         score = np.stack(
             [
-                metrics.matched_scores(f["pred_boxes"], f["pred_scores"], f["boxes"], f["boxes_valid"], MATCH_IOU)
+                metrics.matched_scores(
+                    f["pred_boxes"], f["pred_scores"], f["boxes"], f["boxes_valid"], metrics.FOUND_IOU
+                )
                 for f in frames
             ]
         )

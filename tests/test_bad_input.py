@@ -219,9 +219,9 @@ CASES = {
     ),
     "train resume, no config.json": Case("train", [], "…: no config.json", damage="no config.json"),
     # ---------------------------------------------------------------- experiments/evaluate.py on the run
-    "evaluate top_k": Case("evaluate", ["--top_k=-1"], "--top_k=-1: must be positive"),
-    "evaluate nms_iou": Case("evaluate", ["--nms_iou=7"], "--nms_iou=7.0: must lie in (0, 1]"),
-    "evaluate score_floor": Case("evaluate", ["--score_floor=-3"], "--score_floor=-3.0: must lie in [0, 1)"),
+    "evaluate top_k": Case("evaluate", ["--eval.top_k=-1"], "--eval.top_k=-1: must be positive"),
+    "evaluate nms_iou": Case("evaluate", ["--eval.nms_iou=7"], "--eval.nms_iou=7.0: must lie in (0, 1]"),
+    "evaluate score_floor": Case("evaluate", ["--eval.score_floor=-3"], "--eval.score_floor=-3.0: must lie in [0, 1)"),
     "evaluate video_frames": Case("evaluate", ["--video_frames=-1"], "--video_frames and --num_examples must be >= 0"),
     "evaluate negative step": Case("evaluate", ["--step=-2"], "--step=-2: "),
     "evaluate step not saved": Case("evaluate", ["--step=999"], "--step=999: "),

@@ -331,6 +331,23 @@ def test_host_detections_follow_floor_view_and_nms():
     np.testing.assert_allclose(boxes, cand[[1, 2]])
 
 
+def test_evaluations_that_differ_in_drives_or_nms_share_one_program_and_a_town_does_not():
+    """The chunk program is built once per program config, perceiver and sampling (jax.jit's own cache then
+    holds its compilations): two evaluations of one run that differ in frames, seeds, detection drives, the
+    operating score or the NMS get the very same program; another town, or another candidate count kept on
+    the device, another one."""
+    cfg = config_lib.get_config("tiny")
+
+    def program(**eval_fields):
+        program_cfg = eval_lib._program_config(config_lib.replace(cfg, eval=eval_fields))
+        return eval_lib.chunk_program(program_cfg, eval_lib.default_perceiver(program_cfg, None), False)
+
+    same = program(num_frames=17, seed=5, detection_drives=3, score_threshold=0.3, nms_iou=0.1)
+    assert same is program()
+    assert program(town_seed=7) is not program()
+    assert program(top_k=8) is not program()
+
+
 def test_eval_dir_keeps_protocols_and_the_filterless_reading_apart(tmp_path):
     cfg = config_lib.get_config("tiny")
     run = str(tmp_path / "run")
@@ -344,6 +361,9 @@ def test_eval_dir_keeps_protocols_and_the_filterless_reading_apart(tmp_path):
         f.write(config_lib.replace(cfg, world=dict(ego_steer_offset_deg=0.5)).to_json())
     assert other(world=dict(ego_steer_offset_deg=0.5)) == os.path.join(run, "eval")
     assert report.eval_dir(run, cfg) == os.path.join(run, "eval_ego_steer_offset_deg0.25")
+    # another NMS is another protocol: it never overwrites the run's own evaluation
+    nms = other(world=dict(ego_steer_offset_deg=0.5), eval=dict(nms_iou=0.1))
+    assert nms == os.path.join(run, "eval_nms_iou0.1")
     both = other(world=dict(ego_steer_offset_deg=1.0), eval=dict(town_seed=7, known_start=True, seed=2000))
     assert both == os.path.join(run, "eval_town7_known_start_ego_steer_offset_deg1_seed2000")
 
