@@ -373,7 +373,7 @@ def record_pictured_drive(cfg: Config, params, perceiver, key):
     """One drive from reset key ``key``, ``cfg.eval.detection_frames`` frames long, driven and detected as
     :func:`evaluate` drives a detection drive (alone, so it is the pictured world every frame): a list per
     frame of dicts (NumPy) holding the frame's images (camera, lidar, roadmap, and the perceiver's
-    ``recon_<name>`` where it has them), its true boxes, boxes_valid and boxes_group, and the detections after
+    ``recon_<name>`` where it has them), its true boxes, boxes_valid and boxes_group, the true ego pose [5], and the detections after
     NMS, ``pred_boxes`` [M, 5] and ``pred_scores`` [M]. For pictures of a chosen moment of a drive."""
     town = town_lib.build_town(cfg.eval.town_seed)
     program = chunk_program(_program_config(cfg), perceiver, False)
@@ -385,7 +385,7 @@ def record_pictured_drive(cfg: Config, params, perceiver, key):
         for t, _ in rows:
             boxes, scores = _frame_boxes(out, t, 0, cfg.eval)
             frame = {k: out[k][t, 0] for k in pictured}  # [C, 2, ...]: world 0 is the first pictured
-            frame.update({k: out[k][t, 0] for k in ("boxes", "boxes_valid", "boxes_group")})
+            frame.update({k: out[k][t, 0] for k in ("boxes", "boxes_valid", "boxes_group", "pose")})
             frames.append(dict(frame, pred_boxes=boxes, pred_scores=scores))
     return frames
 

@@ -548,6 +548,76 @@ def detection(found: dict) -> str:
     return markdown_table(header, rows) + "\n\n" + _runs_note(found, methods) + "\n"
 
 
+# The flags by which the paper's comparison varies a recipe: what is compared (the variant, the latent, a
+# baseline and the place stream it goes without) and the seed. A method whose command adds any other flag
+# is a lever on top of the recipe, left to the groups' and the targets' tables.
+COMPARED_FLAGS = (
+    "--config=",
+    "--model.variant=",
+    "--model.latent=",
+    "--baseline=",
+    "--data.place_frames=0",
+    "--train.seed=",
+)
+
+
+def _compared(evaluations: dict) -> bool:
+    """Whether a method's runs are its preset's recipe varied only by :data:`COMPARED_FLAGS`."""
+    flags_ = command(evaluations).split()[2:]  # after "python experiments/<launcher>.py"
+    return all(f.startswith(COMPARED_FLAGS) for f in flags_)
+
+
+def comparison(found: dict) -> str:
+    """The paper's Table I in the protocol that splits detection by who saw each box: per variant, with either
+    latent, then the paper's row, then the modular pipeline; town 0, methods trained at the recipe of their
+    preset (:func:`_compared`) and scored on detection's own drives, all boxes at every IoU and the lidar,
+    remembered and unseen groups, each AP with its interval over drives."""
+    ious = ("0.1", "0.3", "0.5", "0.7")
+    header = [
+        "method",
+        "latent",
+        *(f"AP@{iou} (%)" for iou in ious),
+        "lidar AP@0.5 (%)",
+        "remembered AP@0.1 (%)",
+        "unseen AP@0.1 (%)",
+        "against the paper's row",
+    ]
+    methods, rows, paper, shown = [], [], _paper_figures("ap_percent"), set()
+    for method, variant in _paper_rows(found):
+        if method is None:
+            if variant in shown:
+                name, ap = paper[variant]
+                rows.append([f"paper: {name}", "", *(f"{ap[iou]}" for iou in ious), "", "", "", ""])
+            continue
+        runs = _group_runs(found[method], 0)
+        cfg = runs and config_lib.Config.from_dict(runs[0]["config"])
+        # detection's own drives (the pose drives' few boxes are in the groups' table), and boxes found
+        if not runs or not cfg.eval.detection_drives or not _compared(found[method]):
+            continue
+        against = ""
+        if variant in paper:
+            mean = mean_std([summary_metrics(m) for m in runs])
+            below = [iou for iou in ious if mean[f"AP@{iou} all (%)"][0] < paper[variant][1][iou]]
+            against = f"below at IoU {', '.join(below)}" if below else "at or above at every IoU"
+        latent = cfg.model.latent if variant else ""
+        methods.append(method)
+        shown.add(variant)
+        rows.append(
+            [
+                f"`{method}`",
+                latent,
+                *(_interval_cell(runs, iou, "all") for iou in ious),
+                _interval_cell(runs, "0.5", "lidar"),
+                _interval_cell(runs, "0.1", "remembered"),
+                _interval_cell(runs, "0.1", "unseen"),
+                against,
+            ]
+        )
+    if not rows:
+        return "No kept evaluation of the paper's comparison splits detection by who saw each box yet.\n"
+    return markdown_table(header, rows) + "\n\n" + _runs_note(found, methods) + "\n"
+
+
 def _by_group(metrics: dict) -> bool:
     """Whether an evaluation splits detection by who saw each box (``metrics.GROUPS``, with intervals over
     drives), not by lidar returns alone as before."""
@@ -778,6 +848,7 @@ def figure(results_dir: str):
 TABLES = {
     "localisation": localisation,
     "detection": detection,
+    "comparison": comparison,
     "groups": groups,
     "targets": targets,
     "learning_curve": learning_curve,

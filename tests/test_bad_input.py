@@ -244,6 +244,9 @@ CASES = {
     "occlusion strip not a run": Case(
         "occlusion_strip", ["--workdir=/nonexistent/run"], "/nonexistent/run: no config.json"
     ),
+    "occlusion strip behind": Case(
+        "occlusion_strip", ["--behind=wall"], "flag --behind=wall: value should be one of <any|vehicle|town>"
+    ),
 }
 # Every damaged run through both readers, e2e.load and the evaluation launcher: each names the checkpoint or the
 # config.json it could not use (training's resume is in the "train resume" rows above and the tests at the end).

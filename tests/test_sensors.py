@@ -229,6 +229,40 @@ def test_lidar_car_roofs_and_sides_stay_within_the_footprint():
     assert np.all(dist_outside[green] <= 0.25 * np.sqrt(0.5) + 1e-3)
 
 
+@pytest.mark.parametrize("seed", range(20))
+def test_the_sight_blocker_is_the_first_box_a_walk_along_the_line_of_sight_enters(seed):
+    """Against brute force: 4,000 points walked from the lidar to the target's centre, the first that lies
+    in another box names the blocker (kind and index); none before the centre: (None, -1)."""
+    rng = np.random.default_rng(seed)
+    target = np.array([*rng.uniform(-30, 30, 2), rng.uniform(-np.pi, np.pi), 4.5, 1.9])
+
+    def box(n, size):  # strewn about the line of sight: of the 20 seeds, 11 blocked by the town, 5 by a car
+        centre = rng.uniform(0.2, 1, (n, 1)) * target[None, :2] + rng.normal(0, 6, (n, 2))
+        return np.concatenate([centre, rng.uniform(-np.pi, np.pi, (n, 1)), rng.uniform(*size, (n, 2))], -1)
+
+    vehicles, buildings = np.concatenate([box(2, (1.8, 4.8)), target[None]]), box(2, (2.0, 8.0))
+    walk = np.linspace(0.0, 1.0, 4001)[:, None] * target[None, :2]  # [P, 2]
+    inside = {
+        kind: geo.points_in_boxes(walk[:, None], boxes[None]) & ~np.all(boxes == target, -1)
+        for kind, boxes in (("vehicle", vehicles), ("town", buildings))
+    }  # [P, n]
+    first = {kind: np.argmax(hit.any(1)) if hit.any() else len(walk) for kind, hit in inside.items()}
+    kind = min(first, key=first.get)
+    expected = (None, -1) if first[kind] == len(walk) else (kind, int(np.argmax(inside[kind][first[kind]])))
+    if expected[0] is not None and first[kind] in (0, len(walk) - 1):
+        pytest.skip("the line starts or ends inside a box: no entry to compare")
+    assert sensors.sight_blocker(target, vehicles, buildings) == expected
+
+
+def test_the_sight_blocker_names_the_nearer_of_a_car_and_a_building_and_nothing_off_the_line():
+    target = np.array([30.0, 0.0, 0.0, 4.5, 1.9])
+    car, building = np.array([[10.0, 0.5, 0.3, 4.5, 1.9]]), np.array([[20.0, -1.0, 0.0, 6.0, 6.0]])
+    assert sensors.sight_blocker(target, np.concatenate([car, target[None]]), building) == ("vehicle", 0)
+    assert sensors.sight_blocker(target, target[None], building) == ("town", 0)
+    aside = building + np.array([0.0, 10.0, 0.0, 0.0, 0.0])
+    assert sensors.sight_blocker(target, target[None], aside) == (None, -1)
+
+
 def test_lidar_nothing_behind_a_wall():
     wall = ([8.25, 0.0, 0.0, 0.5, 30.0], 4.0, [1, 1, 1], False)  # faces at x = 8.0 and 8.5, |y| <= 15
     behind = (cell_centres(128)[..., 0] > 8.5 + 0.25) & (np.abs(cell_centres(128)[..., 1]) < 10.0)

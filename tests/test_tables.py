@@ -362,6 +362,7 @@ def test_readme_blocks_are_filled_and_checked(results, tmp_path):
     readme.write_text(
         "# x\n<!-- table:localisation:begin -->\nold\n<!-- table:localisation:end -->\ntext\n"
         "<!-- table:detection:begin --><!-- table:detection:end -->\n"
+        "<!-- table:comparison:begin --><!-- table:comparison:end -->\n"
         "<!-- table:groups:begin --><!-- table:groups:end -->\n"
         "<!-- table:targets:begin --><!-- table:targets:end -->\n"
         "<!-- table:learning_curve:begin --><!-- table:learning_curve:end -->\n"
@@ -467,6 +468,44 @@ def test_targets_name_what_each_method_misses_against_the_baselines_at_its_recip
     assert "location (2.0 m)" in weak
     assert _row(table, "`constant`")[4].startswith("lidar: no detector at this recipe; remembered: no tracker")
     assert _row(table, "`detector`")[4] == " |"  # the baselines are the bars, not measured against them
+
+
+def test_the_comparison_sets_each_variant_with_either_latent_beside_the_papers_row_and_leaves_levers_out(tmp_path):
+    """Table I in the groups' protocol: per variant its methods trained at the preset's recipe, with either
+    latent, then the paper's row (none for a variant without a method); a method with a lever on top of the
+    recipe, and one scored on the pose drives alone, are left out; every AP carries its interval."""
+
+    def changed(m, **sections):
+        return dict(m, config=json.loads(config.replace(config.Config.from_dict(m["config"]), **sections).to_json()))
+
+    runs = {
+        "grid": [_by_group_metrics(s, lidar=0.95) for s in (0, 1)],
+        "vector": [changed(_by_group_metrics(0, lidar=0.7), model=dict(latent="vector"))],
+        "no-roadmap": [changed(_by_group_metrics(0, label="no_roadmap_recon"), model=dict(variant="no_roadmap_recon"))],
+        "lever": [changed(_by_group_metrics(0), train=dict(remembered_weight=3.0))],
+        "pose-drives": [changed(_by_group_metrics(0), eval=dict(detection_drives=0))],
+        "detector": [_by_group_metrics(0, label="single-frame detector", lidar=0.93)],
+    }
+    for method, evaluations in runs.items():  # a baseline's run is named after it
+        dirs = [tmp_path / "runs" / method / f"s{i}" for i in range(len(evaluations))]
+        dirs = dirs if len(dirs) > 1 else [tmp_path / "runs" / method]
+        for run_dir, m in zip(dirs, evaluations):
+            _write_run(run_dir, {"eval": m})
+        tables.collect(method, list(map(str, dirs)), str(tmp_path / "out"))
+    table = tables.render(str(tmp_path / "out"))["comparison"]
+    rows = [line.split(" | ") for line in table.splitlines() if line.startswith("| ")][1:]
+    assert [r[0][2:] for r in rows] == [
+        "`grid`",
+        "`vector`",
+        "paper: Inputs and roadmap (full)",
+        "`no-roadmap`",
+        "paper: No roadmap reconstruction (no_roadmap_recon)",
+        "`detector`",
+    ]
+    assert [r[1] for r in rows] == ["bev", "vector", "", "bev", "", ""]
+    assert rows[0][2] == "95.0 ± 0.0 [95.0, 95.0]" and rows[1][6] == "70.0 [70.0, 70.0]"
+    assert rows[0][7:9] == ["5.0 ± 0.0 [5.0, 5.0]", "30.0 ± 0.0 [30.0, 30.0]"]  # remembered, unseen at IoU 0.1
+    assert rows[0][9] == "at or above at every IoU |" and rows[1][9] == "below at IoU 0.1, 0.3 |"
 
 
 def test_an_evaluation_without_detections_own_drives_fills_the_pose_cells(results, tmp_path):

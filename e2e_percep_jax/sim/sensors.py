@@ -141,6 +141,26 @@ def ray_box_slab(origin_x, origin_y, dir_x, dir_y, box):
     return jnp.where(hit, jnp.maximum(s_in, 0.0), jnp.inf), s_out, normal_x, normal_y, u_m
 
 
+def sight_blocker(target_box_ego, vehicle_boxes_ego, building_boxes_ego):
+    """What the lidar's line of sight to the centre of ``target_box_ego`` [5] first crosses (ego frame, the
+    lidar at its origin; NumPy on the host): ``("vehicle", i)``, a box of ``vehicle_boxes_ego`` [N, 5] other
+    than the target itself, ``("town", j)``, one of ``building_boxes_ego`` [NB, 5] (``Town.building_kind``
+    says which kind), or ``(None, -1)`` where it crosses neither before the centre (a vehicle hidden by the
+    beams' height or spacing). In plan: a low obstacle counts as one that blocks."""
+    target = np.asarray(target_box_ego, np.float64)
+    nearest = (None, -1, 1.0)  # kind, index, entry along the line (1: the target's centre)
+    for kind, boxes in (("vehicle", vehicle_boxes_ego), ("town", building_boxes_ego)):
+        boxes = np.asarray(boxes, np.float64).reshape(-1, 5)
+        if not len(boxes):
+            continue
+        s_in = np.asarray(ray_box_slab(0.0, 0.0, target[0], target[1], boxes)[0], np.float64)
+        s_in = np.where(np.all(np.isclose(boxes, target), -1), np.inf, s_in)  # not the target itself
+        i = int(np.argmin(s_in))
+        if s_in[i] < nearest[2]:
+            nearest = (kind, i, float(s_in[i]))
+    return nearest[:2]
+
+
 def _bitonic_merge(x):
     """Sorts ascending, along axis 0 (a power of two long), a sequence that is bitonic along it."""
     n = x.shape[0]

@@ -84,6 +84,7 @@ LIGHT_RED, LIGHT_YELLOW, LIGHT_GREEN = 0, 1, 2
 
 # Building kinds (``Town.building_kind``).
 BUILDING, TOWER, KIOSK, TREE, POLE, MONUMENT = range(6)
+BUILDING_KIND_NAMES = ("building", "tower", "kiosk", "tree", "pole", "monument")
 
 LANE_WIDTH_M = 3.5
 SIDEWALK_WIDTH_M = 3.0
