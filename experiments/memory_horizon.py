@@ -10,8 +10,8 @@ once seeing every frame, once seeing the first ``--seen`` only, its posterior th
 (``model.filter_sequence``'s ``observed``; the ego-motion head of the bird-eye grid still reads each frame's
 features, so the grid is warped by the motion as it is when a vehicle is occluded). Followed: every vehicle
 the lidar sees in the last seen frame and the decoder finds there (a detection at the operating score,
-``eval.score_threshold``, matched at ``metrics.FOUND_IOU``, 0.1). For each k = 1..``--hidden`` frames later, of the followed
-vehicles still in view: the share found with the sensors hidden (memory) and with them on (sight), standing
+``eval.score_threshold``, matched at ``metrics.FOUND_IOU``, 0.1). For each k = 1..``--hidden`` frames later,
+of the followed vehicles still in view: the share found with the sensors hidden (memory) and with them on (sight), standing
 vehicles (moved under 0.5 m in the town since the last seen frame) and moving ones apart, each with a 95 %
 bootstrap interval over drives. Beside them, chance: the same vehicles matched by the hidden run's
 detections of another drive at the same frame (drive d + 1's for drive d), which is what a decoder that knew

@@ -3,17 +3,17 @@
     python experiments/occlusion_strip.py --workdir=runs/cpu-bev [--drives=16 --min_hidden=10 --behind=town
         --out=...]
 
-Drives the run's detection drives (the evaluation's, chosen for their remembered boxes; the busiest first)
-one at a time, as the evaluation drives them, and finds the occlusions (``metrics.occlusions``): a vehicle
-the lidar saw, then seen by neither sensor for at least ``--min_hidden`` frames, which the decoder had found
-(a detection at the operating score, ``eval.score_threshold``, matched at ``metrics.FOUND_IOU``, 0.1) in the last frame the
-lidar saw it. ``--behind`` keeps only those whose first hidden frame has the lidar's line of sight to the
-vehicle's centre crossing another vehicle (``vehicle``) or a building, tree or other fixture of the town
-(``town``) first (``sensors.sight_blocker``). Of those, it draws two strips (``pictures.occlusion_strip``): the one found in the largest
-share of its hidden frames (the longest of those), and the one found in the smallest share (the longest of
-those). It stops once it holds one found in every hidden frame and one found in none, or after ``--drives``
-drives. Writes
-``--out`` (default ``<workdir>/eval/occlusion.png``) and prints every occlusion it saw, with what hid it.
+Drives the run's detection drives (the evaluation's, chosen for their remembered boxes; the busiest first) one
+at a time, as the evaluation drives them, and finds the occlusions (``metrics.occlusions``): a vehicle the
+lidar saw, then seen by neither sensor for at least ``--min_hidden`` frames, which the decoder had found (a
+detection at the operating score, ``eval.score_threshold``, matched at ``metrics.FOUND_IOU``, 0.1) in the last
+frame the lidar saw it. ``--behind`` keeps only those whose first hidden frame has the lidar's line of sight
+to the vehicle's centre crossing another vehicle (``vehicle``) or a building, tree or other fixture of the
+town (``town``) first (``sensors.sight_blocker``). Of those, it draws two strips
+(``pictures.occlusion_strip``): the one found in the largest share of its hidden frames (the longest of
+those), and the one found in the smallest share (the longest of those). It stops once it holds one found in
+every hidden frame and one found in none, or after ``--drives`` drives. Writes ``--out`` (default
+``<workdir>/eval/occlusion.png``) and prints every occlusion it saw, with what hid it.
 """
 
 import os
@@ -111,8 +111,8 @@ def main(argv):
         band = np.zeros((20, strip.shape[1], 3), np.uint8)
         pictures.title(
             band,
-            f"{name}: detection drive {drive}, vehicle {occ.slot}, hidden from both sensors behind {f'a {behind}' if behind else 'nothing in plan'} for "
-            f"{hidden} frames, found in {100 * share:.0f} % of them (white: the vehicle; cyan: decoded; orange: "
+            f"{name}: detection drive {drive}, vehicle {occ.slot}, hidden from both sensors behind "
+            f"{f'a {behind}' if behind else 'nothing in plan'} for {hidden} frames, found in {100 * share:.0f} % of them (white: the vehicle; cyan: decoded; orange: "
             "remembered)",
         )
         rows.append(np.concatenate([band, strip], 0))
