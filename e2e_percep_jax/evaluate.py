@@ -334,6 +334,18 @@ def _frame_boxes(out, t, w, ev: EvalConfig):
     return detection.frame_detections(out["cand_boxes"][t, w], out["cand_scores"][t, w], ev.score_floor, ev.nms_iou)
 
 
+def _sample_root(ev: EvalConfig):
+    """The root of the evaluation's sampling keys (the worlds' noise), drawn from ``ev.seed``."""
+    return jax.random.fold_in(jax.random.PRNGKey(ev.seed), SAMPLE_STREAM)
+
+
+def _recording_setup(cfg: Config, perceiver):
+    """The town, the chunk program (posterior means, the perceiver's own heads) and the sample root with which
+    a recording drives, as :func:`evaluate` drives its detection drives."""
+    town = town_lib.build_town(cfg.eval.town_seed)
+    return town, chunk_program(_program_config(cfg), perceiver, False), _sample_root(cfg.eval)
+
+
 class RecordedFrame(NamedTuple):
     """One frame of a drive as :func:`record_detections` keeps it (NumPy): detections (after NMS) boxes
     [M, 5] and scores [M]; the frame's true ego pose [5]; the true boxes [G, 5], boxes_valid [G] and
@@ -354,10 +366,8 @@ def record_detections(cfg: Config, params, perceiver, log=print):
     network runs once, the host side as often as the tuning asks."""
     if cfg.eval.detection_drives < 1:
         raise ValueError(f"--eval.detection_drives={cfg.eval.detection_drives}: recording needs detection drives")
-    town = town_lib.build_town(cfg.eval.town_seed)
-    program = chunk_program(_program_config(cfg), perceiver, False)
+    town, program, sample_root = _recording_setup(cfg, perceiver)
     keys, _ = detection_start_keys(cfg, town)
-    sample_root = jax.random.fold_in(jax.random.PRNGKey(cfg.eval.seed), SAMPLE_STREAM)
     frames = [[] for _ in keys]
     progress = _Progress(len(keys) * cfg.eval.detection_frames, log)
     for out, rows, drives in _detection_drives(program, params, perceiver, keys, town, cfg, sample_root):
@@ -375,9 +385,7 @@ def record_pictured_drive(cfg: Config, params, perceiver, key):
     frame of dicts (NumPy) holding the frame's images (camera, lidar, roadmap, and the perceiver's
     ``recon_<name>`` where it has them), its true boxes, boxes_valid and boxes_group, the true ego pose [5], and the detections after
     NMS, ``pred_boxes`` [M, 5] and ``pred_scores`` [M]. For pictures of a chosen moment of a drive."""
-    town = town_lib.build_town(cfg.eval.town_seed)
-    program = chunk_program(_program_config(cfg), perceiver, False)
-    sample_root = jax.random.fold_in(jax.random.PRNGKey(cfg.eval.seed), SAMPLE_STREAM)
+    town, program, sample_root = _recording_setup(cfg, perceiver)
     frames = []
     keys = jnp.asarray(key)[None]
     for out, rows in _drive_chunks(program, params, perceiver, keys, town, cfg, cfg.eval.detection_frames, sample_root):
@@ -464,7 +472,7 @@ def evaluate(
     if perceiver is None:
         perceiver = default_perceiver(program_cfg, workdir)
     program = chunk_program(program_cfg, perceiver, sample, heads)
-    sample_root = jax.random.fold_in(jax.random.PRNGKey(ev.seed), SAMPLE_STREAM)
+    sample_root = _sample_root(ev)
     det_keys, det_remembered = detection_start_keys(cfg, town) if num_det else (None, None)
     if num_det:
         log(f"eval: detection's {num_det} drives chosen of {max(ev.detection_pool, num_det)} candidates")

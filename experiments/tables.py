@@ -524,8 +524,7 @@ def detection(found: dict) -> str:
         held_out = [_format(*held_out_ap.get(t, (None, None, 0))) for t in towns]
         against = ""
         if variant in paper:
-            mean = mean_std([summary_metrics(m) for m in town0])
-            below = [iou for iou in ious if mean[f"AP@{iou} all (%)"][0] < paper[variant][1][iou]]
+            below = _below_paper(town0, paper[variant][1], ious)
             # the held-out towns have AP@0.5 only, against the paper's one figure (its towns are not ours)
             towns_below = [
                 str(t) for t, (ap, _, _) in held_out_ap.items() if ap is not None and ap < paper[variant][1]["0.5"]
@@ -596,8 +595,7 @@ def comparison(found: dict) -> str:
             continue
         against = ""
         if variant in paper:
-            mean = mean_std([summary_metrics(m) for m in runs])
-            below = [iou for iou in ious if mean[f"AP@{iou} all (%)"][0] < paper[variant][1][iou]]
+            below = _below_paper(runs, paper[variant][1], ious)
             against = f"below at IoU {', '.join(below)}" if below else "at or above at every IoU"
         latent = cfg.model.latent if variant else ""
         methods.append(method)
@@ -616,6 +614,12 @@ def comparison(found: dict) -> str:
     if not rows:
         return "No kept evaluation of the paper's comparison splits detection by who saw each box yet.\n"
     return markdown_table(header, rows) + "\n\n" + _runs_note(found, methods) + "\n"
+
+
+def _below_paper(evaluations: list[dict], paper_ap: dict, ious: tuple) -> list[str]:
+    """The IoUs at which the runs' mean AP over all boxes is under the paper's row ``paper_ap`` ({iou: %})."""
+    mean = mean_std([summary_metrics(m) for m in evaluations])
+    return [iou for iou in ious if mean[f"AP@{iou} all (%)"][0] < paper_ap[iou]]
 
 
 def _by_group(metrics: dict) -> bool:

@@ -115,13 +115,14 @@ def groups_in_view(cfg, frames: int):
     return np.bincount(group[valid], minlength=len(metrics_lib.GROUPS))
 
 
-def vehicles_in_view(cfg, frames: int):
-    """(remembered, all) [frames, E]: the valid ground-truth boxes of the evaluation drives and those of them
-    in the remembered group, re-simulated step by step."""
+def vehicles_in_view(cfg, frames: int, keys=None):
+    """(remembered, all) [frames, E]: the valid ground-truth boxes of the evaluation's pose drives (or of the
+    drives reset from ``keys`` [E]) and those of them in the remembered group, re-simulated step by step."""
     town = town_lib.build_town(cfg.eval.town_seed)
     step = jax.jit(jax.vmap(lambda s: world.step(s, town)))
     observe = jax.jit(jax.vmap(lambda s: sensors.observe(s, town, cfg.data.image_size)))
-    state = eval_lib.start_worlds(eval_lib.start_keys(cfg), town, cfg.world)
+    keys = eval_lib.start_keys(cfg) if keys is None else keys
+    state = eval_lib.start_worlds(keys, town, cfg.world)
     for _ in range(cfg.data.warmup_steps):
         state = step(state)
     counts, since = [], None
@@ -318,6 +319,61 @@ def test_oracle_targets_through_the_decode_path_and_a_known_pose_offset(memory_r
         assert rank[f, w] == rank[40 * half : 40 * (half + 1)].max() and counts[f, w] > 0
     # The fixture discriminates: in some half, world 0 alone (the old choice) would miss the best frame.
     assert any(rank[h : h + 40, 0].max() < rank[h : h + 40].max() for h in (0, 40))
+
+
+@pytest.mark.slow  # 16 candidate drives counted, then 2 detection drives evaluated, recorded and pictured (~2 min)
+def test_detection_drives_are_the_pools_busiest_and_the_recordings_replay_what_the_evaluation_scored(tmp_path):
+    """Detection's own drives: of the pool's candidate keys, those with the most remembered boxes (counted
+    here by stepping each world frame by frame); the evaluation scores exactly their boxes; the tracker's
+    recording (``record_detections``) holds the same detections and truth, so scoring it again gives every
+    AP of metrics.json; and the pictured drive of one of them (``record_pictured_drive``, a batch of one)
+    is that drive, frame by frame. The `cpu` preset's world and images with the tests' network (untrained:
+    its scores carry no meaning, only their bookkeeping is checked)."""
+    cfg = config_lib.replace(
+        config_lib.get_config("tiny"),
+        world=dict(num_vehicles=100),
+        data=dict(image_size=64, warmup_steps=200),
+        model=dict(conv_channels=(8, 8, 16, 32)),
+        eval=dict(
+            num_frames=20, num_worlds=2, chunk_steps=20, detection_drives=2, detection_frames=200, detection_pool=16
+        ),
+    )
+    pool = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(cfg.eval.seed), eval_lib.DETECTION_STREAM), 16)
+    counts = vehicles_in_view(cfg, 200, keys=pool)[0].sum(0)  # remembered boxes per candidate drive
+    busiest = np.sort(np.argsort(-counts, kind="stable")[:2])
+    assert counts[busiest].min() > 0 and list(busiest) != [0, 1]  # a choice that discriminates
+    keys, chosen = eval_lib.detection_start_keys(cfg, town_lib.build_town(cfg.eval.town_seed))
+    np.testing.assert_array_equal(keys, pool[busiest])
+    np.testing.assert_array_equal(chosen, counts[busiest])
+
+    params = model_lib.init_params(jax.random.PRNGKey(0), cfg)
+    perceiver = Perceiver(cfg)
+    det = eval_lib.evaluate(
+        cfg, params, str(tmp_path), perceiver=perceiver, video_frames=0, num_examples=0, log=lambda _: None
+    )["detection"]
+    assert det["num_gt"]["remembered"] == counts[busiest].sum()
+    recorded = eval_lib.record_detections(cfg, params, perceiver, log=lambda _: None)
+    assert [len(frames) for frames in recorded] == [200, 200]
+    acc = metrics_lib.DetectionAccumulator()
+    for d, frames in enumerate(recorded):
+        for f in frames:
+            acc.add_frame(f.boxes, f.scores, f.true_boxes, f.boxes_valid, f.boxes_group, drive=d)
+    assert acc.num_gt() == det["num_gt"]
+    for iou, subsets in acc.results().items():
+        for subset, curve in subsets.items():
+            want = det["ap"][f"{iou:g}"][subset]
+            assert (want is None and np.isnan(curve.ap)) or curve.ap == pytest.approx(want, rel=1e-12), (iou, subset)
+
+    pictured = eval_lib.record_pictured_drive(cfg, params, perceiver, keys[1])
+    assert len(pictured) == 200
+    for frame, kept in zip(pictured, recorded[1]):
+        for name, want in (("boxes", kept.true_boxes), ("boxes_valid", kept.boxes_valid), ("pose", kept.pose)):
+            np.testing.assert_array_equal(frame[name], want)
+        np.testing.assert_array_equal(frame["boxes_group"], kept.boxes_group)
+        # the network's numbers on a batch of one may differ from a batch of two in the last bits
+        np.testing.assert_allclose(frame["pred_scores"], kept.scores, atol=1e-5)
+        np.testing.assert_allclose(frame["pred_boxes"], kept.boxes, atol=1e-4)
+        assert frame["camera"].shape == (64, 64, 3)
 
 
 def test_host_detections_follow_floor_view_and_nms():
