@@ -335,7 +335,8 @@ def _frame_boxes(out, t, w, ev: EvalConfig):
 
 
 def _sample_root(ev: EvalConfig):
-    """The root of the evaluation's sampling keys (the worlds' noise), drawn from ``ev.seed``."""
+    """The root, from ``ev.seed``, of the keys with which an evaluation samples the latents (a ``sample``
+    evaluation's; at the posterior means nothing reads them)."""
     return jax.random.fold_in(jax.random.PRNGKey(ev.seed), SAMPLE_STREAM)
 
 
