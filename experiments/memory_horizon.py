@@ -11,9 +11,9 @@ once seeing every frame, once seeing the first ``--seen`` only, its posterior th
 features, so the grid is warped by the motion as it is when a vehicle is occluded). Followed: every vehicle
 the lidar sees in the last seen frame and the decoder finds there (a detection at the operating score,
 ``eval.score_threshold``, matched at ``metrics.FOUND_IOU``, 0.1). For each k = 1..``--hidden`` frames later,
-of the followed vehicles still in view: the share found with the sensors hidden (memory) and with them on (sight), standing
-vehicles (moved under 0.5 m in the town since the last seen frame) and moving ones apart, each with a 95 %
-bootstrap interval over drives. Beside them, chance: the same vehicles matched by the hidden run's
+of the followed vehicles still in view: the share found with the sensors hidden (memory) and with them on
+(sight), standing vehicles (moved under 0.5 m in the town since the last seen frame) and moving ones apart,
+each with a 95 % bootstrap interval over drives. Beside them, chance: the same vehicles matched by the hidden run's
 detections of another drive at the same frame (drive d + 1's for drive d), which is what a decoder that knew
 only where vehicles usually stand would find. Prints a table and writes JSON to ``--out`` (default
 ``<workdir>/memory_horizon.json``).

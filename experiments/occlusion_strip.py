@@ -112,8 +112,8 @@ def main(argv):
         pictures.title(
             band,
             f"{name}: detection drive {drive}, vehicle {occ.slot}, hidden from both sensors behind "
-            f"{f'a {behind}' if behind else 'nothing in plan'} for {hidden} frames, found in {100 * share:.0f} % of them (white: the vehicle; cyan: decoded; orange: "
-            "remembered)",
+            f"{f'a {behind}' if behind else 'nothing in plan'} for {hidden} frames, found in {100 * share:.0f} % "
+            "of them (white: the vehicle; cyan: decoded; orange: remembered)",
         )
         rows.append(np.concatenate([band, strip], 0))
     width = max(r.shape[1] for r in rows)

@@ -338,11 +338,15 @@ def test_detection_drives_are_the_pools_busiest_and_the_recordings_replay_what_t
             num_frames=20, num_worlds=2, chunk_steps=20, detection_drives=2, detection_frames=200, detection_pool=16
         ),
     )
-    pool = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(cfg.eval.seed), eval_lib.DETECTION_STREAM), 16)
+    town = town_lib.build_town(cfg.eval.town_seed)
+    # the pool's 16 candidates: without a pool to choose from, the first drives are the candidates themselves
+    pool, _ = eval_lib.detection_start_keys(
+        config_lib.replace(cfg, eval=dict(detection_drives=16, detection_pool=0)), town
+    )
     counts = vehicles_in_view(cfg, 200, keys=pool)[0].sum(0)  # remembered boxes per candidate drive
     busiest = np.sort(np.argsort(-counts, kind="stable")[:2])
     assert counts[busiest].min() > 0 and list(busiest) != [0, 1]  # a choice that discriminates
-    keys, chosen = eval_lib.detection_start_keys(cfg, town_lib.build_town(cfg.eval.town_seed))
+    keys, chosen = eval_lib.detection_start_keys(cfg, town)
     np.testing.assert_array_equal(keys, pool[busiest])
     np.testing.assert_array_equal(chosen, counts[busiest])
 
