@@ -308,9 +308,10 @@ def spread_scale(squared_distance, dims: int) -> float:
     return float(np.nanquantile(squared_distance, 0.95) / CHI2_95[dims])
 
 
-def fit_spread(cfg: Config, model: MotionModel, drives_per_town: int = 4, num_frames: int = 1500) -> MotionModel:
-    """``model`` with the odometry's spread: ``drives_per_town`` lidar drives of each of
-    :data:`SPREAD_TOWN_SEEDS` from a key of their own, followed from their true starts by the odometry
+def fit_spread(cfg: Config, model: MotionModel) -> MotionModel:
+    """``model`` with the odometry's spread: ``cfg.eval.spread_drives_per_town`` lidar drives of
+    ``cfg.eval.spread_frames`` frames in each of :data:`SPREAD_TOWN_SEEDS` from a key of their own, followed
+    from their true starts by the odometry
     (``ego_motion.follow``: with the scans when ``model`` has the matcher's noise); the factor on its error
     covariance's heading variances that holds 95 % of the heading errors in the 95 % interval, then, with
     the heading's variances so scaled (which moves the position's), the factor on the location's that holds
@@ -321,7 +322,9 @@ def fit_spread(cfg: Config, model: MotionModel, drives_per_town: int = 4, num_fr
     drives = []
     for town_seed in SPREAD_TOWN_SEEDS:
         key = jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(CALIBRATION_SEED), 2), town_seed)
-        pose, speed, command, scan = lidar_drives(cfg, town_seed, key, drives_per_town, num_frames)
+        pose, speed, command, scan = lidar_drives(
+            cfg, town_seed, key, cfg.eval.spread_drives_per_town, cfg.eval.spread_frames
+        )
         drives.append((pose, *start_and_commands(pose, speed, command), scan))
 
     def errors(model):

@@ -221,6 +221,11 @@ class EvalConfig:
     detection_drives: int = 0
     detection_frames: int = 200
     detection_pool: int = 0
+    # The lidar odometry's spread (calibration.fit_spread), fitted into the run's motion model the first time
+    # a town the place head never saw is evaluated from its known start: this many drives of each of the
+    # spread's towns, of spread_frames frames each. Not part of the protocol: the fit is kept once made.
+    spread_drives_per_town: int = 4
+    spread_frames: int = 1500
 
 
 # (section, old name) -> new name: runs saved before a rename still read back.
@@ -355,7 +360,7 @@ PRESETS = {
             max_grad_norm=0.0,
             pose_weight=1.0,
         ),
-        eval=dict(num_frames=40, num_worlds=2, chunk_steps=10),
+        eval=dict(num_frames=40, num_worlds=2, chunk_steps=10, spread_drives_per_town=1, spread_frames=300),
     ),
 }
 
@@ -434,6 +439,8 @@ def validate(cfg: Config) -> Config:
         "eval.num_worlds": cfg.eval.num_worlds,
         "eval.chunk_steps": cfg.eval.chunk_steps,
         "eval.detection_frames": cfg.eval.detection_frames,
+        "eval.spread_drives_per_town": cfg.eval.spread_drives_per_town,
+        "eval.spread_frames": cfg.eval.spread_frames,
     }
     positive.update({f"model.conv_channels[{i}]": c for i, c in enumerate(cfg.model.conv_channels)})
     for name, value in positive.items():

@@ -53,7 +53,7 @@ def length(line):
 
 
 class Case(NamedTuple):
-    """``target``: train | evaluate | occlusion_strip (the launchers, with ``args`` their flags), load (``e2e.load`` with
+    """``target``: train | evaluate | occlusion_strip | building_occlusion (the launchers, with ``args`` their flags), load (``e2e.load`` with
     ``args`` its keywords), init | init under jit | init traced (``Perceiver.init(*args)``; under jit with
     the batch size static, or traced), step | step under jit (``Perceiver.step``, ``args`` replacing some
     of its good inputs, each made by a function), accepted (a step that must succeed and equal the same
@@ -196,6 +196,7 @@ CASES = {
         ["--eval.detection_drives=8", "--eval.detection_pool=4"],
         "--eval.detection_pool=4: must be 0 (no choice) or at least --eval.detection_drives=8",
     ),
+    "train spread_frames zero": Case("train", ["--eval.spread_frames=0"], "--eval.spread_frames=0: must be positive"),
     "train a positional argument": Case("train", ["extra"], "unexpected arguments ['extra']"),
     "train no workdir": Case("train", ["--workdir="], "--workdir is required"),
     # ---------------------------------------------------------------- experiments/train.py resuming the run
@@ -246,6 +247,13 @@ CASES = {
     ),
     "occlusion strip behind": Case(
         "occlusion_strip", ["--behind=wall"], "flag --behind=wall: value should be one of <any|vehicle|town>"
+    ),
+    # ---------------------------------------------------------------- experiments/building_occlusion.py on the run
+    "building occlusion speed": Case(
+        "building_occlusion", ["--speed_mps=0"], "--speed_mps=0.0: must lie in [0.5, 10] (a vehicle crossing"
+    ),
+    "building occlusion not a run": Case(
+        "building_occlusion", ["--workdir=/nonexistent/run"], "/nonexistent/run: no config.json"
     ),
 }
 # Every damaged run through both readers, e2e.load and the evaluation launcher: each names the checkpoint or the
@@ -355,7 +363,7 @@ CASES.update(
         "accepted: action as float64": Case("accepted", {"action": lambda: np.array([[0.5, -0.1], [0.0, 0.2]])}),
     }
 )
-LAUNCHERS = ("train", "evaluate", "occlusion_strip")
+LAUNCHERS = ("train", "evaluate", "occlusion_strip", "building_occlusion")
 
 
 # ----------------------------------------------------------------------------- the run and its damages
