@@ -182,11 +182,12 @@ def test_line_chart_legend_keeps_each_text_clear_of_its_neighbour():
     assert col_a == col_b and row_b > row_a  # one under the other
 
 
-def test_an_occlusion_strip_shows_the_two_frames_before_its_hidden_stretch_spread_and_the_one_after():
+def test_an_occlusion_strip_shows_its_lead_the_two_frames_before_its_hidden_stretch_spread_and_the_one_after():
     occ = metrics.Occlusion(slot=0, frame=10, hidden=8, score_before=0.9, scores=np.zeros(8))
     # linspace(10, 17, 4) = 10, 12.33, 14.67, 17
     assert pictures.strip_frames(occ, num_frames=30) == [8, 9, 10, 12, 15, 17, 18]
     assert pictures.strip_frames(occ._replace(frame=1, hidden=3), num_frames=4) == [0, 1, 2, 3]
+    assert pictures.strip_frames(occ, num_frames=30, lead=(3, 9)) == [3, 8, 9, 10, 12, 15, 17, 18]
 
 
 def test_an_occlusion_strip_outlines_the_followed_vehicle_in_every_column_where_it_stands():
