@@ -20,7 +20,7 @@ def test_the_kerb_building_hides_the_vehicle_after_the_lidar_saw_it_and_nothing_
     of sight to its centre crosses the added building first (``sensors.sight_blocker``, plan geometry)."""
     cfg = config_lib.get_config("cpu")
     town = town_lib.build_town(cfg.world.town_seed)
-    drive = scene.kerb_building_drive(town, world.reset(jax.random.PRNGKey(0), town, cfg.world))
+    drive = scene.kerb_building_drive(town, world.reset(jax.random.PRNGKey(0), town, cfg.world), speed_mps=3.0)
     nb = town.building_box.shape[0]
     assert drive.town.building_box.shape[0] == nb + 1
     np.testing.assert_array_equal(np.asarray(drive.town.building_box[:nb]), np.asarray(town.building_box))

@@ -6,8 +6,8 @@ A town's buildings stand on offroad cells, at least ``BUILDING_CLEARANCE_M`` bey
 ``BEV_SIDE_M`` aside: no building of the training town hides a vehicle inside the view (BUILD_NOTES,
 Evaluation, counts both the world's drives and hand-built scenes). :func:`kerb_building_drive` builds one: the
 ego stands on a lane before a signalised four-way junction, one building is added on the junction's near
-right corner, its faces on the sidewalk's outer edge (a building at the kerb line, as many real streets have
-them), and one vehicle drives at a constant speed straight across the junction from the ego's left and away
+right corner, its inner corner at the kerb and standing on the sidewalk (a building at the street line, as
+many real streets have them), and one vehicle drives at a constant speed straight across the junction from the ego's left and away
 down the street to its right, behind that building. Every other vehicle is out of every sensor's reach.
 
 Pure NumPy on the host, but for the sensors (:func:`e2e_percep_jax.sim.sensors.observe`) that the caller runs
@@ -109,7 +109,7 @@ def _stretch_after_sight(hidden, in_view):
 
 
 def kerb_building_drive(
-    town: town_lib.Town, state: WorldState, speed_mps: float = 3.0, ahead_m: tuple = (17.0, 18.0, 19.0, 20.0, 21.0)
+    town: town_lib.Town, state: WorldState, speed_mps: float = 2.0, ahead_m: tuple = (17.0, 18.0, 19.0, 20.0, 21.0)
 ):
     """:class:`KerbBuildingDrive` in ``town``, its other fields taken from ``state`` (a world's reset):
     of every signalised four-way junction, approach and straight path across it from the ego's left, the one
@@ -118,9 +118,9 @@ def kerb_building_drive(
     ``speed_mps``. ValueError if no junction of ``town`` gives a hidden stretch."""
     t = {k: np.asarray(v) for k, v in town._asdict().items()}
     best = None
+    ends = t["lane_xy_m"][np.arange(len(t["lane_kind"])), np.maximum(t["lane_length_m"].astype(int) - 1, 0)]
     for node in np.nonzero((t["node_kind"] == town_lib.NODE_SIGNAL) & (t["node_degree"] == 4))[0]:
         node_xy = t["node_xy_m"][node].astype(np.float64)
-        ends = t["lane_xy_m"][np.arange(len(t["lane_kind"])), np.maximum(t["lane_length_m"].astype(int) - 1, 0)]
         incoming = np.nonzero(
             (t["lane_kind"] == town_lib.LANE_ROAD) & t["lane_at_mouth"] & (np.hypot(*(ends - node_xy).T) < 20.0)
         )[0]
