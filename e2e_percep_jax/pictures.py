@@ -288,12 +288,12 @@ def strip_frames(occlusion: metrics_lib.Occlusion, num_frames: int, columns: int
 
 def occlusion_strip(frames, occlusion: metrics_lib.Occlusion, score_threshold: float, panel_px: int = 160, lead=()):
     """uint8 [3 * panel_px, C * panel_px, 3]: one vehicle passing out of both sensors' sight, frame by frame
-    (:func:`strip_frames`, one column each, ``lead`` frames first). Rows: the camera; the lidar; the decoded boxes (cyan, brighter
-    for higher scores) over the reconstructed roadmap (else the true one, dimmed) with the true boxes in
-    their groups' colours. The followed vehicle is outlined in white in the lidar and boxes rows, and each
-    column's title counts frames from the last one in which the lidar saw it and says who sees it now and
-    whether a detection at ``score_threshold`` or above is matched to it (``metrics.FOUND_IOU``), with the
-    matched detection's score, found or not.
+    (:func:`strip_frames`, one column each, ``lead`` frames first). Rows: the camera; the lidar; the
+    decoded boxes (cyan, brighter for higher scores) over the reconstructed roadmap (else the true one,
+    dimmed) with the true boxes in their groups' colours. The followed vehicle is outlined in white in the
+    lidar and boxes rows, and each column's title counts frames from the last one in which the lidar saw it
+    and says who sees it now and whether a detection at ``score_threshold`` or above is matched to it
+    (``metrics.FOUND_IOU``), with the matched detection's score, found or not.
     ``frames``: a drive as :func:`evaluate.record_pictured_drive` records it."""
     up = lambda im, how: cv2.resize(np.asarray(im), (panel_px, panel_px), interpolation=how)
     thickness = max(2, panel_px // 80)
@@ -313,7 +313,8 @@ def occlusion_strip(frames, occlusion: metrics_lib.Occlusion, score_threshold: f
         )[0]
         group = metrics_lib.GROUPS[box_groups(frame)[occlusion.slot]] if valid else "out of view"
         found = f"found {score:.2f}" if score >= score_threshold else "not found"
-        found += f" ({score:.2f})" if np.isfinite(score) and score < score_threshold else ""
+        if np.isfinite(score) and score < score_threshold:
+            found += f" ({score:.2f})"
         column = np.concatenate([up(frame["camera"], cv2.INTER_LINEAR), lidar, boxes], 0)
         # frames counted from the last one in which the lidar saw the vehicle
         title(column, f"{f - occlusion.frame + 1:+d} {group}, {found}")

@@ -11,9 +11,10 @@ other traffic. The run's perceiver filters the drive from its first frame throug
 (``e2e_percep_jax.load``, ``Perceiver.step``, the belief started at the true pose), and the frames are scored
 as the evaluation scores them (groups, detections at ``eval.score_floor`` after NMS at ``eval.nms_iou``, a
 vehicle found at ``eval.score_threshold`` and rotated IoU ``metrics.FOUND_IOU``). Writes a strip
-(``pictures.occlusion_strip``) of the frames around the vehicle's hidden stretch to ``--out`` (default
-``<workdir>/eval/building_occlusion.png``) and prints, frame by frame, who sees the vehicle and the score of
-the detection matched to it.
+(``pictures.occlusion_strip``; its columns count frames from the last one in which either sensor saw the
+vehicle, led by the frame it was found best and the last it was found) of the frames around the vehicle's
+hidden stretch to ``--out`` (default ``<workdir>/eval/building_occlusion.png``) and prints, frame by frame,
+who sees the vehicle and the score of the detection matched to it.
 """
 
 import os
