@@ -227,11 +227,12 @@ def test_a_vanishing_vehicle_leaves_every_sensor_and_stays_in_the_targets(town):
     _, _, frame_states = jax.vmap(
         lambda s: rollout.drive(s, town, cfg.data.seq_len + 1, cfg.data.image_size, with_states=True)
     )(states)
+    observe = jax.jit(sensors.observe, static_argnums=(2, 3))  # compiled once for every hidden frame
     for b, t in zip(*np.nonzero(hidden.any(-1))):
         vehicle = 1 + int(np.argmax(hidden[b, t]))  # the world's row (row 0 is the ego)
         state = jax.tree.map(lambda x: x[b, t], frame_states)
         gone = state._replace(veh_box=state.veh_box.at[vehicle, :2].set(-1e5))
-        want = sensors.observe(gone, town, cfg.data.image_size, scan=False)
+        want = observe(gone, town, cfg.data.image_size, False)
         for field in ("lidar", "camera"):
             np.testing.assert_array_equal(vanished[field][b, t], np.asarray(want[field]), err_msg=f"{field} {b} {t}")
     for b, t in zip(*np.nonzero(~hidden.any(-1))):
