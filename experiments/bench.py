@@ -10,8 +10,9 @@ one JSON line and writes it to ``--out_dir/<name>.json``; a table of all of them
 ``--peer_python``) at the same (B, T, R) right after ours and reports ``ratio_vs_peer`` = our
 frames/s over the peer's. ``frames_parts`` and ``train_parts`` are the profiles behind ``frames`` and
 ``train``: the same work split into its parts; ``train_profile`` is the step's per-op profile beside the
-peer's; ``latent`` is each latent's training step (the vector and the bird-eye grid) beside the peer, and
-``infer`` each latent's filtering step. ``--noeigen_convolutions`` measures XLA's default convolution path instead of the launchers'.
+peer's; ``latent`` is each latent's training step (the vector and the bird-eye grid, at each
+``--grid_cells``) beside the peer, and ``infer`` each latent's filtering step. ``--noeigen_convolutions``
+measures XLA's default convolution path instead of the launchers'.
 
 The benchmarks live in ``experiments/benchmarks/``, one module per family; this file holds their list
 (BENCHMARKS), every flag and its check, and the run.
@@ -69,6 +70,9 @@ flags.DEFINE_integer(
     "batches_per_drive", None, "K of the batch figure's stream (drives feed K batches each); default: the cpu preset's"
 )
 flags.DEFINE_list("place_frames", ["32"], "place: P of the place stream's figures, beside P = 0")
+flags.DEFINE_list(
+    "grid_cells", ["16"], "latent, infer: the bird-eye grid's cells a side (--model.grid_cells) of its figures"
+)
 flags.DEFINE_integer("memory_steps", 300, "training steps of the cpu-config run whose resident memory is sampled")
 flags.DEFINE_boolean(
     "keep_freed_buffers",
@@ -101,6 +105,14 @@ def main(argv):
             common.train_size(spec)
         if not all(p.isdigit() and int(p) > 0 for p in FLAGS.place_frames):
             raise ValueError(f"--place_frames={','.join(FLAGS.place_frames)}: expected positive integers")
+        if not all(c.isdigit() for c in FLAGS.grid_cells):
+            raise ValueError(f"--grid_cells={','.join(FLAGS.grid_cells)}: expected positive integers")
+        for cells in FLAGS.grid_cells:  # valid at both networks' sizes: the cpu preset's R (64) is the smaller
+            grid = dict(latent="bev", grid_cells=int(cells))
+            try:
+                config_lib.validate(config_lib.replace(config_lib.get_config("cpu"), model=grid))
+            except ValueError as e:
+                raise ValueError(f"--grid_cells={','.join(FLAGS.grid_cells)}: {e}") from None
     except ValueError as e:
         sys.exit(f"error: {e}")
     os.makedirs(FLAGS.out_dir, exist_ok=True)

@@ -49,6 +49,18 @@ def paper_config(batch_size, seq_len, image_size):
     )
 
 
+def latent_models(base: config_lib.Config) -> dict:
+    """``base`` with each latent (``config.LATENTS``), the bird-eye grid at each ``--grid_cells``: {the
+    figure's name ("vector", "bev, 16 cells", ...): config}."""
+    models = {}
+    for latent in config_lib.LATENTS:
+        for cells in FLAGS.grid_cells if latent == "bev" else [None]:
+            name = latent if cells is None else f"{latent}, {cells} cells"
+            overrides = dict(latent=latent) if cells is None else dict(latent=latent, grid_cells=int(cells))
+            models[name] = config_lib.replace(base, model=overrides)
+    return models
+
+
 def cpu_stream_config():
     """The ``cpu`` preset, its stream's K replaced by ``--batches_per_drive`` if given."""
     cfg = config_lib.get_config("cpu")

@@ -12,17 +12,16 @@ from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import evaluate as evaluate_lib
 from e2e_percep_jax import model as model_lib
 
-from .common import median_s, paper_config
+from .common import latent_models, median_s, paper_config
 
 FLAGS = flags.FLAGS
 
 
 def bench_infer(town, repeats):
-    """One filtering step plus every decoder, paper config at R = 128, with each latent (``config.LATENTS``):
-    latency at batch 1, throughput at ``--infer_batch``."""
+    """One filtering step plus every decoder, paper config at R = 128, with each latent
+    (``common.latent_models``): latency at batch 1, throughput at ``--infer_batch``."""
     figures = []
-    for latent in config_lib.LATENTS:
-        cfg = config_lib.replace(paper_config(1, 10, 128), model=dict(latent=latent))
+    for latent, cfg in latent_models(paper_config(1, 10, 128)).items():
         params = model_lib.init_params(jax.random.PRNGKey(0), cfg)
 
         @jax.jit

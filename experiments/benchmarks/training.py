@@ -23,7 +23,7 @@ from e2e_percep_jax import model as model_lib
 from e2e_percep_jax import train as train_lib
 from e2e_percep_jax.sim import batch as batch_lib
 
-from .common import REPO, cpu_stream_config, median_s, paper_config, train_size, train_step_runner
+from .common import REPO, cpu_stream_config, latent_models, median_s, paper_config, train_size, train_step_runner
 
 FLAGS = flags.FLAGS
 PEER_SCRIPT = os.path.join(REPO, "..", "shared", "peer", "torch_peer_bench.py")
@@ -91,10 +91,10 @@ def bench_train(town, repeats):
 
 
 def bench_latent(town, repeats):
-    """Each latent's training step (``config.LATENTS``) at the ``cpu`` preset's (B, T, R), with the preset's
-    network and with the paper's widths, alternated with the eager PyTorch peer (the paper's vector-latent
-    network at the same size) for ``--peer_rounds`` rounds of ``repeats`` steps, so that every ratio is taken
-    in one window of this shared VM; each figure is the median of its rounds' medians."""
+    """Each latent's training step (:func:`latent_models`) at the ``cpu`` preset's (B, T, R), with the
+    preset's network and with the paper's widths, alternated with the eager PyTorch peer (the paper's
+    vector-latent network at the same size) for ``--peer_rounds`` rounds of ``repeats`` steps, so that every
+    ratio is taken in one window of this shared VM; each figure is the median of its rounds' medians."""
     cpu = config_lib.get_config("cpu")
     b, t, r = cpu.data.batch_size, cpu.data.seq_len, cpu.data.image_size
     runs = {}
@@ -102,8 +102,7 @@ def bench_latent(town, repeats):
         ("cpu", config_lib.replace(cpu, data=dict(place_frames=0))),
         ("paper widths", paper_config(b, t, r)),
     ):
-        for latent in config_lib.LATENTS:
-            cfg = config_lib.replace(base, model=dict(latent=latent))
+        for latent, cfg in latent_models(base).items():
             runs[network, latent] = train_step_runner(cfg, batch_lib.make_batch(jax.random.PRNGKey(0), town, cfg))
     rounds, peers = {key: [] for key in runs}, []
     for _ in range(FLAGS.peer_rounds):
