@@ -719,17 +719,24 @@ def drive_pose_summary(drives_true, drives_pred) -> dict:
     }
 
 
+# The known-start protocol's error by frames of each drive, [first, last + 1) (None: to the drive's end): the
+# early frames show the odometry's own drift, the late ones how far it grows (the tables' Table II)
+FRAME_SPANS = {"location_m_frames_100_999": (100, 1000), "location_m_frames_1000_on": (1000, None)}
+
+
 def drive_pose_intervals(drives_true, drives_pred, cover, step_bin_edges, num_resamples: int = 1000) -> dict:
     """95 % bootstrap intervals over whole drives (:func:`bootstrap_interval`) of the pose figures, from each
     drive's true and estimated poses ([frames, 5] each) and ``cover`` ([frames, 2] per drive: how much of
     the truth's cell lies in the belief's 95 % place and (heading, place) regions; None: no belief). Returns
     ``{name: (low, high)}``: location_m_mean, location_m_p90, heading_rad_mean, location_within_5m,
-    location_within_10m, drift_per_100m, coverage_place, coverage_place_heading (NaN without a belief) and
+    location_within_10m, drift_per_100m, coverage_place, coverage_place_heading (NaN without a belief), the
+    mean location error over each of :data:`FRAME_SPANS` (NaN where no drive reaches it) and
     location_m_by_step_mean (arrays [B], per bin of ``step_bin_edges``)."""
     errors = [pose_errors(p, t) for t, p in zip(drives_true, drives_pred)]
     loc = [np.asarray(e.location_m, np.float64) for e in errors]
     frames = np.array([len(v) for v in loc], np.float64)
     sums = lambda values: np.array([np.sum(v) for v in values], np.float64)
+    spans = {name: [v[first:last] for v in loc] for name, (first, last) in FRAME_SPANS.items()}
     bins = [np.searchsorted(step_bin_edges, np.arange(len(v)), side="right") - 1 for v in loc]
     by_step_sum = np.stack([np.bincount(b, v, len(step_bin_edges)) for b, v in zip(bins, loc)])
     by_step_count = np.stack([np.bincount(b, minlength=len(step_bin_edges)) for b in bins]).astype(np.float64)
@@ -750,6 +757,7 @@ def drive_pose_intervals(drives_true, drives_pred, cover, step_bin_edges, num_re
                 "drift_per_100m": 100.0 * (w @ end_error) / (w @ travelled),
                 "coverage_place": (w @ cover_sum[:, 0]) / n if cover is not None else np.full(len(w), np.nan),
                 "coverage_place_heading": (w @ cover_sum[:, 1]) / n if cover is not None else np.full(len(w), np.nan),
+                **{name: (w @ sums(v)) / (w @ sums(map(np.ones_like, v))) for name, v in spans.items()},
             }
             by_step = (w @ by_step_sum) / (w @ by_step_count)
         return np.concatenate([np.stack(list(out.values()), 1), by_step], 1), list(out)

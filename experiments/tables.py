@@ -32,6 +32,7 @@ from absl import app, flags
 from e2e_percep_jax import baselines as baselines_lib
 from e2e_percep_jax import checkpoint, pictures, pose_belief, protocol, report
 from e2e_percep_jax import config as config_lib
+from e2e_percep_jax import metrics as metrics_lib
 from e2e_percep_jax.summary import markdown_table, mean_std, summary_metrics
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -277,11 +278,15 @@ def _error_by_frames(metrics: dict, lo: int, hi: int) -> float | None:
     return total / count if count else None
 
 
-def _frames_cell(evaluations: list[dict] | None, lo: int, hi: int) -> str:
-    """Mean ± std over the runs of the location error over frames [lo, hi)."""
+def _frames_cell(evaluations: list[dict] | None, span: str) -> str:
+    """Mean ± std over the runs of the location error over one of ``metrics_lib.FRAME_SPANS``, then its interval
+    over drives (:func:`_bounds`) where every run has one."""
     if not evaluations:
         return ""
-    return _format(*mean_std([{"error": _error_by_frames(m, lo, hi)} for m in evaluations])["error"])
+    first, last = metrics_lib.FRAME_SPANS[span]
+    errors = [{"error": _error_by_frames(m, first, last or np.inf)} for m in evaluations]
+    cell = _format(*mean_std(errors)["error"])
+    return cell and cell + _bounds(evaluations, lambda m: m["pose"].get("interval95", {}).get(span), 1.0, 1)
 
 
 def _label(evaluations: dict) -> str:
@@ -462,7 +467,7 @@ def localisation(found: dict) -> str:
                 )
             )
             + (WHOLE_CELLS if _whole_cells(glob_) else ""),
-            " / ".join(filter(None, [_frames_cell(known, 100, 1000), _frames_cell(known, 1000, 10**9)])),
+            " / ".join(filter(None, [_frames_cell(known, span) for span in metrics_lib.FRAME_SPANS])),
             " / ".join(d or "-" for d in drift) if any(drift) else "",
             against,
         ]

@@ -305,6 +305,34 @@ def test_bootstrap_interval_of_two_drives_is_exact():
     assert (low, high) == (a, b)
 
 
+def test_pose_intervals_of_two_drives_span_the_drives_own_figures():
+    """Two drives: a resample holds drive a twice, both, or drive b twice, so each figure's 2.5 % and 97.5 %
+    points are the two drives' own figures, whatever the figure's weighting (frames, metres driven); drive b
+    stops before frame 1,000, so the late span's interval is drive a's alone."""
+    drives = []
+    for frames, offset_m, slope in ((1500, 1.0, 0.002), (800, 3.0, 0.01)):
+        true = np.zeros((frames, 5))
+        true[:, 0], true[:, 2] = 0.5 * np.arange(frames), 1.0  # driving along x at 5 m/s (0.1 s frames)
+        pred = true.copy()
+        pred[:, 1] = offset_m + slope * np.arange(frames)  # the error grows along the drive
+        drives.append((true, pred))
+    got = metrics.drive_pose_intervals(*zip(*drives), None, np.array([0, 100, 1000]), num_resamples=4000)
+    own = []
+    for true, pred in drives:
+        error_m = np.linalg.norm(pred[:, :2] - true[:, :2], axis=-1)
+        own.append(
+            {
+                "location_m_mean": error_m.mean(),
+                "drift_per_100m": 100 * error_m[-1] / (0.5 * (len(error_m) - 1)),
+                "location_m_frames_100_999": error_m[100:1000].mean(),
+            }
+        )
+    for name in own[0]:
+        np.testing.assert_allclose(got[name], sorted(drive[name] for drive in own), rtol=1e-9, err_msg=name)
+    late = np.linalg.norm(drives[0][1][1000:, :2] - drives[0][0][1000:, :2], axis=-1).mean()
+    np.testing.assert_allclose(got["location_m_frames_1000_on"], [late, late], rtol=1e-9)
+
+
 def test_bootstrap_interval_of_a_mean_against_the_normal_closed_form():
     """Over D drives with one value each, the bootstrap distribution of the mean has variance s^2 / D (s^2
     the values' plug-in variance) and is nearly normal for D = 400: the 95 % interval is the mean

@@ -191,8 +191,8 @@ def test_cells_are_the_mean_and_std_over_seeds(results):
 
 def test_pose_cells_carry_the_interval_over_drives_where_every_run_has_one(results, tmp_path):
     """Each run's 95 % interval over drives (``pose.interval95``), its bounds averaged over the runs, follows
-    the mean ± std in brackets (shares in %); a run without one (an evaluation made before intervals) leaves
-    the cell without brackets."""
+    the mean ± std in brackets (shares in %), the known start's error by frames too; a run without one (an
+    evaluation made before intervals) leaves the cell without brackets."""
     for seed in (0, 1):
         m = _metrics(seed, location=4.0 + 2 * seed)
         m["pose"]["interval95"] = {
@@ -200,11 +200,14 @@ def test_pose_cells_carry_the_interval_over_drives_where_every_run_has_one(resul
             "heading_rad_mean": [0.04, 0.06],
             "coverage_place": [0.9, 0.98 + 0.01 * seed],
         }
-        _write_run(tmp_path / "bounded" / f"place_s{seed}", {"eval": m})
+        known = _metrics(seed, known_start=True, by_step=(2.0 + seed, 3.0))
+        known["pose"]["interval95"] = {"location_m_frames_100_999": [1.0, 3.0 + seed]}  # the late span's is missing
+        _write_run(tmp_path / "bounded" / f"place_s{seed}", {"eval": m, "eval_known_start": known})
     tables.collect("bounded", [str(tmp_path / "bounded" / f"place_s{s}") for s in (0, 1)], str(results))
     loc = _row(tables.render(str(results))["localisation"], "`bounded`")
     assert loc[1] == "5.0 ± 1.0 [3.5, 6.0] / 10.0 ± 2.0" and loc[2] == "0.050 ± 0.000 [0.040, 0.060]"
     assert loc[4] == "95.0 ± 0.0 [90.0, 98.5] / 90.0 ± 0.0"
+    assert loc[5] == "2.5 ± 0.5 [1.0, 3.5] / 3.0 ± 0.0"
     assert _row(tables.render(str(results))["localisation"], "`cpu`")[1] == "5.0 ± 1.0 / 10.0 ± 2.0"
 
 
