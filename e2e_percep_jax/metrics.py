@@ -736,7 +736,11 @@ def drive_pose_intervals(drives_true, drives_pred, cover, step_bin_edges, num_re
     loc = [np.asarray(e.location_m, np.float64) for e in errors]
     frames = np.array([len(v) for v in loc], np.float64)
     sums = lambda values: np.array([np.sum(v) for v in values], np.float64)
-    spans = {name: [v[first:last] for v in loc] for name, (first, last) in FRAME_SPANS.items()}
+    # each span's (error sum, frames) per drive
+    spans = {
+        name: [sums(v[first:last] for v in loc), sums(len(v[first:last]) for v in loc)]
+        for name, (first, last) in FRAME_SPANS.items()
+    }
     bins = [np.searchsorted(step_bin_edges, np.arange(len(v)), side="right") - 1 for v in loc]
     by_step_sum = np.stack([np.bincount(b, v, len(step_bin_edges)) for b, v in zip(bins, loc)])
     by_step_count = np.stack([np.bincount(b, minlength=len(step_bin_edges)) for b in bins]).astype(np.float64)
@@ -757,7 +761,7 @@ def drive_pose_intervals(drives_true, drives_pred, cover, step_bin_edges, num_re
                 "drift_per_100m": 100.0 * (w @ end_error) / (w @ travelled),
                 "coverage_place": (w @ cover_sum[:, 0]) / n if cover is not None else np.full(len(w), np.nan),
                 "coverage_place_heading": (w @ cover_sum[:, 1]) / n if cover is not None else np.full(len(w), np.nan),
-                **{name: (w @ sums(v)) / (w @ sums(map(np.ones_like, v))) for name, v in spans.items()},
+                **{name: (w @ total) / (w @ count) for name, (total, count) in spans.items()},
             }
             by_step = (w @ by_step_sum) / (w @ by_step_count)
         return np.concatenate([np.stack(list(out.values()), 1), by_step], 1), list(out)

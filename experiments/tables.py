@@ -265,7 +265,12 @@ def _cell(evaluations: list[dict] | None, row: str, digits: int = 1, interval: s
     if not cell or interval is None:
         return cell
     scale = 100.0 if row.endswith("(%)") else 1.0
-    return cell + _bounds(evaluations, lambda m: m["pose"].get("interval95", {}).get(interval), scale, digits)
+    return cell + _pose_bounds(evaluations, interval, scale, digits)
+
+
+def _pose_bounds(evaluations: list[dict], name: str, scale: float, digits: int) -> str:
+    """:func:`_bounds` of the pose figure ``name`` (a key of metrics.json's ``pose.interval95``)."""
+    return _bounds(evaluations, lambda m: m["pose"].get("interval95", {}).get(name), scale, digits)
 
 
 def _error_by_frames(metrics: dict, lo: int, hi: int) -> float | None:
@@ -280,13 +285,13 @@ def _error_by_frames(metrics: dict, lo: int, hi: int) -> float | None:
 
 def _frames_cell(evaluations: list[dict] | None, span: str) -> str:
     """Mean ± std over the runs of the location error over one of ``metrics_lib.FRAME_SPANS``, then its interval
-    over drives (:func:`_bounds`) where every run has one."""
+    over drives (:func:`_pose_bounds`) where every run has one."""
     if not evaluations:
         return ""
     first, last = metrics_lib.FRAME_SPANS[span]
     errors = [{"error": _error_by_frames(m, first, last or np.inf)} for m in evaluations]
     cell = _format(*mean_std(errors)["error"])
-    return cell and cell + _bounds(evaluations, lambda m: m["pose"].get("interval95", {}).get(span), 1.0, 1)
+    return cell and cell + _pose_bounds(evaluations, span, 1.0, 1)
 
 
 def _label(evaluations: dict) -> str:
