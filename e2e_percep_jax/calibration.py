@@ -31,7 +31,6 @@ from e2e_percep_jax.sim.geometry import wrap_angle
 from e2e_percep_jax.sim.motion import DT_S, WHEELBASE_M, MotionModel
 
 CALIBRATION_SEED = 999_983  # the drives' root key: not a training seed's batches, nor the evaluation's worlds
-SPREAD_TOWN_SEEDS = (101, 102, 103, 104)  # towns that no training batch, place stream, table or test drives
 LAG_GRID_S = (0.0, 0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.4)
 HORIZONS = (10, 30, 100, 300)  # steps
 MIN_SPEED_MPS = 1.0  # slower steps are left out of the fits (curvature is ill-defined when standing)
@@ -310,7 +309,7 @@ def spread_scale(squared_distance, dims: int) -> float:
 
 def fit_spread(cfg: Config, model: MotionModel) -> MotionModel:
     """``model`` with the odometry's spread: ``cfg.eval.spread_drives_per_town`` lidar drives of
-    ``cfg.eval.spread_frames`` frames in each of :data:`SPREAD_TOWN_SEEDS` from a key of their own, followed
+    ``cfg.eval.spread_frames`` frames in each of ``cfg.eval.spread_town_seeds`` from a key of their own, followed
     from their true starts by the odometry
     (``ego_motion.follow``: with the scans when ``model`` has the matcher's noise); the factor on its error
     covariance's heading variances that holds 95 % of the heading errors in the 95 % interval, then, with
@@ -320,7 +319,7 @@ def fit_spread(cfg: Config, model: MotionModel) -> MotionModel:
     training town's streets hold the odometry tighter (on the `cpu` preset's, a third of the error of towns
     1, 2, 7 and 8)."""
     drives = []
-    for town_seed in SPREAD_TOWN_SEEDS:
+    for town_seed in cfg.eval.spread_town_seeds:
         key = jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(CALIBRATION_SEED), 2), town_seed)
         pose, speed, command, scan = lidar_drives(
             cfg, town_seed, key, cfg.eval.spread_drives_per_town, cfg.eval.spread_frames

@@ -222,10 +222,12 @@ class EvalConfig:
     detection_frames: int = 200
     detection_pool: int = 0
     # The lidar odometry's spread (calibration.fit_spread), fitted into the run's motion model the first time
-    # a town the place head never saw is evaluated from its known start: this many drives of each of the
-    # spread's towns, of spread_frames frames each. Not part of the protocol: the fit is kept once made.
+    # a town the place head never saw is evaluated from its known start: spread_drives_per_town drives of
+    # spread_frames frames in each of spread_town_seeds (towns that no training batch, place stream or table
+    # drives). Not part of the protocol: the fit is kept once made.
     spread_drives_per_town: int = 4
     spread_frames: int = 1500
+    spread_town_seeds: tuple = (101, 102, 103, 104)
 
 
 # (section, old name) -> new name: runs saved before a rename still read back.
@@ -360,7 +362,15 @@ PRESETS = {
             max_grad_norm=0.0,
             pose_weight=1.0,
         ),
-        eval=dict(num_frames=40, num_worlds=2, chunk_steps=10, spread_drives_per_town=1, spread_frames=300),
+        # the odometry's spread fitted on one town: each town of the fit is built and driven anew
+        eval=dict(
+            num_frames=40,
+            num_worlds=2,
+            chunk_steps=10,
+            spread_drives_per_town=1,
+            spread_frames=300,
+            spread_town_seeds=(101,),
+        ),
     ),
 }
 
@@ -461,6 +471,14 @@ def validate(cfg: Config) -> Config:
     for name, value in seeds.items():
         if value < 0:
             raise ValueError(f"--{name}={value}: must be >= 0")
+    # the spread is fitted on towns neither trained on (their streets hold the odometry tighter) nor evaluated
+    spread_towns = cfg.eval.spread_town_seeds
+    if not spread_towns or min(spread_towns) < 0 or {cfg.world.town_seed, cfg.eval.town_seed} & set(spread_towns):
+        raise ValueError(
+            f"--eval.spread_town_seeds={flag_value(spread_towns)}: must name one or more town seeds >= 0, neither "
+            f"the training town (--world.town_seed={cfg.world.town_seed}) nor the evaluated one "
+            f"(--eval.town_seed={cfg.eval.town_seed})"
+        )
     plant_limits = dict(zip(PLANT_FIELDS, (1.0, 5.0, 0.2, 0.2, 10.0, 1.0, 0.05)))
     for name, limit in plant_limits.items():
         value = getattr(cfg.world, name)

@@ -197,6 +197,17 @@ CASES = {
         "--eval.detection_pool=4: must be 0 (no choice) or at least --eval.detection_drives=8",
     ),
     "train spread_frames zero": Case("train", ["--eval.spread_frames=0"], "--eval.spread_frames=0: must be positive"),
+    "train spread towns holding the training town": Case(
+        "train",
+        ["--eval.spread_town_seeds=101,0"],
+        "--eval.spread_town_seeds=101,0: must name one or more town seeds >= 0, neither the training town",
+    ),
+    "train spread towns holding the evaluated town": Case(
+        "train",
+        ["--eval.town_seed=7", "--eval.spread_town_seeds=7"],
+        "--eval.spread_town_seeds=7: must name one or more town seeds >= 0, neither the training town "
+        "(--world.town_seed=0) nor the evaluated one (--eval.town_seed=7)",
+    ),
     "train a positional argument": Case("train", ["extra"], "unexpected arguments ['extra']"),
     "train no workdir": Case("train", ["--workdir="], "--workdir is required"),
     # ---------------------------------------------------------------- experiments/train.py resuming the run

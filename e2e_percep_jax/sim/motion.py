@@ -71,7 +71,7 @@ class MotionModel:
     # How far the odometry strays from a known start, against what its filters say: the factors on the
     # heading's variances that the odometry's error covariance carries (ego_motion.error_covariance: they
     # move the position too), then on its location's, that put 95 % of the heading and location errors inside
-    # their 95 % regions on drives of towns no table uses (calibration.SPREAD_TOWN_SEEDS). A location scale of
+    # their 95 % regions on drives of towns no table uses (`--eval.spread_town_seeds`). A location scale of
     # 0: not fitted; the odometry's belief is then a point. (Models saved when the spread was a law of the
     # distance driven carry "odometry_location_std_at_100m_m": `load` drops it, and
     # `calibration.ensure_scans` fits the factors.)
