@@ -362,7 +362,7 @@ PRESETS = {
             max_grad_norm=0.0,
             pose_weight=1.0,
         ),
-        # the odometry's spread fitted on one town: each town of the fit is built and driven anew
+        # the odometry's spread fitted on one town's drive: the fit builds, drives and matches each of its towns
         eval=dict(
             num_frames=40,
             num_worlds=2,
