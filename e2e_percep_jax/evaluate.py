@@ -272,14 +272,17 @@ def _program_config(cfg: Config) -> Config:
 
 def default_perceiver(cfg: Config, workdir: str | None):
     """What :func:`evaluate` drives unless told otherwise: the filtered model of run ``workdir`` (its motion
-    model, and the lidar odometry's calibration fitted first if missing), or the exact bicycle's without one."""
+    model, and the lidar odometry's calibration fitted first if missing, under ``cfg.eval``'s spread fields),
+    or the exact bicycle's without one; built under the program config (:func:`_program_config`), so that
+    evaluations which share a program share its perceiver."""
+    program_cfg = _program_config(cfg)
     if not workdir:
-        return Perceiver(cfg)
+        return Perceiver(program_cfg)
     if cfg.model.histogram_belief:
         # the lidar odometry moves the belief; on a town the head does not know it is the pose, with its spread
         ev = cfg.eval
         calibration.ensure_scans(cfg, workdir, spread=ev.known_start and ev.town_seed != cfg.world.town_seed)
-    return run_perceiver(cfg, workdir)
+    return run_perceiver(program_cfg, workdir)
 
 
 @functools.lru_cache(maxsize=8)
@@ -471,7 +474,7 @@ def evaluate(
     filtered = filtered and cfg.model.histogram_belief
     program_cfg = _program_config(cfg)
     if perceiver is None:
-        perceiver = default_perceiver(program_cfg, workdir)
+        perceiver = default_perceiver(cfg, workdir)
     program = chunk_program(program_cfg, perceiver, sample, heads)
     sample_root = _sample_root(ev)
     det_keys, det_remembered = detection_start_keys(cfg, town) if num_det else (None, None)

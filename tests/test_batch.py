@@ -206,8 +206,10 @@ def test_a_vanishing_vehicle_leaves_every_sensor_and_stays_in_the_targets(town):
     # and, frame by frame, against the sensors of a world state with that vehicle driven out of the town.
     cfg = config.replace(CFG, world=dict(num_vehicles=100), data=dict(vanish_share=1.0, batch_size=4))
     key = batch.batch_key(0, 0)
-    states = batch.warm_up(key, town, cfg)
-    hidden = np.asarray(batch.vanishing(states, jax.random.fold_in(key, batch.VANISH_STREAM), town, cfg))
+    states = jax.jit(batch.warm_up, static_argnums=2)(key, town, cfg)  # each compiled whole, not op by op
+    hidden = np.asarray(
+        jax.jit(batch.vanishing, static_argnums=3)(states, jax.random.fold_in(key, batch.VANISH_STREAM), town, cfg)
+    )
     plain = jax.tree.map(np.asarray, batch.make_batch(key, town, config.replace(cfg, data=dict(vanish_share=0.0))))
     vanished = jax.tree.map(np.asarray, batch.make_batch(key, town, cfg))
     for field in ("det_cls", "det_reg", "boxes", "boxes_valid", "pose", "action", "roadmap"):
@@ -224,9 +226,12 @@ def test_a_vanishing_vehicle_leaves_every_sensor_and_stays_in_the_targets(town):
         vanished["boxes_lidar_visible"], vanished["boxes_camera_visible"], vanished["boxes_frames_since_seen"]
     )
     assert (np.asarray(group)[hidden] == metrics.GROUPS.index("remembered")).all()  # seen in frame 0, not since
-    _, _, frame_states = jax.vmap(
-        lambda s: rollout.drive(s, town, cfg.data.seq_len + 1, cfg.data.image_size, with_states=True)
-    )(states)
+    _, _, frame_states = jax.jit(
+        jax.vmap(
+            lambda s, town: rollout.drive(s, town, cfg.data.seq_len + 1, cfg.data.image_size, with_states=True),
+            in_axes=(0, None),
+        )
+    )(states, town)
     observe = jax.jit(sensors.observe, static_argnums=(2, 3))  # compiled once for every hidden frame
     for b, t in zip(*np.nonzero(hidden.any(-1))):
         vehicle = 1 + int(np.argmax(hidden[b, t]))  # the world's row (row 0 is the ego)
@@ -247,9 +252,10 @@ def test_a_phantom_wall_hides_a_vehicle_in_its_shadow_and_it_stays_in_the_target
     # targets), and against the sensors' own account of who saw the vehicle.
     cfg = config.replace(CFG, world=dict(num_vehicles=100), data=dict(occluder_share=1.0, batch_size=8, seq_len=8))
     key = batch.batch_key(0, 0)
-    states = batch.warm_up(key, town, cfg)
+    states = jax.jit(batch.warm_up, static_argnums=2)(key, town, cfg)  # each compiled whole, not op by op
     occluder = jax.tree.map(
-        np.asarray, batch.occluding(states, jax.random.fold_in(key, batch.OCCLUDER_STREAM), town, cfg)
+        np.asarray,
+        jax.jit(batch.occluding, static_argnums=3)(states, jax.random.fold_in(key, batch.OCCLUDER_STREAM), town, cfg),
     )
     plain = jax.tree.map(np.asarray, batch.make_batch(key, town, config.replace(cfg, data=dict(occluder_share=0.0))))
     walled = jax.tree.map(np.asarray, batch.make_batch(key, town, cfg))

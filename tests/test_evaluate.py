@@ -408,6 +408,37 @@ def test_evaluations_that_differ_in_drives_or_nms_share_one_program_and_a_town_d
     assert program(top_k=8) is not program()
 
 
+def test_an_evaluation_fits_the_odometrys_spread_on_the_towns_and_drives_its_flags_name(tmp_path, monkeypatch):
+    """``--eval.spread_*`` reach the spread's fit that an evaluation off the training town makes first: the
+    chunk program's config drops the evaluation fields it does not read, and the fit must not see those
+    defaults (4 towns of 4 drives of 1,500 frames) instead of the flags. The fit's drives are recorded and
+    the evaluation stopped there, before any compile."""
+    from e2e_percep_jax import calibration
+    from e2e_percep_jax.sim.motion import MotionModel
+
+    cfg = config_lib.replace(
+        config_lib.get_config("tiny"),
+        eval=dict(town_seed=3, known_start=True, spread_town_seeds=(5, 6), spread_drives_per_town=2, spread_frames=40),
+    )
+    MotionModel(scan_heading_noise_rad=1e-3, scan_distance_noise=1e-3).save(str(tmp_path))  # scans, no spread
+    asked = []
+
+    class Stop(Exception):
+        pass
+
+    def lidar_drives(cfg_seen, town_seed, key, num_worlds, num_frames):
+        asked.append((town_seed, num_worlds, num_frames))
+        if len(asked) == len(cfg.eval.spread_town_seeds):
+            raise Stop
+        return None, None, None, None
+
+    monkeypatch.setattr(calibration, "lidar_drives", lidar_drives)
+    monkeypatch.setattr(calibration, "start_and_commands", lambda *a: (None, None))
+    with pytest.raises(Stop):
+        eval_lib.evaluate(cfg, None, str(tmp_path / "eval"), workdir=str(tmp_path), log=lambda _: None)
+    assert asked == [(5, 2, 40), (6, 2, 40)]
+
+
 def test_eval_dir_keeps_protocols_and_the_filterless_reading_apart(tmp_path):
     cfg = config_lib.get_config("tiny")
     run = str(tmp_path / "run")
