@@ -40,21 +40,55 @@ def _sample_cells(grid, rowcol):
     return jax.vmap(sample, in_axes=-1, out_axes=-1)(grid)
 
 
-def warp(grid, motion):
-    """The earlier frame's grid [B, G, G, C] seen from the later frame, the ego having moved by ``motion`` [B, 3]
-    (module docstring): (warped [B, G, G, C], inside [B, G, G, 1], the share of each sample that came from the
-    earlier grid: 1 where it saw the cell, 0 where the view is new)."""
+def _sample_at(grid, points_m):
+    """``grid`` [B, G, G, C], whose cell centres lie at the ego frame's (``geo.bev_pixel_centres``), sampled
+    bilinearly at ego-frame points ``points_m`` [B, G, G, 2], zero outside: (values [B, G, G, C], inside
+    [B, G, G, 1], the share of each sample that came from the grid)."""
     g = grid.shape[1]
-    centres = geo.bev_pixel_centres(g)  # [G, G, 2] ego-frame metres of the later frame's cell centres
 
-    def one(grid, motion):
-        before = geo.rotate(centres, motion[2]) + motion[:2]  # the same points in the earlier ego frame
-        rowcol = geo.ego_to_bev_px(before, g) - 0.5
+    def one(grid, points):
+        rowcol = geo.ego_to_bev_px(points, g) - 0.5
         with_ones = jnp.concatenate([grid, jnp.ones(grid.shape[:2] + (1,), grid.dtype)], -1)
         sampled = _sample_cells(with_ones, rowcol)
         return sampled[..., :-1], sampled[..., -1:]
 
-    return jax.vmap(one)(grid, motion)
+    return jax.vmap(one)(grid, points_m)
+
+
+def _moved(points_m, motion):
+    """Later-frame points [G, G, 2] (or [B, G, G, 2]) in the earlier ego frame, the ego having moved by
+    ``motion`` [B, 3] (module docstring): [B, G, G, 2]."""
+    return geo.rotate(points_m, motion[:, 2, None, None]) + motion[:, None, None, :2]
+
+
+def warp(grid, motion):
+    """The earlier frame's grid [B, G, G, C] seen from the later frame, the ego having moved by ``motion`` [B, 3]
+    (module docstring): (warped [B, G, G, C], inside [B, G, G, 1], the share of each sample that came from the
+    earlier grid: 1 where it saw the cell, 0 where the view is new)."""
+    return _sample_at(grid, _moved(geo.bev_pixel_centres(grid.shape[1]), motion))
+
+
+def shift(grid, offset_m):
+    """``grid`` [B, G, G, C] sampled at its cell centres moved by ``offset_m`` [B, 2] (metres, its own axes),
+    bilinearly, zero outside: [B, G, G, C]."""
+    return _sample_at(grid, geo.bev_pixel_centres(grid.shape[1]) + offset_m[:, None, None])[0]
+
+
+# A bilinear warp at a fraction of a cell averages neighbouring cells: every frame it spreads what the grid holds
+# by f (1 - f) cells^2 along each axis (f the fraction), so a car that the sensors lost blurs into its
+# neighbourhood within a second at city speeds. On a lattice (``--model.grid_warp=lattice``) the grid's cells sit
+# off the ego's by ``offset_m`` (under half a cell each way), chosen every frame so that a translation moves the
+# grid by whole cells: exact, whatever the speed; only a turn still samples between cells.
+def warp_on_lattice(grid, offset_m, motion):
+    """The earlier frame's grid [B, G, G, C], whose cell centres lay at the earlier ego frame's centres plus
+    ``offset_m`` [B, 2], seen from the later frame on a lattice of its own: (warped [B, G, G, C], inside
+    [B, G, G, 1] as in :func:`warp`, the new lattice's offset [B, 2] from the later ego frame's centres, each
+    part within half a cell)."""
+    cell_m = geo.BEV_SPAN_M / grid.shape[1]
+    travel = motion[:, :2] - offset_m
+    new_offset = cell_m * jnp.round(travel / cell_m) - travel
+    lattice = geo.bev_pixel_centres(grid.shape[1]) + new_offset[:, None, None]
+    return (*_sample_at(grid, _moved(lattice, motion) - offset_m[:, None, None]), new_offset)
 
 
 # The lidar image's obstacle returns (its green channel: 0.25-3.1 m above the ground) shadow what lies behind

@@ -56,6 +56,11 @@ GRID_UPDATES = ("learned", "lidar_gated", "lidar_fused")
 # image has no returns from a vehicle the lidar cannot see, so a grid that reconstructs it is taught to erase the
 # vehicles an occluder hides, which the boxes ask it to keep (BUILD_NOTES, "A grid that no longer draws the lidar").
 LIDAR_DECODER_INPUTS = ("latent_and_grid", "latent")
+# How the bird-eye grid is carried to the next frame (latent "bev"): bilinear, sampled where the ego's motion moved
+# each cell centre, which blurs what the grid holds every frame the ego moves by a fraction of a cell; lattice, on
+# cells kept off the ego's by under half a cell so that a translation moves the grid by whole cells, and the
+# decoders read it sampled once onto the ego's cells (bev_latent.warp_on_lattice).
+GRID_WARPS = ("bilinear", "lattice")
 DEFAULT_TOWN_SEED = 0
 
 
@@ -144,6 +149,7 @@ class ModelConfig:
     grid_channels: int = 8
     grid_update: str = "learned"  # one of GRID_UPDATES
     lidar_decoder_input: str = "latent_and_grid"  # one of LIDAR_DECODER_INPUTS
+    grid_warp: str = "bilinear"  # one of GRID_WARPS
 
     @property
     def histogram_belief(self) -> bool:
@@ -399,6 +405,7 @@ def validate(cfg: Config) -> Config:
         "latent": LATENTS,
         "grid_update": GRID_UPDATES,
         "lidar_decoder_input": LIDAR_DECODER_INPUTS,
+        "grid_warp": GRID_WARPS,
     }
     for name, allowed in choices.items():
         if getattr(cfg.model, name) not in allowed:
@@ -413,6 +420,10 @@ def validate(cfg: Config) -> Config:
     if cfg.model.grid_update != "learned" and cfg.model.latent != "bev":
         raise ValueError(
             f"--model.grid_update={cfg.model.grid_update!r} updates the bird-eye grid: needs --model.latent=bev"
+        )
+    if cfg.model.grid_warp != "bilinear" and cfg.model.latent != "bev":
+        raise ValueError(
+            f"--model.grid_warp={cfg.model.grid_warp!r} carries the bird-eye grid: needs --model.latent=bev"
         )
     if cfg.model.lidar_decoder_input != "latent_and_grid" and cfg.model.latent != "bev":
         raise ValueError(

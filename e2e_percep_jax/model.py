@@ -370,25 +370,43 @@ class PerceptionModel(nn.Module):
         posterior per cell (with ``grid_update="lidar_gated"``, moved from the prior only as far as the lidar
         sees the cell: :func:`gated_update`; with ``"lidar_fused"``, the prior times the cell's observation
         Gaussian, weighted by the same share: :func:`fused_update`; the prior where ``seen`` [N], if given, is
-        False). Returns (grid sample [N, G, G, C], outputs)."""
+        False). With ``grid_warp="lattice"`` the grid is carried on its lattice (``bev_latent.warp_on_lattice``),
+        the frame's lidar map and visibility sampled onto it, and its outputs ``grid_carried`` and ``grid_offset``
+        are the state's; ``grid`` is then the sample on the ego's cells, what the decoders read. Returns (the
+        state's grid fields, outputs)."""
         first = state.first[:, None, None, None]
         inputs = [encoded["features"], state.z1, state.z2, prev_action]
         motion = self.motion_head(jnp.concatenate(inputs, -1)) * bev_latent.MOTION_UNIT
-        warped, inside = bev_latent.warp(state.grid, jax.lax.stop_gradient(motion))
+        lidar_map, lidar_seen = encoded["lidar_map"], encoded.get("lidar_seen")
+        offset = None
+        if self.cfg.grid_warp == "lattice":  # the frame's maps sampled onto the grid's cells
+            warped, inside, offset = bev_latent.warp_on_lattice(
+                state.grid, state.grid_offset, jax.lax.stop_gradient(motion)
+            )
+            offset = jnp.where(state.first[:, None], 0.0, offset)
+            lidar_map = bev_latent.shift(lidar_map, offset)
+            lidar_seen = None if lidar_seen is None else bev_latent.shift(lidar_seen, offset)
+        else:
+            warped, inside = bev_latent.warp(state.grid, jax.lax.stop_gradient(motion))
         warped, inside = jnp.where(first, 0.0, warped), jnp.where(first, 0.0, inside)
         action_map = jnp.broadcast_to(prev_action[:, None, None], inside.shape[:3] + (2,))
         p_loc, p_scale = self.p_grid(warped, inside, action_map)
         p_loc, p_scale = jnp.where(first, 0.0, p_loc), jnp.where(first, 1.0, p_scale)  # N(0, I) on first frames
         lifted = self.camera_lift(encoded["features"]).reshape(warped.shape)
-        q_loc, q_scale = self.q_grid(warped, inside, encoded["lidar_map"], lifted)
-        if "lidar_seen" in encoded:  # from the prior only as far as the lidar sees the cell
+        q_loc, q_scale = self.q_grid(warped, inside, lidar_map, lifted)
+        if lidar_seen is not None:  # from the prior only as far as the lidar sees the cell
             update = LIDAR_UPDATES[self.cfg.grid_update]
-            q_loc, q_scale = update((p_loc, p_scale), (q_loc, q_scale), encoded["lidar_seen"])
+            q_loc, q_scale = update((p_loc, p_scale), (q_loc, q_scale), lidar_seen)
         if seen is not None:
             q_loc, q_scale = _unless_seen(seen[:, None, None, None], (q_loc, q_scale), (p_loc, p_scale))
         grid = _sample(q_loc, q_scale, key)
-        return grid, {
+        carried = {}
+        if offset is not None:  # the state keeps the lattice; the decoders read the grid on the ego's cells
+            carried = {"grid_carried": grid, "grid_offset": offset}
+            grid = bev_latent.shift(grid, -offset)
+        return carried, {
             "grid": grid,
+            **carried,
             "motion": motion,
             "q_grid_loc": q_loc,
             "q_grid_scale": q_scale,
@@ -414,8 +432,10 @@ class PerceptionModel(nn.Module):
         grid_outputs = {}
         if self.cfg.latent == "bev":  # a key of its own, so that the vector latent's draws stay the same
             grid_key = None if key is None else jax.random.fold_in(key, 2)
-            grid, grid_outputs = self.grid_step(state, encoded, prev_action, grid_key, seen)
-            new_state = new_state.replace(grid=grid)
+            carried, grid_outputs = self.grid_step(state, encoded, prev_action, grid_key, seen)
+            new_state = new_state.replace(grid=carried.get("grid_carried", grid_outputs["grid"]))
+            if "grid_offset" in carried:
+                new_state = new_state.replace(grid_offset=carried["grid_offset"])
         outputs = {
             "z1": z1,
             "z2": z2,
@@ -480,6 +500,9 @@ class FilterState:
     grid: with the bird-eye latent (``--model.latent=bev``, the default), float32 [B, G, G, C]: the grid's
         sample of each stream's last frame, in that frame's ego axes (:mod:`e2e_percep_jax.bev_latent`; zeros
         before the first); None with the vector latent (``--model.latent=vector``).
+    grid_offset: with ``--model.grid_warp=lattice``, float32 [B, 2]: where the grid's cell centres lie from
+        the ego's (metres ahead, to the left; each within half a cell), the grid being carried on that lattice
+        (``bev_latent.warp_on_lattice``); None otherwise.
     pose: the pose belief's histogram filter (:class:`pose_belief.PoseBeliefState`), which the inference
         API (``api.Perceiver``) keeps with the belief pose head; None otherwise, and in the latent filter
         of this module (:func:`filter_step`, :func:`filter_sequence`).
@@ -489,6 +512,7 @@ class FilterState:
     z2: jax.Array
     first: jax.Array
     grid: jax.Array | None = None
+    grid_offset: jax.Array | None = None
     pose: pose_belief.PoseBeliefState | None = None
 
 
@@ -501,6 +525,7 @@ def init_filter_state(batch_size: int, cfg: Config) -> FilterState:
         z2=jnp.zeros((batch_size, m.z2_dim)),
         first=jnp.ones((batch_size,), bool),
         grid=grid,
+        grid_offset=jnp.zeros((batch_size, 2)) if m.grid_warp == "lattice" else None,
     )
 
 
@@ -544,7 +569,9 @@ def filter_step(params, state: FilterState, camera, lidar, prev_action, key, cfg
     frame's ``features`` [B, 2 feature_dim]; with the bird-eye latent also the grid's sample ``grid``
     [B, G, G, C], its posterior and prior per cell (``q_grid_loc``/``q_grid_scale``,
     ``p_grid_loc``/``p_grid_scale``) and the ego-motion head's ``motion`` [B, 3] (dx m, dy m, dyaw rad from
-    frame t-1 to t, in frame t-1's axes; :func:`bev_latent.relative_motion` is its truth).
+    frame t-1 to t, in frame t-1's axes; :func:`bev_latent.relative_motion` is its truth); with
+    ``--model.grid_warp=lattice`` also the state's ``grid_carried`` and ``grid_offset``
+    (:class:`FilterState`), ``grid`` being what the decoders read.
     """
     model = build_model(cfg)
     encoded = model.apply(params, camera, lidar, method=PerceptionModel.encode)
@@ -594,8 +621,10 @@ def end_state(outputs: dict, action):
     """The ``start`` that continues :func:`filter_sequence`'s sequence into the next frame: (its last
     frame's filter state, the sequence's last action [B, 2])."""
     first = jnp.zeros(outputs["z1"].shape[:1], bool)
-    grid = outputs["grid"][:, -1] if "grid" in outputs else None
-    return FilterState(z1=outputs["z1"][:, -1], z2=outputs["z2"][:, -1], first=first, grid=grid), action[:, -1]
+    last = lambda name: outputs[name][:, -1] if name in outputs else None
+    grid = last("grid_carried") if "grid_carried" in outputs else last("grid")
+    state = FilterState(z1=last("z1"), z2=last("z2"), first=first, grid=grid, grid_offset=last("grid_offset"))
+    return state, action[:, -1]
 
 
 def decode(params, filtered: dict, cfg: Config) -> dict:

@@ -50,7 +50,7 @@ class CarriedTrainState(TrainState):
     """The train state of a ``--data.carry_state`` run: also, per drive slot of the stream (K =
     ``batches_per_drive``), where its drive's last segment left the latent filter: carry = {z1 [K, B,
     z1_dim], z2 [K, B, z2_dim] (the last frame's samples), action [K, B, 2] (from that frame to the
-    next segment's first), and with the bird-eye latent grid [K, B, G, G, C]}. Saved with the rest, so a resumed run continues its chains exactly."""
+    next segment's first), and with the bird-eye latent grid [K, B, G, G, C], on its lattice grid_offset [K, B, 2]}. Saved with the rest, so a resumed run continues its chains exactly."""
 
     carry: Any
 
@@ -60,6 +60,8 @@ def _empty_carry(cfg: Config) -> dict:
     carry = {"z1": jnp.zeros((k, b, m.z1_dim)), "z2": jnp.zeros((k, b, m.z2_dim)), "action": jnp.zeros((k, b, 2))}
     if m.latent == "bev":
         carry["grid"] = jnp.zeros((k, b, m.grid_cells, m.grid_cells, m.grid_channels))
+    if m.grid_warp == "lattice":
+        carry["grid_offset"] = jnp.zeros((k, b, 2))
     return carry
 
 
