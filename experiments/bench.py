@@ -73,6 +73,9 @@ flags.DEFINE_list("place_frames", ["32"], "place: P of the place stream's figure
 flags.DEFINE_list(
     "grid_cells", ["16"], "latent, infer: the bird-eye grid's cells a side (--model.grid_cells) of its figures"
 )
+flags.DEFINE_list(
+    "grid_warps", ["bilinear"], "latent, infer: how the bird-eye grid is carried (--model.grid_warp) in its figures"
+)
 flags.DEFINE_integer("memory_steps", 300, "training steps of the cpu-config run whose resident memory is sampled")
 flags.DEFINE_boolean(
     "keep_freed_buffers",
@@ -107,6 +110,10 @@ def main(argv):
             raise ValueError(f"--place_frames={','.join(FLAGS.place_frames)}: expected positive integers")
         if not all(c.isdigit() for c in FLAGS.grid_cells):
             raise ValueError(f"--grid_cells={','.join(FLAGS.grid_cells)}: expected positive integers")
+        if unknown_warps := sorted(set(FLAGS.grid_warps) - set(config_lib.GRID_WARPS)):
+            raise ValueError(
+                f"--grid_warps={','.join(FLAGS.grid_warps)}: unknown {unknown_warps}; choose from {config_lib.GRID_WARPS}"
+            )
         for cells in FLAGS.grid_cells:  # valid at both networks' sizes: the cpu preset's R (64) is the smaller
             grid = dict(latent="bev", grid_cells=int(cells))
             try:

@@ -115,6 +115,9 @@ CASES = {
     "train grid_update without the grid": Case(
         "train", ["--model.grid_update=lidar_gated"], "--model.grid_update='lidar_gated' updates the bird-eye grid"
     ),
+    "train grid_warp without the grid": Case(
+        "train", ["--model.grid_warp=lattice"], "--model.grid_warp='lattice' carries the bird-eye grid"
+    ),
     "train lidar_decoder_input": Case(
         "train",
         ["--model.latent=bev", "--model.lidar_decoder_input=features"],

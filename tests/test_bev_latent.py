@@ -74,6 +74,45 @@ def test_a_motion_and_its_inverse_give_back_the_cells_both_frames_see():
     np.testing.assert_allclose(np.asarray(back)[0][kept], field[0][kept], atol=1e-4)
 
 
+def test_on_a_lattice_translations_move_the_grid_by_whole_cells_and_add_up_to_one_warp():
+    """Twelve fractions of a cell forward and sideways: on the lattice every value the grid holds is one it
+    held before (whole cells, no blur; new cells zero), the offset stays within half a cell, and the grid read
+    on the ego's cells equals one bilinear warp of the first grid by the summed motion. The bilinear warp,
+    applied frame by frame, blurs: its peak falls."""
+    rng = np.random.default_rng(2)
+    grid = _grid(g=16, channels=2, seed=2)
+    steps = np.concatenate([rng.uniform(0.2, 1.3, (12, 1)), rng.uniform(-0.4, 0.4, (12, 1)), np.zeros((12, 1))], 1)
+    lattice, offset, frame_by_frame = jnp.asarray(grid), jnp.zeros((1, 2)), jnp.asarray(grid)
+    for motion in steps.astype(np.float32):
+        lattice, _, offset = bev_latent.warp_on_lattice(lattice, offset, jnp.asarray(motion[None]))
+        frame_by_frame, _ = bev_latent.warp(frame_by_frame, jnp.asarray(motion[None]))
+        assert np.all(np.abs(np.asarray(offset)) <= 2.0 / 2 + 1e-5)  # 2 m cells at G = 16
+    values = np.asarray(lattice).ravel()
+    nearest = np.abs(values[:, None] - np.append(grid.ravel(), 0.0)[None]).min(1)
+    np.testing.assert_array_less(nearest, 1e-4)
+    once, inside = bev_latent.warp(jnp.asarray(grid), jnp.asarray(steps.sum(0, keepdims=True), jnp.float32))
+    # away from the view's edges, which the lattice lost and found again as the sideways steps went and came
+    interior = np.zeros((16, 16), bool)
+    interior[1:-1, 1:-1] = True
+    interior &= np.asarray(inside)[0, ..., 0] > 1 - 1e-5
+    assert interior.sum() > 100
+    np.testing.assert_allclose(
+        np.asarray(bev_latent.shift(lattice, -offset))[0][interior], np.asarray(once)[0][interior], atol=1e-4
+    )
+    assert np.abs(np.asarray(frame_by_frame)).max() < 0.8 * np.abs(np.asarray(lattice)).max()
+
+
+def test_on_a_lattice_a_quarter_turn_is_the_bilinear_warp():
+    """With the lattice on the ego's cells and no translation, the lattice's warp is the bilinear one (the
+    quarter turn's closed form above) and its offset stays zero."""
+    grid, turn = jnp.asarray(_grid(seed=1)), jnp.array([[0.0, 0.0, np.pi / 2]])
+    warped, inside, offset = bev_latent.warp_on_lattice(grid, jnp.zeros((1, 2)), turn)
+    want, want_inside = bev_latent.warp(grid, turn)
+    np.testing.assert_allclose(warped, want, atol=1e-6)
+    np.testing.assert_allclose(inside, want_inside, atol=1e-6)
+    np.testing.assert_allclose(offset, 0.0, atol=1e-6)
+
+
 def test_relative_motion_is_the_later_pose_in_the_earlier_ego_frame():
     """Heading north (yaw pi/2) and moving 1 m north and 0.5 m west, turning 0.1 rad left: 1 m ahead, 0.5 m to
     the left, +0.1 rad; across the +-pi seam the heading change wraps."""
@@ -116,21 +155,30 @@ def test_the_grid_kl_and_the_motion_term_match_numpy(params):
 
 
 @pytest.mark.slow
-def test_streaming_the_grid_equals_the_training_scan(params):
+@pytest.mark.parametrize("grid_warp", ["bilinear", "lattice"])
+def test_streaming_the_grid_equals_the_training_scan(params, grid_warp):
     """filter_step frame by frame (the grid in the state) gives filter_sequence's grid, with sampled latents
-    (each frame's key as the scan splits it; the means are the same code with no key)."""
-    batch = synthetic_batch(1, CFG)
+    (each frame's key as the scan splits it; the means are the same code with no key). On the lattice the
+    state carries the lattice's grid and offset, and :func:`model.end_state` of the scan is the streamed state."""
+    cfg = config_lib.replace(CFG, model=dict(grid_warp=grid_warp))
+    batch = synthetic_batch(1, cfg)
     key = jax.random.PRNGKey(3)
-    scanned = model.filter_sequence(params, batch["camera"], batch["lidar"], batch["action"], key, CFG)
+    scanned = model.filter_sequence(params, batch["camera"], batch["lidar"], batch["action"], key, cfg)
     t1 = batch["camera"].shape[1]
     keys = jax.random.split(key, t1)
-    state, step = model.init_filter_state(batch["camera"].shape[0], CFG), jax.jit(model.filter_step, static_argnums=6)
+    state, step = model.init_filter_state(batch["camera"].shape[0], cfg), jax.jit(model.filter_step, static_argnums=6)
     prev_action = jnp.concatenate([jnp.zeros_like(batch["action"][:, :1]), batch["action"][:, :-1]], 1)
     for t in range(t1):
-        state, out = step(params, state, batch["camera"][:, t], batch["lidar"][:, t], prev_action[:, t], keys[t], CFG)
+        state, out = step(params, state, batch["camera"][:, t], batch["lidar"][:, t], prev_action[:, t], keys[t], cfg)
         np.testing.assert_allclose(out["grid"], scanned["grid"][:, t], rtol=1e-4, atol=1e-4)
         np.testing.assert_allclose(out["z1"], scanned["z1"][:, t], rtol=1e-4, atol=1e-4)
-    assert state.grid.shape == (batch["camera"].shape[0], 16, 16, CFG.model.grid_channels)
+    assert state.grid.shape == (batch["camera"].shape[0], 16, 16, cfg.model.grid_channels)
+    ended, _ = model.end_state(scanned, batch["action"])
+    jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-4), state, ended)
+    if grid_warp == "lattice":
+        offset = np.asarray(state.grid_offset)
+        assert offset.shape == (batch["camera"].shape[0], 2) and np.all(np.abs(offset) <= 1.0 + 1e-5)
+        np.testing.assert_allclose(bev_latent.shift(state.grid, -state.grid_offset), out["grid"], atol=1e-5)
 
 
 @pytest.mark.slow

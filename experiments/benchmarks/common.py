@@ -50,14 +50,13 @@ def paper_config(batch_size, seq_len, image_size):
 
 
 def latent_models(base: config_lib.Config) -> dict:
-    """``base`` with each latent (``config.LATENTS``), the bird-eye grid at each ``--grid_cells``: {the
-    figure's name ("vector", "bev, 16 cells", ...): config}."""
-    models = {}
-    for latent in config_lib.LATENTS:
-        for cells in FLAGS.grid_cells if latent == "bev" else [None]:
-            name = latent if cells is None else f"{latent}, {cells} cells"
-            overrides = dict(latent=latent) if cells is None else dict(latent=latent, grid_cells=int(cells))
-            models[name] = config_lib.replace(base, model=overrides)
+    """``base`` with each latent (``config.LATENTS``), the bird-eye grid at each ``--grid_cells`` and
+    ``--grid_warps``: {the figure's name ("vector", "bev, 16 cells", "bev, 16 cells, lattice", ...): config}."""
+    models = {"vector": config_lib.replace(base, model=dict(latent="vector"))}
+    for cells in FLAGS.grid_cells:
+        for warp in FLAGS.grid_warps:
+            name = f"bev, {cells} cells" + ("" if warp == "bilinear" else f", {warp}")
+            models[name] = config_lib.replace(base, model=dict(latent="bev", grid_cells=int(cells), grid_warp=warp))
     return models
 
 
