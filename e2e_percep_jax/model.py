@@ -372,8 +372,8 @@ class PerceptionModel(nn.Module):
         Gaussian, weighted by the same share: :func:`fused_update`; the prior where ``seen`` [N], if given, is
         False). With ``grid_warp="lattice"`` the grid is carried on its lattice (``bev_latent.warp_on_lattice``),
         the frame's lidar map and visibility sampled onto it, and its outputs ``grid_carried`` and ``grid_offset``
-        are the state's; ``grid`` is then the sample on the ego's cells, what the decoders read. Returns (the
-        state's grid fields, outputs)."""
+        are the state's; ``grid`` is then the sample on the ego's cells, what the decoders read. Returns the
+        outputs."""
         first = state.first[:, None, None, None]
         inputs = [encoded["features"], state.z1, state.z2, prev_action]
         motion = self.motion_head(jnp.concatenate(inputs, -1)) * bev_latent.MOTION_UNIT
@@ -400,19 +400,17 @@ class PerceptionModel(nn.Module):
         if seen is not None:
             q_loc, q_scale = _unless_seen(seen[:, None, None, None], (q_loc, q_scale), (p_loc, p_scale))
         grid = _sample(q_loc, q_scale, key)
-        carried = {}
-        if offset is not None:  # the state keeps the lattice; the decoders read the grid on the ego's cells
-            carried = {"grid_carried": grid, "grid_offset": offset}
-            grid = bev_latent.shift(grid, -offset)
-        return carried, {
+        outputs = {
             "grid": grid,
-            **carried,
             "motion": motion,
             "q_grid_loc": q_loc,
             "q_grid_scale": q_scale,
             "p_grid_loc": p_loc,
             "p_grid_scale": p_scale,
         }
+        if offset is not None:  # the state keeps the lattice; the decoders read the grid on the ego's cells
+            outputs.update(grid=bev_latent.shift(grid, -offset), grid_carried=grid, grid_offset=offset)
+        return outputs
 
     def posterior_step(self, state, encoded, prev_action, key, observed=None):
         """One filtering step from :meth:`encode`'s dict; see :func:`filter_step` for the arguments, and
@@ -432,10 +430,9 @@ class PerceptionModel(nn.Module):
         grid_outputs = {}
         if self.cfg.latent == "bev":  # a key of its own, so that the vector latent's draws stay the same
             grid_key = None if key is None else jax.random.fold_in(key, 2)
-            carried, grid_outputs = self.grid_step(state, encoded, prev_action, grid_key, seen)
-            new_state = new_state.replace(grid=carried.get("grid_carried", grid_outputs["grid"]))
-            if "grid_offset" in carried:
-                new_state = new_state.replace(grid_offset=carried["grid_offset"])
+            grid_outputs = self.grid_step(state, encoded, prev_action, grid_key, seen)
+            carried = grid_outputs.get("grid_carried", grid_outputs["grid"])
+            new_state = new_state.replace(grid=carried, grid_offset=grid_outputs.get("grid_offset"))
         outputs = {
             "z1": z1,
             "z2": z2,

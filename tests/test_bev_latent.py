@@ -83,9 +83,10 @@ def test_on_a_lattice_translations_move_the_grid_by_whole_cells_and_add_up_to_on
     grid = _grid(g=16, channels=2, seed=2)
     steps = np.concatenate([rng.uniform(0.2, 1.3, (12, 1)), rng.uniform(-0.4, 0.4, (12, 1)), np.zeros((12, 1))], 1)
     lattice, offset, frame_by_frame = jnp.asarray(grid), jnp.zeros((1, 2)), jnp.asarray(grid)
+    on_lattice, warp = jax.jit(bev_latent.warp_on_lattice), jax.jit(bev_latent.warp)  # one compile each
     for motion in steps.astype(np.float32):
-        lattice, _, offset = bev_latent.warp_on_lattice(lattice, offset, jnp.asarray(motion[None]))
-        frame_by_frame, _ = bev_latent.warp(frame_by_frame, jnp.asarray(motion[None]))
+        lattice, _, offset = on_lattice(lattice, offset, jnp.asarray(motion[None]))
+        frame_by_frame, _ = warp(frame_by_frame, jnp.asarray(motion[None]))
         assert np.all(np.abs(np.asarray(offset)) <= 2.0 / 2 + 1e-5)  # 2 m cells at G = 16
     values = np.asarray(lattice).ravel()
     nearest = np.abs(values[:, None] - np.append(grid.ravel(), 0.0)[None]).min(1)
