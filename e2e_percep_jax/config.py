@@ -195,6 +195,10 @@ class TrainConfig:
     # earlier in the sequence, by neither now: ``metrics.box_groups``), every other pixel weighing 1, so that
     # the few hidden cars a batch holds are not drowned by the visible ones. 1 = the paper.
     remembered_weight: float = 1.0
+    # A memory lever: the same weight on the target pixels of unseen vehicles (seen by neither sensor in the
+    # sequence's last ``metrics.REMEMBER_FRAMES`` frames). At 0 the loss no longer asks the decoder to guess
+    # cars it has no evidence of, guesses that are false positives wherever no car stands. 1 = the paper.
+    unseen_weight: float = 1.0
     checkpoint_every: int = 500  # steps; a checkpoint is also written at exit
     log_every: int = 10
     max_nonfinite_in_a_row: int = 10  # stop after this many skipped (non-finite) updates in a row
@@ -467,6 +471,8 @@ def validate(cfg: Config) -> Config:
     for name, value in positive.items():
         if not value > 0:
             raise ValueError(f"--{name}={value}: must be positive")
+    if not cfg.train.unseen_weight >= 0:
+        raise ValueError(f"--train.unseen_weight={cfg.train.unseen_weight}: must be at least 0")
     for name in ("observation_drop_share", "lidar_shadow_share"):
         if not 0.0 <= getattr(cfg.train, name) < 1.0:
             raise ValueError(f"--train.{name}={getattr(cfg.train, name)}: must lie in [0, 1)")

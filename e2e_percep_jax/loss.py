@@ -18,7 +18,8 @@
 - det_cls: focal loss (alpha 0.25 on positives, gamma 2) on the class map.
 - det_reg: 0.1 x smooth-L1 (beta 1) between predicted and target regression maps at positive pixels
   (``det_cls`` > 0.5); targets elsewhere are ignored, whatever their value. Both weigh each pixel 1, but
-  with ``train.remembered_weight`` the positive pixels of remembered vehicles (:func:`remembered_pixels`).
+  the positive pixels of remembered vehicles ``train.remembered_weight`` and those of unseen ones
+  ``train.unseen_weight`` (:func:`group_pixels`).
 - pose, by ``model.pose_head``: ``belief`` (the presets): the belief head's cross-entropies and offset and
   speed losses (``pose_belief.loss_terms``), logged as ``pose_place``, ``pose_heading``, ``pose_offset`` and
   ``pose_speed``; ``regression``: smooth-L1 (beta 1) on the pose in
@@ -54,7 +55,7 @@ DET_REG_WEIGHT = 0.1
 REFERENCE_POSE_WEIGHT = 10.0
 BATCH_KEYS = ("camera", "lidar", "roadmap", "det_cls", "det_reg", "pose", "action")  # what the loss reads
 PLACE_KEYS = ("place_camera", "place_lidar", "place_pose")  # and of the place stream, when a batch has it
-# and who saw each box, under train.remembered_weight
+# and who saw each box, under train.remembered_weight or train.unseen_weight
 MEMORY_KEYS = ("boxes", "boxes_valid", "boxes_lidar_visible", "boxes_camera_visible", "boxes_frames_since_seen")
 OBSERVATION_DROP_STREAM = 7  # fold_in data of the dropped frames' draw (the latents' draws split the key itself)
 SHADOW_STREAM = 8  # and of the lidar shadows' draw
@@ -99,34 +100,41 @@ def per_sequence(x, batch_size: int):
 
 def batch_keys(cfg: Config) -> tuple:
     """The frame contract's fields that the loss reads under ``cfg`` (the place stream's when a batch has it)."""
-    return BATCH_KEYS + (MEMORY_KEYS if cfg.train.remembered_weight != 1.0 else ()) + PLACE_KEYS
+    weighted = cfg.train.remembered_weight != 1.0 or cfg.train.unseen_weight != 1.0
+    return BATCH_KEYS + (MEMORY_KEYS if weighted else ()) + PLACE_KEYS
 
 
-def remembered_pixels(batch: dict):
-    """Whether each pixel of the class map lies inside a remembered vehicle's box (``metrics.box_groups``: seen
-    by a sensor within the last ``metrics.REMEMBER_FRAMES`` frames of its sequence, by neither now), bool
-    [B, T+1, R, R, 1], from the batch's :data:`MEMORY_KEYS`."""
-    group = metrics_lib.box_groups(
+def group_pixels(batch: dict, group: str):
+    """Whether each pixel of the class map lies inside the box of a vehicle of ``group`` (one of
+    ``metrics.GROUPS``, from ``metrics.box_groups``: "remembered" is seen by a sensor within the last
+    ``metrics.REMEMBER_FRAMES`` frames of its sequence and by neither now, "unseen" by neither in that
+    time), bool [B, T+1, R, R, 1], from the batch's :data:`MEMORY_KEYS`."""
+    groups = metrics_lib.box_groups(
         batch["boxes_lidar_visible"], batch["boxes_camera_visible"], batch["boxes_frames_since_seen"]
     )
-    remembered = batch["boxes_valid"] & (group == metrics_lib.GROUPS.index("remembered"))  # [B, T+1, N]
+    chosen = batch["boxes_valid"] & (groups == metrics_lib.GROUPS.index(group))  # [B, T+1, N]
     centres = geo.bev_pixel_centres(batch["det_cls"].shape[-2])[:, :, None, :]  # [R, R, 1, 2]
     boxes = batch["boxes"][:, :, None, None]  # [B, T+1, 1, 1, N, 5]
-    inside = geo.points_in_boxes(centres, boxes) & remembered[:, :, None, None]  # [B, T+1, R, R, N]
+    inside = geo.points_in_boxes(centres, boxes) & chosen[:, :, None, None]  # [B, T+1, R, R, N]
     return jnp.any(inside, -1, keepdims=True)
 
 
-def detection_terms(pred: dict, batch: dict, weight: float, remembered_weight: float = 1.0) -> dict:
+def detection_terms(
+    pred: dict, batch: dict, weight: float, remembered_weight: float = 1.0, unseen_weight: float = 1.0
+) -> dict:
     """``det_cls`` and ``det_reg`` of decoded PIXOR maps ``pred["det_logit"]`` [B, T+1, R, R, 1] and
     ``pred["det_reg"]`` [B, T+1, R, R, 6] against the batch's targets, per sequence, times ``weight``; the
-    positive pixels of remembered vehicles (:func:`remembered_pixels`) count ``remembered_weight`` times."""
+    positive pixels of remembered vehicles count ``remembered_weight`` times, those of unseen vehicles
+    ``unseen_weight`` times (:func:`group_pixels`; a pixel in both takes the remembered weight)."""
     b = batch["det_cls"].shape[0]
     # Regression targets are defined at positive pixels only (elsewhere they may be anything, even
     # non-finite): select them with `where` on both sides so no NaN reaches the value or the gradient.
     positive = batch["det_cls"] > 0.5
     pixel_weight = 1.0
+    if unseen_weight != 1.0:
+        pixel_weight = jnp.where(positive & group_pixels(batch, "unseen"), unseen_weight, pixel_weight)
     if remembered_weight != 1.0:
-        pixel_weight = jnp.where(positive & remembered_pixels(batch), remembered_weight, 1.0)
+        pixel_weight = jnp.where(positive & group_pixels(batch, "remembered"), remembered_weight, pixel_weight)
     focal = optax.sigmoid_focal_loss(pred["det_logit"], batch["det_cls"], alpha=FOCAL_ALPHA, gamma=FOCAL_GAMMA)
     terms = {"det_cls": weight * per_sequence(pixel_weight * focal, b)}
     reg_target = jnp.where(positive, batch["det_reg"], 0.0)
@@ -225,7 +233,9 @@ def sequence_loss(params, batch, key, cfg: Config, start=None):
         truth = bev_latent.relative_motion(batch["pose"][:, :-1], batch["pose"][:, 1:])
         error = (out["motion"][:, 1:] - truth) / bev_latent.MOTION_UNIT
         metrics["motion"] = cfg.train.perception_weight * per_sequence(0.5 * error**2, b)
-    metrics.update(detection_terms(pred, batch, cfg.train.perception_weight, cfg.train.remembered_weight))
+    metrics.update(
+        detection_terms(pred, batch, cfg.train.perception_weight, cfg.train.remembered_weight, cfg.train.unseen_weight)
+    )
     metrics.update(pose_terms(params, out, pred, batch["pose"], cfg))
     metrics.update(place_terms(params, batch, cfg))
     total, metrics = with_total(metrics)

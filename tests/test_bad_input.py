@@ -107,6 +107,9 @@ CASES = {
     "train remembered_weight zero": Case(
         "train", ["--train.remembered_weight=0"], "--train.remembered_weight=0.0: must be positive"
     ),
+    "train unseen_weight negative": Case(
+        "train", ["--train.unseen_weight=-1"], "--train.unseen_weight=-1.0: must be at least 0"
+    ),
     "train grid_update": Case(
         "train",
         ["--model.latent=bev", "--model.grid_update=occupancy"],

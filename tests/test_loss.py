@@ -241,10 +241,11 @@ def test_the_filter_sees_the_shadowed_lidar_and_the_reconstruction_the_whole_one
     np.testing.assert_allclose(metrics["recon_lidar"], expected, rtol=1e-4)
 
 
-def test_remembered_weight_scales_the_detection_terms_at_remembered_vehicles_only():
-    """--train.remembered_weight: against a pixel-by-pixel loop, the positive pixels inside a remembered
-    vehicle's box (seen 5 frames ago, by neither sensor now) count w times in det_cls and det_reg; a box the
-    lidar sees, one last seen 31 frames ago, and a remembered one outside the view count once."""
+def test_group_weights_scale_the_detection_terms_at_their_vehicles_only():
+    """--train.remembered_weight and --train.unseen_weight: against a pixel-by-pixel loop, the positive pixels
+    inside a remembered vehicle's box (seen 5 frames ago, by neither sensor now) count w times in det_cls and
+    det_reg, those inside an unseen one's (last seen 31 frames ago) u times, u = 0 included; a box the lidar
+    sees and a remembered one outside the view count once."""
     r, w = 64, 4.0
     rng = np.random.default_rng(0)
     centres = np.asarray(geo.bev_pixel_centres(r, np), np.float64)  # [R, R, 2] ego metres
@@ -253,7 +254,7 @@ def test_remembered_weight_scales_the_detection_terms_at_remembered_vehicles_onl
         [
             [20.0, 4.0, 0.4, 10.0, 4.0],
             [12.0, -6.0, -0.2, 4.5, 2.0],
-            [30.0, -3.0, 0.0, 4.5, 2.0],
+            [-5.0, -8.0, 0.3, 6.0, 3.0],
             [8.0, 10.0, 0.0, 10.0, 4.0],
         ]
     )
@@ -270,28 +271,33 @@ def test_remembered_weight_scales_the_detection_terms_at_remembered_vehicles_onl
         "det_logit": rng.normal(size=(1, 2, r, r, 1)).astype(np.float32),
         "det_reg": rng.normal(size=(1, 2, r, r, 6)).astype(np.float32),
     }
-    x, y, yaw, length, width = boxes[0]
-    weight = np.ones((r, r))
-    for i in range(r):
-        for j in range(r):
-            dx, dy = centres[i, j] - (x, y)
-            inside = (
-                abs(np.cos(yaw) * dx + np.sin(yaw) * dy) <= length / 2
-                and abs(-np.sin(yaw) * dx + np.cos(yaw) * dy) <= width / 2
-            )
-            weight[i, j] = w if inside else 1.0
+
+    def inside(box):  # [R, R] bool, pixel by pixel
+        x, y, yaw, length, width = box
+        mask = np.zeros((r, r), bool)
+        for i in range(r):
+            for j in range(r):
+                dx, dy = centres[i, j] - (x, y)
+                mask[i, j] = (
+                    abs(np.cos(yaw) * dx + np.sin(yaw) * dy) <= length / 2
+                    and abs(-np.sin(yaw) * dx + np.cos(yaw) * dy) <= width / 2
+                )
+        return mask
+
+    remembered, unseen = inside(boxes[0]), inside(boxes[2])
     positive = batch["det_cls"][..., 0] > 0.5
-    weight = np.where(positive, weight, 1.0)  # [1, 2, R, R]
-    assert (weight == w).sum() > 20  # the box holds positive pixels
     focal = np_focal(pred["det_logit"][..., 0].astype(np.float64), batch["det_cls"][..., 0])
     reg = np_smooth_l1(pred["det_reg"].astype(np.float64) - batch["det_reg"]).sum(-1) * positive
-    got = loss.detection_terms(pred, batch, 2.0, remembered_weight=w)
-    np.testing.assert_allclose(got["det_cls"], 2.0 * np.sum(weight * focal), rtol=1e-4)
-    np.testing.assert_allclose(got["det_reg"], 2.0 * loss.DET_REG_WEIGHT * np.sum(weight * reg), rtol=1e-4)
+    for rw, uw in ((w, 1.0), (1.0, 0.0), (w, 0.5)):
+        weight = np.where(positive & remembered, rw, np.where(positive & unseen, uw, 1.0))  # [1, 2, R, R]
+        assert (positive & remembered).sum() > 20 and (positive & unseen).sum() > 10  # the boxes hold positives
+        got = loss.detection_terms(pred, batch, 2.0, remembered_weight=rw, unseen_weight=uw)
+        np.testing.assert_allclose(got["det_cls"], 2.0 * np.sum(weight * focal), rtol=1e-4)
+        np.testing.assert_allclose(got["det_reg"], 2.0 * loss.DET_REG_WEIGHT * np.sum(weight * reg), rtol=1e-4)
     plain = loss.detection_terms(pred, batch, 2.0)
     np.testing.assert_allclose(plain["det_cls"], 2.0 * np.sum(focal), rtol=1e-4)
-    assert (
-        loss.batch_keys(config.replace(TINY, train=dict(remembered_weight=w)))
-        == loss.BATCH_KEYS + loss.MEMORY_KEYS + loss.PLACE_KEYS
-    )
+    for train in (dict(remembered_weight=w), dict(unseen_weight=0.0)):
+        assert (
+            loss.batch_keys(config.replace(TINY, train=train)) == loss.BATCH_KEYS + loss.MEMORY_KEYS + loss.PLACE_KEYS
+        )
     assert loss.batch_keys(TINY) == loss.BATCH_KEYS + loss.PLACE_KEYS

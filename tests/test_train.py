@@ -570,7 +570,7 @@ def test_the_remembered_weight_reads_who_saw_each_box_from_the_worlds_batches(wo
         weighted = jax.device_get(
             loss.loss_fn(params, {k: b[k] for k in loss.batch_keys(weighted_cfg) if k in b}, None, weighted_cfg)[1]
         )
-        holds.append(bool(np.any(np.asarray(loss.remembered_pixels(b)) & (np.asarray(b["det_cls"]) > 0.5))))
+        holds.append(bool(np.any(np.asarray(loss.group_pixels(b, "remembered")) & (np.asarray(b["det_cls"]) > 0.5))))
         assert (weighted["det_cls"] > plain["det_cls"]) == holds[-1]
         for k in set(plain) - {"det_cls", "det_reg", "total"}:
             assert weighted[k] == plain[k], k
