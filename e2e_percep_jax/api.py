@@ -219,15 +219,21 @@ class Perceiver:
             _check(f"state{jax.tree_util.keystr(path)}", jnp.asarray(got), want.shape, want.dtype)
 
     def boxes(
-        self, outputs: PerceiverOutputs, score_threshold: float | None = None, iou_threshold: float = detection.NMS_IOU
+        self,
+        outputs: PerceiverOutputs,
+        score_threshold: float | None = None,
+        iou_threshold: float = detection.NMS_IOU,
+        merge_iou: float = detection.NMS_MERGE_IOU,
     ):
         """Host-side box decoding of :meth:`step`'s outputs: for each of the B streams, (boxes [M, 5]
         in the ego frame (x m, y m, yaw rad, length m, width m), scores [M]), highest score first,
-        after greedy NMS on exact rotated IoU. ``score_threshold`` defaults to the config's."""
+        after greedy NMS on exact rotated IoU at ``iou_threshold``, each kept box merged with the boxes it
+        suppresses above ``merge_iou`` (``metrics.merging_nms``; 1: none). ``score_threshold`` defaults to
+        the config's."""
         threshold = self.cfg.eval.score_threshold if score_threshold is None else score_threshold
         cls_maps, reg_maps = np.asarray(outputs.det_cls), np.asarray(outputs.det_reg)
         return [
-            detection.thresholded_boxes(cls_map, reg_map, threshold, iou_threshold)
+            detection.thresholded_boxes(cls_map, reg_map, threshold, iou_threshold, merge_iou)
             for cls_map, reg_map in zip(cls_maps, reg_maps)
         ]
 

@@ -214,11 +214,13 @@ class EvalConfig:
     score_threshold: float = 0.5
     # How PIXOR maps become scored boxes (e2e_percep_jax.detection): top_k candidates a frame kept on the
     # device, the lowest score accumulated into the PR curves, the greedy NMS's rotated-IoU threshold (0.1
-    # lifts the remembered group's AP: BUILD_NOTES, "A tighter NMS"). Part of the protocol: a change names
-    # its own directory.
+    # lifts the remembered group's AP: BUILD_NOTES, "A tighter NMS"), and the IoU above which a kept box is
+    # merged with those it suppresses (metrics.merging_nms; 1 = none: BUILD_NOTES, "Merging the fan of
+    # boxes"). Part of the protocol: a change names its own directory.
     top_k: int = 64
     score_floor: float = 0.05
     nms_iou: float = 0.3
+    nms_merge_iou: float = 1.0
     # The pose protocol: False = global (the belief starts uniform over the town); True = known start (the
     # belief starts at each drive's true first pose, then follows the actions alone: odometry).
     known_start: bool = False
@@ -543,6 +545,10 @@ def validate(cfg: Config) -> Config:
         raise ValueError(f"--eval.score_floor={cfg.eval.score_floor}: must lie in [0, 1)")
     if not 0.0 < cfg.eval.nms_iou <= 1.0:
         raise ValueError(f"--eval.nms_iou={cfg.eval.nms_iou}: must lie in (0, 1]")
+    if not cfg.eval.nms_iou <= cfg.eval.nms_merge_iou <= 1.0:
+        raise ValueError(
+            f"--eval.nms_merge_iou={cfg.eval.nms_merge_iou}: must lie in [--eval.nms_iou={cfg.eval.nms_iou}, 1]"
+        )
     return cfg
 
 

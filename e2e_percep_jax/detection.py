@@ -14,9 +14,11 @@ with the model):
 
 The host then keeps candidates with score >= ``score_floor`` whose centre lies in the BEV view (the
 same rule that makes a ground truth valid, ``geometry.in_bev_view``) and runs greedy NMS on exact
-rotated IoU (``nms_iou``): :func:`frame_detections`. The three settings are the evaluation's
-(``eval.top_k``, ``eval.score_floor``, ``eval.nms_iou``: part of its protocol). The inference API's ``Perceiver.boxes`` decodes
-whole maps at one score threshold instead: :func:`thresholded_boxes`.
+rotated IoU (``nms_iou``), each kept box merged with the boxes it suppresses that overlap it by more than
+``nms_merge_iou`` (``metrics.merging_nms``; 1: none, plain greedy NMS): :func:`frame_detections`. The four
+settings are the evaluation's (``eval.top_k``, ``eval.score_floor``, ``eval.nms_iou``,
+``eval.nms_merge_iou``: part of its protocol). The inference API's ``Perceiver.boxes`` decodes whole maps at
+one score threshold instead: :func:`thresholded_boxes`.
 """
 
 import jax
@@ -30,6 +32,7 @@ from e2e_percep_jax.sim import pixor
 
 DEDUP_CELL_M = 0.5
 NMS_IOU = EvalConfig.nms_iou  # the evaluation's, and the inference API's by default
+NMS_MERGE_IOU = EvalConfig.nms_merge_iou
 
 
 def candidates(det_cls, det_reg, top_k: int, floor: float):
@@ -63,22 +66,32 @@ def candidates(det_cls, det_reg, top_k: int, floor: float):
     return top_boxes, top, top[..., -1] >= floor
 
 
-def frame_detections(cand_boxes, cand_scores, floor: float, nms_iou: float):
+def frame_detections(cand_boxes, cand_scores, floor: float, nms_iou: float, merge_iou: float = NMS_MERGE_IOU):
     """One frame's candidates ``[k, 5]``, ``[k]`` (NumPy) -> (boxes ``[M, 5]``, scores ``[M]``) after the
-    score floor, the BEV-view rule (``geometry.in_bev_view``) and greedy rotated NMS at
-    ``nms_iou``, highest score first."""
+    score floor, the BEV-view rule (``geometry.in_bev_view``) and greedy rotated NMS at ``nms_iou`` merging
+    above ``merge_iou`` (:func:`suppressed`), highest score first."""
     cand_boxes, cand_scores = np.asarray(cand_boxes), np.asarray(cand_scores)
     keep = (cand_scores >= floor) & geo.in_bev_view(cand_boxes[:, :2]) & (cand_boxes[:, 3] > 0) & (cand_boxes[:, 4] > 0)
     boxes, scores = cand_boxes[keep].astype(np.float64), np.clip(cand_scores[keep].astype(np.float64), 0.0, 1.0)
     if len(boxes) == 0:
         return boxes.reshape(0, 5), scores
+    return suppressed(boxes, scores, nms_iou, merge_iou)
+
+
+def suppressed(boxes, scores, nms_iou: float, merge_iou: float):
+    """(boxes ``[M, 5]``, scores ``[M]``) -> the same after greedy rotated NMS at ``nms_iou``, each kept box
+    merged with those it suppresses above ``merge_iou`` (``metrics.merging_nms``; 1: none), highest first."""
+    if merge_iou < 1.0:
+        return metrics_lib.merging_nms(boxes, scores, nms_iou, merge_iou)
     kept = metrics_lib.nms(boxes, scores, nms_iou)
     return boxes[kept], scores[kept]
 
 
-def thresholded_boxes(cls_map, reg_map, score_threshold: float, iou_threshold: float = NMS_IOU):
+def thresholded_boxes(
+    cls_map, reg_map, score_threshold: float, iou_threshold: float = NMS_IOU, merge_iou: float = NMS_MERGE_IOU
+):
     """One frame's PIXOR maps ``[R, R, 1]``, ``[R, R, 6]`` (NumPy) -> (boxes ``[M, 5]`` in the ego frame,
-    scores ``[M]``): every pixel at or above ``score_threshold``, then greedy rotated NMS, highest first."""
+    scores ``[M]``): every pixel at or above ``score_threshold``, then greedy rotated NMS at ``iou_threshold``
+    merging above ``merge_iou`` (:func:`suppressed`), highest first."""
     boxes, scores = pixor.decode_boxes(cls_map, reg_map, score_threshold)
-    keep = metrics_lib.nms(boxes, scores, iou_threshold)
-    return boxes[keep], scores[keep]
+    return suppressed(boxes, scores, iou_threshold, merge_iou)

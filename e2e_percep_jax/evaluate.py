@@ -334,7 +334,9 @@ def _detection_drives(program, params, perceiver, keys, town, cfg: Config, sampl
 def _frame_boxes(out, t, w, ev: EvalConfig):
     """(boxes [M, 5], scores [M]) of frame t of world w in a chunk's outputs: its candidates after the score
     floor and NMS of ``ev`` (``detection.frame_detections``), as every evaluation and recording scores them."""
-    return detection.frame_detections(out["cand_boxes"][t, w], out["cand_scores"][t, w], ev.score_floor, ev.nms_iou)
+    return detection.frame_detections(
+        out["cand_boxes"][t, w], out["cand_scores"][t, w], ev.score_floor, ev.nms_iou, ev.nms_merge_iou
+    )
 
 
 def _sample_root(ev: EvalConfig):
@@ -645,6 +647,7 @@ class _Scores:
                 "score_threshold": ev.score_threshold,
                 "score_floor": ev.score_floor,
                 "nms_iou": ev.nms_iou,
+                "nms_merge_iou": ev.nms_merge_iou,
                 "top_k": ev.top_k,
                 "dedup_cell_m": detection.DEDUP_CELL_M,
                 "topk_saturated_frac": self.saturated / max(num_frames, 1),

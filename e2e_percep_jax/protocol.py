@@ -31,7 +31,7 @@ EVALUATION_FIELDS = (
     *(("world", name) for name in config_lib.PLANT_FIELDS),
     *(("eval", name) for name in DRIVE_FIELDS),
     ("eval", "score_threshold"),
-    *(("eval", name) for name in ("top_k", "score_floor", "nms_iou")),
+    *(("eval", name) for name in ("top_k", "score_floor", "nms_iou", "nms_merge_iou")),
     ("model", "pose_filter"),
 )
 

@@ -200,7 +200,13 @@ def markdown(m: dict) -> str:
         f"boxes, top {det['top_k']} centre-cell candidates per frame (cut in "
         f"{100 * det['topk_saturated_frac']:.1f}% of frames), score >= {det['score_floor']} "
         f"(AP sweeps the score over this range), centre in the BEV view, greedy NMS at rotated IoU "
-        f"{det['nms_iou']}. Greedy matching by score, each ground truth at most once; all-point AP.",
+        f"{det['nms_iou']}"
+        + (
+            f", each kept box the score-weighted mean of those it suppresses above IoU {det['nms_merge_iou']}"
+            if det.get("nms_merge_iou", 1.0) < 1.0
+            else ""
+        )
+        + ". Greedy matching by score, each ground truth at most once; all-point AP.",
         "",
         f"At the operating threshold {det['score_threshold']}: precision over all boxes, and the share of "
         "each group's boxes found (its recall, which no false positive elsewhere in the scene pulls down, "

@@ -137,7 +137,7 @@ def main(argv):
                 detections[run].append([])
                 for t in range(last_seen, frames_per_drive):
                     boxes, scores = detection.frame_detections(
-                        cand_boxes[i, t], cand_scores[i, t], ev.score_floor, ev.nms_iou
+                        cand_boxes[i, t], cand_scores[i, t], ev.score_floor, ev.nms_iou, ev.nms_merge_iou
                     )
                     keep = scores >= cfg.eval.score_threshold
                     detections[run][-1].append((boxes[keep], scores[keep]))

@@ -239,6 +239,9 @@ CASES = {
     # ---------------------------------------------------------------- experiments/evaluate.py on the run
     "evaluate top_k": Case("evaluate", ["--eval.top_k=-1"], "--eval.top_k=-1: must be positive"),
     "evaluate nms_iou": Case("evaluate", ["--eval.nms_iou=7"], "--eval.nms_iou=7.0: must lie in (0, 1]"),
+    "evaluate nms_merge_iou": Case(
+        "evaluate", ["--eval.nms_merge_iou=0.2"], "--eval.nms_merge_iou=0.2: must lie in [--eval.nms_iou=0.3, 1]"
+    ),
     "evaluate score_floor": Case("evaluate", ["--eval.score_floor=-3"], "--eval.score_floor=-3.0: must lie in [0, 1)"),
     "evaluate video_frames": Case("evaluate", ["--video_frames=-1"], "--video_frames and --num_examples must be >= 0"),
     "evaluate negative step": Case("evaluate", ["--step=-2"], "--step=-2: "),

@@ -455,6 +455,8 @@ def test_eval_dir_keeps_protocols_and_the_filterless_reading_apart(tmp_path):
     # another NMS is another protocol: it never overwrites the run's own evaluation
     nms = other(world=dict(ego_steer_offset_deg=0.5), eval=dict(nms_iou=0.1))
     assert nms == os.path.join(run, "eval_nms_iou0.1")
+    merge = other(world=dict(ego_steer_offset_deg=0.5), eval=dict(nms_iou=0.01, nms_merge_iou=0.2))
+    assert merge == os.path.join(run, "eval_nms_iou0.01_nms_merge_iou0.2")
     both = other(world=dict(ego_steer_offset_deg=1.0), eval=dict(town_seed=7, known_start=True, seed=2000))
     assert both == os.path.join(run, "eval_town7_known_start_ego_steer_offset_deg1_seed2000")
 

@@ -119,6 +119,34 @@ def test_nms_keeps_all_non_overlapping_boxes_by_score():
     assert metrics.nms(np.zeros((0, 5)), np.zeros(0), 0.5).shape == (0,)
 
 
+def test_merging_nms_keeps_nms_order_and_averages_each_kept_box_with_what_it_suppresses():
+    """A fan of boxes on car A (yaw 0.1, and the same rectangle at yaw pi - 0.1, i.e. -0.1), a box on A that
+    overlaps the top one by less than the merge IoU (suppressed, not averaged) and car B alone: A's kept box
+    is the score-weighted mean, by hand, of the fan, its heading the rectangle's mean turned towards its own."""
+    top, twin = box(0, 0, 0.1, 4.5, 2), box(0.4, 0.2, math.pi - 0.1, 5.0, 2.2)
+    far_off = box(1.5, 0.9, 0.5, 4.5, 2)  # overlaps A by IoU in (0.01, 0.5)
+    car_b = box(0, 8, 0.3, 4.5, 2)
+    boxes, scores = np.stack([twin, car_b, top, far_off]), np.array([0.6, 0.7, 0.9, 0.8])
+    iou = metrics.rotated_iou(boxes, boxes)
+    assert iou[2, 0] > 0.5 and 0.01 < iou[2, 3] < 0.5 and iou[1, [0, 2, 3]].max() == 0.0
+    merged, merged_scores = metrics.merging_nms(boxes, scores, 0.01, 0.5)
+    np.testing.assert_array_equal(merged_scores, [0.9, 0.7])
+    w = np.array([0.9, 0.6])
+    centre = (w[0] * top[:2] + w[1] * twin[:2]) / w.sum()
+    size = (w[0] * top[3:] + w[1] * twin[3:]) / w.sum()
+    yaw = 0.5 * math.atan((w[0] - w[1]) / w.sum() * math.tan(0.2))  # of unit vectors at +-0.2 rad, doubled
+    np.testing.assert_allclose(merged[0, [0, 1, 3, 4]], [*centre, *size])
+    np.testing.assert_allclose(merged[0, 2], yaw)
+    np.testing.assert_array_equal(merged[1], car_b)
+    # merge IoU 1: nms's own boxes; an empty frame stays empty
+    plain, plain_scores = metrics.merging_nms(boxes, scores, 0.3, 1.0)
+    kept = metrics.nms(boxes, scores, 0.3)
+    np.testing.assert_array_equal(plain, boxes[kept])
+    np.testing.assert_array_equal(plain_scores, scores[kept])
+    empty, empty_scores = metrics.merging_nms(np.zeros((0, 5)), np.zeros(0), 0.01, 0.2)
+    assert empty.shape == (0, 5) and empty_scores.shape == (0,)
+
+
 # ---------------------------------------------------------------- matching and AP
 
 
