@@ -197,7 +197,8 @@ class TrainConfig:
     remembered_weight: float = 1.0
     # A memory lever: the same weight on the target pixels of unseen vehicles (seen by neither sensor in the
     # sequence's last ``metrics.REMEMBER_FRAMES`` frames). At 0 the loss no longer asks the decoder to guess
-    # cars it has no evidence of, guesses that are false positives wherever no car stands. 1 = the paper.
+    # cars it has no evidence of; that does not lift precision (BUILD_NOTES, "Unseen vehicles left out of
+    # the detection loss"). 1 = the paper.
     unseen_weight: float = 1.0
     checkpoint_every: int = 500  # steps; a checkpoint is also written at exit
     log_every: int = 10

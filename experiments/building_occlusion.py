@@ -74,9 +74,8 @@ def main(argv):
             start_pose=start,
             lidar_scan=frame["lidar_scan"][None],
         )
-        frame["pred_boxes"], frame["pred_scores"] = perceiver.boxes(out, ev.score_floor, ev.nms_iou, ev.nms_merge_iou)[
-            0
-        ]
+        decoded = perceiver.boxes(out, ev.score_floor, ev.nms_iou, ev.nms_merge_iou)
+        frame["pred_boxes"], frame["pred_scores"] = decoded[0]
         frame["boxes_group"] = groups[f]
         if out.roadmap is not None:
             frame["recon_roadmap"] = np.round(255 * np.asarray(out.roadmap[0])).astype(np.uint8)
