@@ -164,12 +164,15 @@ def merging_nms(boxes, scores, iou_threshold, merge_iou):
     for i, (rank, taken) in enumerate(clusters):
         members = taken & (iou[rank] > merge_iou)
         members[rank] = True
+        if members.sum() == 1:  # nothing to merge: the kept box exactly
+            merged[i] = ranked[rank]
+            continue
         member_boxes, weight = ranked[members], np.maximum(ranked_scores[members], 1e-12)
         doubled = np.average(np.stack([np.cos(2 * member_boxes[:, 2]), np.sin(2 * member_boxes[:, 2])]), 1, weight)
         yaw = 0.5 * np.arctan2(doubled[1], doubled[0])
         yaw = np.where(np.cos(yaw - ranked[rank, 2]) < 0, geo.wrap_angle(yaw + np.pi), yaw)
         centre, size = (np.average(member_boxes[:, k], 0, weight) for k in (slice(0, 2), slice(3, 5)))
-        merged[i] = np.concatenate([centre, [yaw], size]) if members.sum() > 1 else ranked[rank]
+        merged[i] = np.concatenate([centre, [yaw], size])
     return merged, ranked_scores[[rank for rank, _ in clusters]]
 
 
