@@ -86,6 +86,7 @@ def buildings(centres_m, rng):
     return box
 
 
+@jax.jit  # one program per shape: op by op, a scan's hundreds of small programs cost more than they run
 def lidar_scan(box_town, pose, height_m=None):
     """The lidar scan of buildings ``box_town`` [M, 5] (the nearest SCAN_BUILDINGS of them, as the sensors
     cull; 6 m tall, or ``height_m`` [M]) from ego pose (x, y, yaw)."""
@@ -116,7 +117,7 @@ def street(ds, dyaw):
     along = np.arange(0, len(yaw), 9)
     centres = np.concatenate([xy[along] + 10 * side[along], xy[along] - 11 * side[along]])
     box = buildings(centres + rng.normal(0, 1.0, centres.shape), rng)
-    return xy, yaw, jax.vmap(lambda p: lidar_scan(box, p))(jnp.asarray(np.column_stack([xy, yaw]), jnp.float32))
+    return xy, yaw, jax.vmap(lidar_scan, in_axes=(None, 0))(box, jnp.asarray(np.column_stack([xy, yaw]), jnp.float32))
 
 
 def frame_contract(image_size, num_boxes):

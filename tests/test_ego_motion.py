@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import buildings, lidar_scan, odometry_model, street
+from helpers import OPTIMISED, buildings, lidar_scan, odometry_model, street
 
 from e2e_percep_jax import calibration, ego_motion, pose_belief
 from e2e_percep_jax import config as config_lib
@@ -179,7 +179,7 @@ def test_the_measured_belief_moves_by_the_lidar_odometry_given_the_scans():
         speed=jnp.full((1,), 0.6),
     )
 
-    @functools.partial(jax.jit, static_argnums=0)
+    @functools.partial(jax.jit, static_argnums=0, compiler_options=OPTIMISED)  # 300 frames of the town's belief
     def track(with_scans):
         def body(state, x):
             action, scan, first = x

@@ -10,8 +10,9 @@ right corner, its inner corner at the kerb and standing on the sidewalk (a build
 many real streets have them), and one vehicle drives at a constant speed straight across the junction from the ego's left and away
 down the street to its right, behind that building. Every other vehicle is out of every sensor's reach.
 
-Pure NumPy on the host, but for the sensors (:func:`e2e_percep_jax.sim.sensors.observe`) that the caller runs
-on the returned states.
+NumPy on the host, but for the lines of sight to each candidate path (one compiled program: op by op, a path
+of each length compiled its own hundreds of small ones) and the sensors
+(:func:`e2e_percep_jax.sim.sensors.observe`) that the caller runs on the returned states.
 """
 
 import itertools
@@ -81,16 +82,26 @@ def _corner_building(town: town_lib.Town, node_xy, ego_yaw: float):
     return np.array([*centre, ego_yaw, BUILDING_SIDE_M, BUILDING_SIDE_M])
 
 
-def _hidden(ego_xy, ego_yaw, boxes_xyyaw, building):
-    """bool [F]: the vehicle's centre in the bird-eye view with the lines of sight from both the lidar (the
-    ego's centre) and the camera (``CAMERA_X_M`` ahead) crossing ``building`` [5] (town frame)."""
-    rel = np.asarray(geo.town_to_ego(boxes_xyyaw[:, :2], ego_xy, ego_yaw))
-    b = np.asarray(geo.box_to_ego(building, ego_xy, ego_yaw))
-    crossed = [
-        np.asarray(sensors.ray_box_slab(x0, 0.0, rel[:, 0] - x0, rel[:, 1], b)[0]) < 1.0
-        for x0 in (0.0, sensors.CAMERA_X_M)
-    ]
-    return np.asarray(geo.in_bev_view(rel)) & crossed[0] & crossed[1]
+PAD_FRAMES = 64  # paths padded to a multiple of this: one compiled sight test serves paths of many lengths
+
+
+@jax.jit
+def _sight_padded(ego_xy, ego_yaw, boxes_xyyaw, building):
+    rel = geo.town_to_ego(boxes_xyyaw[:, :2], ego_xy, ego_yaw)
+    b = geo.box_to_ego(building, ego_xy, ego_yaw)
+    crossed = [sensors.ray_box_slab(x0, 0.0, rel[:, 0] - x0, rel[:, 1], b)[0] < 1.0 for x0 in (0.0, sensors.CAMERA_X_M)]
+    in_view = geo.in_bev_view(rel)
+    return in_view & crossed[0] & crossed[1], in_view
+
+
+def _sight(ego_xy, ego_yaw, boxes_xyyaw, building):
+    """(hidden, in_view), bool [F] each: the vehicle's centre in the bird-eye view, and that with the lines of
+    sight from both the lidar (the ego's centre) and the camera (``CAMERA_X_M`` ahead) crossing ``building``
+    [5] (town frame)."""
+    frames = len(boxes_xyyaw)
+    padded = np.pad(boxes_xyyaw, ((0, -frames % PAD_FRAMES), (0, 0)), mode="edge")
+    hidden, in_view = _sight_padded(ego_xy, ego_yaw, padded, building)
+    return np.asarray(hidden)[:frames], np.asarray(in_view)[:frames]
 
 
 def _stretch_after_sight(hidden, in_view):
@@ -154,8 +165,7 @@ def kerb_building_drive(
                         ],
                         speed_mps * DT_S,
                     )
-                    hidden = _hidden(ego_xy, ego_yaw, boxes, building)
-                    in_view = np.asarray(geo.in_bev_view(np.asarray(geo.town_to_ego(boxes[:, :2], ego_xy, ego_yaw))))
+                    hidden, in_view = _sight(ego_xy, ego_yaw, boxes, building)
                     first, length = _stretch_after_sight(hidden, in_view)
                     if length and (best is None or length > best[0]):
                         best = (length, int(node), ego_xy, ego_yaw, building, boxes, np.arange(first, first + length))
