@@ -1,18 +1,20 @@
 """The trained perceiver, for other JAX code: load a run, then filter camera + lidar streams online.
 
+    import jax
     import e2e_percep_jax as e2e
     perceiver, params = e2e.load("runs/demo")           # latest checkpoint of a training run
     state = perceiver.init(batch_size=4)                 # a model.FilterState for 4 streams
-    state, out = perceiver.step(params, state, camera, lidar, action, key=None)
+    step = jax.jit(perceiver.step, static_argnames="measure")
+    state, out = step(params, state, camera, lidar, action, key=None)
     out.pose, state.pose.belief                          # a PerceiverOutputs; the pose belief's filter state
     boxes = perceiver.boxes(out)                         # per stream: (boxes [M, 5], scores [M])
 
 ``Perceiver.step`` is a pure function of its arguments (the perceiver itself holds only the frozen
-config), so it goes inside the caller's ``jit``, ``vmap`` and ``lax.scan``. It runs the same posterior
-step as training's scanned rollout (:func:`e2e_percep_jax.model.filter_sequence`), so streaming a
-sequence frame by frame reproduces the training-time posterior. With the belief pose head (the presets)
-it also runs the pose belief's histogram filter (:mod:`e2e_percep_jax.pose_belief`), so the pose it
-returns sharpens as a drive goes on. The online evaluation perceives through this same ``step``.
+config), so it goes inside the caller's ``jit``, ``vmap`` and ``lax.scan`` (called without ``jit``, it runs
+op by op, many times slower). It runs the same posterior step as training's scanned rollout
+(:func:`e2e_percep_jax.model.filter_sequence`), so streaming a sequence frame by frame reproduces the
+training-time posterior. With the belief pose head (the presets) it also runs the pose belief's histogram
+filter (:mod:`e2e_percep_jax.pose_belief`), so the pose it returns sharpens as a drive goes on. The online evaluation perceives through this same ``step``.
 """
 
 import dataclasses
