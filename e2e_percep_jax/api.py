@@ -14,7 +14,8 @@ config), so it goes inside the caller's ``jit``, ``vmap`` and ``lax.scan`` (call
 op by op, many times slower). It runs the same posterior step as training's scanned rollout
 (:func:`e2e_percep_jax.model.filter_sequence`), so streaming a sequence frame by frame reproduces the
 training-time posterior. With the belief pose head (the presets) it also runs the pose belief's histogram
-filter (:mod:`e2e_percep_jax.pose_belief`), so the pose it returns sharpens as a drive goes on. The online evaluation perceives through this same ``step``.
+filter (:mod:`e2e_percep_jax.pose_belief`), so the pose it returns sharpens as a drive goes on. The online
+evaluation perceives through this same ``step``.
 """
 
 import dataclasses
