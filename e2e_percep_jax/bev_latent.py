@@ -74,6 +74,20 @@ def shift(grid, offset_m):
     return _sample_at(grid, geo.bev_pixel_centres(grid.shape[1]) + offset_m[:, None, None])[0]
 
 
+# The ego's motion carries what stands still; a vehicle that drives on while hidden leaves its cell, and a
+# prior made of 3 x 3 convs can move a cell's content only by a fixed mix of its neighbours, not in a direction
+# that the content itself says (its lane, its heading). With ``--model.grid_motion=ego_and_flow`` a learned flow
+# per cell carries the warped grid on: each cell takes what lay ``flow_m`` behind it (a backward map, bilinear).
+FLOW_MAX_M = 2.0  # a frame's largest move of the scene's own: 20 m/s at 10 Hz
+
+
+def transport(grid, flow_m):
+    """``grid`` [B, G, G, C] carried along ``flow_m`` [B, G, G, 2] (metres, ego axes: how far the content that
+    arrives at each cell moved): each cell samples the grid where its content came from, bilinearly, zero
+    outside: [B, G, G, C]."""
+    return _sample_at(grid, geo.bev_pixel_centres(grid.shape[1]) - flow_m)[0]
+
+
 # A bilinear warp at a fraction of a cell averages neighbouring cells: every frame it spreads what the grid holds
 # by f (1 - f) cells^2 along each axis (f the fraction), so a car that the sensors lost blurs into its
 # neighbourhood within a second at city speeds. On a lattice (``--model.grid_warp=lattice``) the grid's cells sit

@@ -61,6 +61,10 @@ LIDAR_DECODER_INPUTS = ("latent_and_grid", "latent")
 # cells kept off the ego's by under half a cell so that a translation moves the grid by whole cells, and the
 # decoders read it sampled once onto the ego's cells (bev_latent.warp_on_lattice).
 GRID_WARPS = ("bilinear", "lattice")
+# What carries the bird-eye grid's content between frames (latent "bev"): ego, the ego's motion alone (the warp
+# above), so a vehicle that drives on while hidden leaves the cells that hold it; ego_and_flow, then a learned
+# flow per cell (bev_latent.transport), read from the warped grid, so the prior can move a car along its lane.
+GRID_MOTIONS = ("ego", "ego_and_flow")
 DEFAULT_TOWN_SEED = 0
 
 
@@ -150,6 +154,7 @@ class ModelConfig:
     grid_update: str = "learned"  # one of GRID_UPDATES
     lidar_decoder_input: str = "latent_and_grid"  # one of LIDAR_DECODER_INPUTS
     grid_warp: str = "bilinear"  # one of GRID_WARPS
+    grid_motion: str = "ego"  # one of GRID_MOTIONS
 
     @property
     def histogram_belief(self) -> bool:
@@ -413,6 +418,7 @@ def validate(cfg: Config) -> Config:
         "grid_update": GRID_UPDATES,
         "lidar_decoder_input": LIDAR_DECODER_INPUTS,
         "grid_warp": GRID_WARPS,
+        "grid_motion": GRID_MOTIONS,
     }
     for name, allowed in choices.items():
         if getattr(cfg.model, name) not in allowed:
@@ -431,6 +437,10 @@ def validate(cfg: Config) -> Config:
     if cfg.model.grid_warp != "bilinear" and cfg.model.latent != "bev":
         raise ValueError(
             f"--model.grid_warp={cfg.model.grid_warp!r} carries the bird-eye grid: needs --model.latent=bev"
+        )
+    if cfg.model.grid_motion != "ego" and cfg.model.latent != "bev":
+        raise ValueError(
+            f"--model.grid_motion={cfg.model.grid_motion!r} carries the bird-eye grid: needs --model.latent=bev"
         )
     if cfg.model.lidar_decoder_input != "latent_and_grid" and cfg.model.latent != "bev":
         raise ValueError(

@@ -9,6 +9,7 @@ One frame t flows as (R = image size, F = ``feature_dim``, Z = ``z1_dim + z2_dim
 
 With ``model.latent="bev"`` a bird-eye grid s_t [B, G, G, C] (C Gaussians per cell) joins the vector:
     motion t-1 -> t predicted from (features t, z t-1, action t-1); s_t-1 warped by it (bev_latent.warp)
+    (with ``model.grid_motion="ego_and_flow"`` then carried along a learned flow per cell, bev_latent.transport)
     prior p(s_t | warped s_t-1, action t-1) and posterior q(s_t | warped s_t-1, lidar map t, features t), per cell
     the PIXOR, lidar and roadmap decoders read s_t where their trunks reach G x G
     (with ``model.lidar_decoder_input="latent"`` the lidar decoder reads z alone)
@@ -256,6 +257,15 @@ class Conv3x3(nn.Module):
         return taps @ kernel.reshape(9 * c, self.features) + bias
 
 
+def _cell_convs(maps, hidden: int, out: int):
+    """Inside a compact module's call: ``maps`` [N, G, G, *] concatenated on channels, two leaky 3 x 3 convs of
+    ``hidden`` channels, then a 3 x 3 conv of ``out`` (the calling module's ``Conv_0``-``Conv_2``)."""
+    x = jnp.concatenate(maps, -1)
+    for i in range(2):
+        x = _act(Conv3x3(hidden, name=f"Conv_{i}")(x))
+    return Conv3x3(out, name="Conv_2")(x)
+
+
 class GaussianConv(nn.Module):
     """Maps [N, G, G, in] (concatenated on channels) -> (loc, scale) [N, G, G, out] per cell: two leaky 3 x 3
     convs of ``hidden`` channels, then a 3 x 3 conv; scale = softplus + 1e-5."""
@@ -265,11 +275,22 @@ class GaussianConv(nn.Module):
 
     @nn.compact
     def __call__(self, *maps):
-        x = jnp.concatenate(maps, -1)
-        for i in range(2):
-            x = _act(Conv3x3(self.hidden, name=f"Conv_{i}")(x))
-        loc, raw = jnp.split(Conv3x3(2 * self.out, name="Conv_2")(x), 2, -1)
+        loc, raw = jnp.split(_cell_convs(maps, self.hidden, 2 * self.out), 2, -1)
         return loc, jax.nn.softplus(raw) + MIN_SCALE
+
+
+class FlowConv(nn.Module):
+    """Maps [N, G, G, in] (concatenated on channels) -> a flow per cell [N, G, G, 2] in metres, within
+    ``bev_latent.FLOW_MAX_M``: two leaky 3 x 3 convs of ``hidden`` channels, then a 3 x 3 conv and a tanh. (A
+    flow held at zero by a gain that starts at zero barely moved in 500 steps: Adam moves that gain by at most
+    the learning rate a step, and its gradient, a random projection of what the flow should be, kept changing
+    sign. The flow starts as drawn instead, and is learnt from the first step.)"""
+
+    hidden: int
+
+    @nn.compact
+    def __call__(self, *maps):
+        return bev_latent.FLOW_MAX_M * jnp.tanh(_cell_convs(maps, self.hidden, 2))
 
 
 def gated_update(prior, posterior, share_seen):
@@ -331,6 +352,8 @@ class PerceptionModel(nn.Module):
             self.camera_lift = nn.Dense(g * g * c)  # the frame's features -> a map over the grid
             self.p_grid = GaussianConv(4 * c, c)  # p(s_t | warp(s_t-1), inside, a_t-1)
             self.q_grid = GaussianConv(4 * c, c)  # q(s_t | warp(s_t-1), inside, lidar map t, lifted features t)
+            if m.grid_motion == "ego_and_flow":
+                self.grid_flow = FlowConv(4 * c)  # (warp(s_t-1), inside, a_t-1) -> the scene's flow t-1 -> t
 
     def encode(self, camera, lidar):
         """uint8 [N, R, R, 3] x 2 -> {features: concatenated features [N, 2 * feature_dim]}, and with the
@@ -370,7 +393,8 @@ class PerceptionModel(nn.Module):
         posterior per cell (with ``grid_update="lidar_gated"``, moved from the prior only as far as the lidar
         sees the cell: :func:`gated_update`; with ``"lidar_fused"``, the prior times the cell's observation
         Gaussian, weighted by the same share: :func:`fused_update`; the prior where ``seen`` [N], if given, is
-        False). With ``grid_warp="lattice"`` the grid is carried on its lattice (``bev_latent.warp_on_lattice``),
+        False). With ``grid_motion="ego_and_flow"`` the warped grid is then carried along the flow that
+        :class:`FlowConv` reads from it (``bev_latent.transport``). With ``grid_warp="lattice"`` the grid is carried on its lattice (``bev_latent.warp_on_lattice``),
         the frame's lidar map and visibility sampled onto it, and its outputs ``grid_carried`` and ``grid_offset``
         are the state's; ``grid`` is then the sample on the ego's cells, what the decoders read. Returns the
         outputs."""
@@ -390,6 +414,10 @@ class PerceptionModel(nn.Module):
             warped, inside = bev_latent.warp(state.grid, jax.lax.stop_gradient(motion))
         warped, inside = jnp.where(first, 0.0, warped), jnp.where(first, 0.0, inside)
         action_map = jnp.broadcast_to(prev_action[:, None, None], inside.shape[:3] + (2,))
+        if self.cfg.grid_motion == "ego_and_flow":  # then the scene's own motion, which the ego's leaves out
+            flow_m = self.grid_flow(warped, inside, action_map)
+            carried = bev_latent.transport(jnp.concatenate([warped, inside], -1), flow_m)
+            warped, inside = carried[..., :-1], carried[..., -1:]
         p_loc, p_scale = self.p_grid(warped, inside, action_map)
         p_loc, p_scale = jnp.where(first, 0.0, p_loc), jnp.where(first, 1.0, p_scale)  # N(0, I) on first frames
         lifted = self.camera_lift(encoded["features"]).reshape(warped.shape)

@@ -76,6 +76,11 @@ flags.DEFINE_list(
 flags.DEFINE_list(
     "grid_warps", ["bilinear"], "latent, infer: how the bird-eye grid is carried (--model.grid_warp) in its figures"
 )
+flags.DEFINE_list(
+    "grid_motions",
+    ["ego"],
+    "latent, infer: what carries the bird-eye grid's content (--model.grid_motion) in its figures",
+)
 flags.DEFINE_integer("memory_steps", 300, "training steps of the cpu-config run whose resident memory is sampled")
 flags.DEFINE_boolean(
     "keep_freed_buffers",
@@ -113,6 +118,11 @@ def main(argv):
         if unknown_warps := sorted(set(FLAGS.grid_warps) - set(config_lib.GRID_WARPS)):
             raise ValueError(
                 f"--grid_warps={','.join(FLAGS.grid_warps)}: unknown {unknown_warps}; choose from {config_lib.GRID_WARPS}"
+            )
+        if unknown_motions := sorted(set(FLAGS.grid_motions) - set(config_lib.GRID_MOTIONS)):
+            raise ValueError(
+                f"--grid_motions={','.join(FLAGS.grid_motions)}: unknown {unknown_motions}; "
+                f"choose from {config_lib.GRID_MOTIONS}"
             )
         for cells in FLAGS.grid_cells:  # valid at both networks' sizes: the cpu preset's R (64) is the smaller
             grid = dict(latent="bev", grid_cells=int(cells))

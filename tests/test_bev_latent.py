@@ -74,6 +74,31 @@ def test_a_motion_and_its_inverse_give_back_the_cells_both_frames_see():
     np.testing.assert_allclose(np.asarray(back)[0][kept], field[0][kept], atol=1e-4)
 
 
+def test_the_scene_flow_carries_each_cell_by_its_own_flow():
+    """``transport`` against the closed form: a flow of one whole cell ahead carries every cell's content one row
+    up (rows grow backwards; the last row has nothing behind it, zeros); a cell's own flow moves only what
+    arrives there (one cell takes its left neighbour's content, the rest keep theirs); no flow is the identity;
+    and the flow gets a gradient (what the prior learns it from) equal to the bilinear sample's slope."""
+    grid = _grid()
+    ahead = np.zeros((1, 8, 8, 2), np.float32)
+    ahead[..., 0] = G8_CELL_M
+    want = np.zeros_like(grid)
+    want[:, :-1] = grid[:, 1:]
+    transport = jax.jit(bev_latent.transport)
+    np.testing.assert_allclose(np.asarray(transport(jnp.asarray(grid), jnp.asarray(ahead))), want, atol=1e-6)
+    one_cell = np.zeros((1, 8, 8, 2), np.float32)
+    one_cell[0, 3, 5, 1] = -G8_CELL_M  # moved right (-y) by a cell: it came from column 4
+    want = grid.copy()
+    want[0, 3, 5] = grid[0, 3, 4]
+    np.testing.assert_allclose(np.asarray(transport(jnp.asarray(grid), jnp.asarray(one_cell))), want, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(transport(jnp.asarray(grid), jnp.zeros((1, 8, 8, 2)))), grid, atol=1e-6)
+    # a quarter cell ahead at cell (3, 5), channel 0: d/d(flow x) of the sample = (grid[4] - grid[3]) / cell_m
+    pick = lambda f: transport(jnp.asarray(grid), f)[0, 3, 5, 0]
+    flow = jnp.zeros((1, 8, 8, 2)).at[0, 3, 5, 0].set(0.25 * G8_CELL_M)
+    slope = jax.grad(pick)(flow)[0, 3, 5, 0]
+    np.testing.assert_allclose(slope, (grid[0, 4, 5, 0] - grid[0, 3, 5, 0]) / G8_CELL_M, rtol=1e-5)
+
+
 def test_on_a_lattice_translations_move_the_grid_by_whole_cells_and_add_up_to_one_warp():
     """Twelve fractions of a cell forward and sideways: on the lattice every value the grid holds is one it
     held before (whole cells, no blur; new cells zero), the offset stays within half a cell, and the grid read
@@ -127,6 +152,28 @@ def test_relative_motion_is_the_later_pose_in_the_earlier_ego_frame():
 @pytest.fixture(scope="module")
 def params():
     return model.init_params(jax.random.PRNGKey(0), CFG)
+
+
+@pytest.mark.slow
+def test_a_zero_scene_flow_leaves_the_grid_as_the_egos_motion_does():
+    """``--model.grid_motion=ego_and_flow`` adds the flow's network to the params; with its last layer at zero
+    (no flow anywhere) the filter's outputs are the ego-only grid's with the same other params, and with the
+    flow as drawn they are not."""
+    cfg = config_lib.replace(CFG, model=dict(grid_motion="ego_and_flow"))
+    with_flow = model.init_params(jax.random.PRNGKey(0), cfg)
+    without = {"params": {k: v for k, v in with_flow["params"].items() if k != "grid_flow"}}
+    assert jax.tree.structure(without) == jax.tree.structure(model.init_params(jax.random.PRNGKey(0), CFG))
+    still = jax.tree.map(lambda x: x, with_flow)
+    still["params"]["grid_flow"]["Conv_2"] = jax.tree.map(jnp.zeros_like, still["params"]["grid_flow"]["Conv_2"])
+    batch = synthetic_batch(2, cfg)
+    run = jax.jit(
+        lambda p, c: model.filter_sequence(p, batch["camera"], batch["lidar"], batch["action"], None, c),
+        static_argnums=1,
+    )
+    ego_only = run(without, CFG)
+    jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, atol=1e-5), run(still, cfg), ego_only)
+    moved = np.abs(np.asarray(run(with_flow, cfg)["p_grid_loc"] - ego_only["p_grid_loc"]))[:, 2:]
+    assert moved.max() > 1e-2
 
 
 @pytest.mark.slow

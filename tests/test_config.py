@@ -117,6 +117,8 @@ def test_after_a_failed_restore_the_unawaited_reads_warn_no_more(failed_restore)
         ("latent", config_lib.LATENTS),
         ("grid_update", config_lib.GRID_UPDATES),
         ("lidar_decoder_input", config_lib.LIDAR_DECODER_INPUTS),
+        ("grid_warp", config_lib.GRID_WARPS),
+        ("grid_motion", config_lib.GRID_MOTIONS),
     ],
 )
 def test_each_choice_field_takes_its_choices_and_names_itself_otherwise(name, allowed):
@@ -125,3 +127,6 @@ def test_each_choice_field_takes_its_choices_and_names_itself_otherwise(name, al
         config_lib.validate(config_lib.replace(cfg, model={name: value}))
     with pytest.raises(ValueError, match=rf"^--model\.{name}='nonsense': choose one of \("):
         config_lib.validate(config_lib.replace(cfg, model={name: "nonsense"}))
+    if name.startswith("grid_"):  # the grid's own fields name the latent they need
+        with pytest.raises(ValueError, match=rf"^--model\.{name}='{allowed[-1]}' .*: needs --model\.latent=bev$"):
+            config_lib.validate(config_lib.replace(cfg, model={"latent": "vector", name: allowed[-1]}))

@@ -1,6 +1,7 @@
 """What several families of benchmarks share: the timing rule, the configs measured, a compiled training
 step."""
 
+import itertools
 import os
 import statistics
 import time
@@ -50,13 +51,16 @@ def paper_config(batch_size, seq_len, image_size):
 
 
 def latent_models(base: config_lib.Config) -> dict:
-    """``base`` with each latent (``config.LATENTS``), the bird-eye grid at each ``--grid_cells`` and
-    ``--grid_warps``: {the figure's name ("vector", "bev, 16 cells", "bev, 16 cells, lattice", ...): config}."""
+    """``base`` with each latent (``config.LATENTS``), the bird-eye grid at each ``--grid_cells``,
+    ``--grid_warps`` and ``--grid_motions``: {the figure's name ("vector", "bev, 16 cells", "bev, 16 cells,
+    lattice", "bev, 16 cells, lattice, flow", ...): config}."""
     models = {"vector": config_lib.replace(base, model=dict(latent="vector"))}
-    for cells in FLAGS.grid_cells:
-        for warp in FLAGS.grid_warps:
-            name = f"bev, {cells} cells" + ("" if warp == "bilinear" else f", {warp}")
-            models[name] = config_lib.replace(base, model=dict(latent="bev", grid_cells=int(cells), grid_warp=warp))
+    for cells, warp, motion in itertools.product(FLAGS.grid_cells, FLAGS.grid_warps, FLAGS.grid_motions):
+        name = (
+            f"bev, {cells} cells" + ("" if warp == "bilinear" else f", {warp}") + ("" if motion == "ego" else ", flow")
+        )
+        grid = dict(latent="bev", grid_cells=int(cells), grid_warp=warp, grid_motion=motion)
+        models[name] = config_lib.replace(base, model=grid)
     return models
 
 
