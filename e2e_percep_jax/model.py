@@ -394,10 +394,10 @@ class PerceptionModel(nn.Module):
         sees the cell: :func:`gated_update`; with ``"lidar_fused"``, the prior times the cell's observation
         Gaussian, weighted by the same share: :func:`fused_update`; the prior where ``seen`` [N], if given, is
         False). With ``grid_motion="ego_and_flow"`` the warped grid is then carried along the flow that
-        :class:`FlowConv` reads from it (``bev_latent.transport``). With ``grid_warp="lattice"`` the grid is carried on its lattice (``bev_latent.warp_on_lattice``),
-        the frame's lidar map and visibility sampled onto it, and its outputs ``grid_carried`` and ``grid_offset``
-        are the state's; ``grid`` is then the sample on the ego's cells, what the decoders read. Returns the
-        outputs."""
+        :class:`FlowConv` reads from it (``bev_latent.transport``). With ``grid_warp="lattice"`` the grid is
+        carried on its lattice (``bev_latent.warp_on_lattice``), the frame's lidar map and visibility sampled onto
+        it, and its outputs ``grid_carried`` and ``grid_offset`` are the state's; ``grid`` is then the sample on
+        the ego's cells, what the decoders read. Returns the outputs."""
         first = state.first[:, None, None, None]
         inputs = [encoded["features"], state.z1, state.z2, prev_action]
         motion = self.motion_head(jnp.concatenate(inputs, -1)) * bev_latent.MOTION_UNIT
