@@ -430,18 +430,10 @@ def validate(cfg: Config) -> Config:
         raise ValueError(f"--model.grid_cells={g}: must be a power of two in [4, data.image_size / 2 = {r // 2}]")
     if cfg.model.latent == "bev" and cfg.model.grid_channels < 1:
         raise ValueError(f"--model.grid_channels={cfg.model.grid_channels}: must be >= 1")
-    if cfg.model.grid_update != "learned" and cfg.model.latent != "bev":
-        raise ValueError(
-            f"--model.grid_update={cfg.model.grid_update!r} updates the bird-eye grid: needs --model.latent=bev"
-        )
-    if cfg.model.grid_warp != "bilinear" and cfg.model.latent != "bev":
-        raise ValueError(
-            f"--model.grid_warp={cfg.model.grid_warp!r} carries the bird-eye grid: needs --model.latent=bev"
-        )
-    if cfg.model.grid_motion != "ego" and cfg.model.latent != "bev":
-        raise ValueError(
-            f"--model.grid_motion={cfg.model.grid_motion!r} carries the bird-eye grid: needs --model.latent=bev"
-        )
+    for name, verb in (("grid_update", "updates"), ("grid_warp", "carries"), ("grid_motion", "carries")):
+        value = getattr(cfg.model, name)  # the grid's own fields: any but the default needs the grid
+        if value != getattr(ModelConfig, name) and cfg.model.latent != "bev":
+            raise ValueError(f"--model.{name}={value!r} {verb} the bird-eye grid: needs --model.latent=bev")
     if cfg.model.lidar_decoder_input != "latent_and_grid" and cfg.model.latent != "bev":
         raise ValueError(
             f"--model.lidar_decoder_input={cfg.model.lidar_decoder_input!r} keeps the bird-eye grid from the lidar "
