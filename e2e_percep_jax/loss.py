@@ -14,7 +14,9 @@
   before the filter sees them; the targets and the reconstructed lidar image stay whole.
 - with the bird-eye latent (``model.latent="bev"``), two more: kl_grid, the grid's KL summed over its cells
   (weighted as kl); motion, the ego-motion head's squared error / 2 in ``bev_latent.MOTION_UNIT`` units against
-  the true motion between the batch's consecutive frames (frames 1..T; weighted as detection).
+  the true motion between the batch's consecutive frames (frames 1..T; weighted as detection); and with
+  ``train.flow_weight`` > 0, flow: the scene flow's squared error / 2 (m^2, summed over cells) against the
+  vehicles' true moves (``bev_latent.vehicle_flow``; frames 1..T; weighted as detection, times flow_weight).
 - det_cls: focal loss (alpha 0.25 on positives, gamma 2) on the class map.
 - det_reg: 0.1 x smooth-L1 (beta 1) between predicted and target regression maps at positive pixels
   (``det_cls`` > 0.5); targets elsewhere are ignored, whatever their value. Both weigh each pixel 1, but
@@ -57,6 +59,7 @@ BATCH_KEYS = ("camera", "lidar", "roadmap", "det_cls", "det_reg", "pose", "actio
 PLACE_KEYS = ("place_camera", "place_lidar", "place_pose")  # and of the place stream, when a batch has it
 # and who saw each box, under train.remembered_weight or train.unseen_weight
 MEMORY_KEYS = ("boxes", "boxes_valid", "boxes_lidar_visible", "boxes_camera_visible", "boxes_frames_since_seen")
+FLOW_KEYS = ("boxes", "boxes_valid")  # and the vehicles' moves, under train.flow_weight
 OBSERVATION_DROP_STREAM = 7  # fold_in data of the dropped frames' draw (the latents' draws split the key itself)
 SHADOW_STREAM = 8  # and of the lidar shadows' draw
 # A shadow: every azimuth within SHADOW_HALF_WIDTH_DEG of its centre (uniform all round), beyond its start
@@ -101,7 +104,9 @@ def per_sequence(x, batch_size: int):
 def batch_keys(cfg: Config) -> tuple:
     """The frame contract's fields that the loss reads under ``cfg`` (the place stream's when a batch has it)."""
     weighted = cfg.train.remembered_weight != 1.0 or cfg.train.unseen_weight != 1.0
-    return BATCH_KEYS + (MEMORY_KEYS if weighted else ()) + PLACE_KEYS
+    keys = BATCH_KEYS + (MEMORY_KEYS if weighted else ())
+    keys += tuple(k for k in FLOW_KEYS if cfg.train.flow_weight and k not in keys)
+    return keys + PLACE_KEYS
 
 
 def group_pixels(batch: dict, group: str):
@@ -141,6 +146,24 @@ def detection_terms(
     reg_error = jnp.where(positive, optax.huber_loss(pred["det_reg"], reg_target), 0.0)  # smooth-L1, beta 1
     terms["det_reg"] = weight * DET_REG_WEIGHT * per_sequence(pixel_weight * reg_error, b)
     return terms
+
+
+def flow_term(filtered: dict, batch: dict, motion, cfg: Config):
+    """The scene flow's squared error / 2 (m^2, summed over cells and frames 1..T, per sequence) against the
+    vehicles' true moves (``bev_latent.vehicle_flow``), for ``filtered`` (``model.filter_sequence``'s, with
+    ``flow``) and the ego's true ``motion`` [B, T, 3] between the batch's consecutive frames."""
+    b, t = motion.shape[:2]
+    merge = lambda x: x.reshape((b * t,) + x.shape[2:])  # frames 1..T as one batch of frame pairs
+    offset = filtered.get("grid_offset")
+    target = bev_latent.vehicle_flow(
+        merge(batch["boxes"][:, :-1]),
+        merge(batch["boxes"][:, 1:]),
+        merge(batch["boxes_valid"][:, 1:]),
+        merge(motion),
+        cfg.model.grid_cells,
+        None if offset is None else merge(offset[:, 1:]),
+    )
+    return per_sequence(0.5 * jnp.square(merge(filtered["flow"][:, 1:]) - target), b)
 
 
 def pose_term(pred_pose, pose, weight: float, raw_metres: bool = False):
@@ -233,6 +256,8 @@ def sequence_loss(params, batch, key, cfg: Config, start=None):
         truth = bev_latent.relative_motion(batch["pose"][:, :-1], batch["pose"][:, 1:])
         error = (out["motion"][:, 1:] - truth) / bev_latent.MOTION_UNIT
         metrics["motion"] = cfg.train.perception_weight * per_sequence(0.5 * error**2, b)
+        if cfg.train.flow_weight:
+            metrics["flow"] = cfg.train.flow_weight * cfg.train.perception_weight * flow_term(out, batch, truth, cfg)
     metrics.update(
         detection_terms(pred, batch, cfg.train.perception_weight, cfg.train.remembered_weight, cfg.train.unseen_weight)
     )

@@ -394,7 +394,7 @@ class PerceptionModel(nn.Module):
         sees the cell: :func:`gated_update`; with ``"lidar_fused"``, the prior times the cell's observation
         Gaussian, weighted by the same share: :func:`fused_update`; the prior where ``seen`` [N], if given, is
         False). With ``grid_motion="ego_and_flow"`` the warped grid is then carried along the flow that
-        :class:`FlowConv` reads from it (``bev_latent.transport``). With ``grid_warp="lattice"`` the grid is
+        :class:`FlowConv` reads from it (``bev_latent.transport``; output ``flow`` [N, G, G, 2] m). With ``grid_warp="lattice"`` the grid is
         carried on its lattice (``bev_latent.warp_on_lattice``), the frame's lidar map and visibility sampled onto
         it, and its outputs ``grid_carried`` and ``grid_offset`` are the state's; ``grid`` is then the sample on
         the ego's cells, what the decoders read. Returns the outputs."""
@@ -414,6 +414,7 @@ class PerceptionModel(nn.Module):
             warped, inside = bev_latent.warp(state.grid, jax.lax.stop_gradient(motion))
         warped, inside = jnp.where(first, 0.0, warped), jnp.where(first, 0.0, inside)
         action_map = jnp.broadcast_to(prev_action[:, None, None], inside.shape[:3] + (2,))
+        flow_m = None
         if self.cfg.grid_motion == "ego_and_flow":  # then the scene's own motion, which the ego's leaves out
             flow_m = self.grid_flow(warped, inside, action_map)
             carried = bev_latent.transport(jnp.concatenate([warped, inside], -1), flow_m)
@@ -436,6 +437,8 @@ class PerceptionModel(nn.Module):
             "p_grid_loc": p_loc,
             "p_grid_scale": p_scale,
         }
+        if flow_m is not None:
+            outputs["flow"] = flow_m
         if offset is not None:  # the state keeps the lattice; the decoders read the grid on the ego's cells
             outputs.update(grid=bev_latent.shift(grid, -offset), grid_carried=grid, grid_offset=offset)
         return outputs
@@ -596,7 +599,8 @@ def filter_step(params, state: FilterState, camera, lidar, prev_action, key, cfg
     ``p_grid_loc``/``p_grid_scale``) and the ego-motion head's ``motion`` [B, 3] (dx m, dy m, dyaw rad from
     frame t-1 to t, in frame t-1's axes; :func:`bev_latent.relative_motion` is its truth); with
     ``--model.grid_warp=lattice`` also the state's ``grid_carried`` and ``grid_offset``
-    (:class:`FilterState`), ``grid`` being what the decoders read.
+    (:class:`FilterState`), ``grid`` being what the decoders read; with ``--model.grid_motion=ego_and_flow``
+    the scene flow ``flow`` [B, G, G, 2] (m, in the lattice's cells where there is one) that carried the grid.
     """
     model = build_model(cfg)
     encoded = model.apply(params, camera, lidar, method=PerceptionModel.encode)

@@ -139,6 +139,61 @@ def test_on_a_lattice_a_quarter_turn_is_the_bilinear_warp():
     np.testing.assert_allclose(offset, 0.0, atol=1e-6)
 
 
+def _vehicle_flow_by_hand(before, after, valid, motion, offset):
+    """``bev_latent.vehicle_flow`` for one frame pair of boxes at yaw 0 in the later frame, cell by cell: a
+    cell's centre inside a box grown by half a 4 m cell each way takes the mean of those boxes' moves."""
+    dx, dy, dyaw = motion
+    c, s = np.cos(dyaw), np.sin(dyaw)
+    rel = before[:, :2] - [dx, dy]
+    earlier = np.stack([c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1]], -1)  # rotated by -dyaw
+    want = np.zeros((8, 8, 2))
+    for row in range(8):
+        for col in range(8):
+            x, y = 20.0 - G8_CELL_M * (row + 0.5) + offset[0], 16.0 - G8_CELL_M * (col + 0.5) + offset[1]
+            moves = [
+                after[n, :2] - earlier[n]
+                for n in range(len(after))
+                if valid[n]
+                and abs(x - after[n, 0]) <= 0.5 * (after[n, 3] + G8_CELL_M)
+                and abs(y - after[n, 1]) <= 0.5 * (after[n, 4] + G8_CELL_M)
+            ]
+            if moves:
+                want[row, col] = np.mean(moves, 0)
+    return want
+
+
+@pytest.mark.parametrize(
+    "motion, offset",
+    [((3.0, 0.0, 0.0), (0.0, 0.0)), ((0.0, 0.0, np.pi / 2), (0.0, 0.0)), ((1.5, 0.2, 0.1), (1.2, -0.7))],
+)
+def test_the_vehicle_flow_is_each_cars_move_on_the_cells_it_covers(motion, offset):
+    """``bev_latent.vehicle_flow`` against a cell-by-cell count: a parked car's cells take no flow whatever the
+    ego did (its earlier box, seen from the later frame, is where it is now), a car that drove 2 m ahead
+    in the town gives its cells (2, 0), two cars side by side share a cell's mean, a car out of view marks
+    nothing, and the lattice's offset moves the cells that are tested."""
+    dx, dy, dyaw = motion
+    c, s = np.cos(dyaw), np.sin(dyaw)
+    to_earlier = lambda p: np.array([c * p[0] - s * p[1] + dx, s * p[0] + c * p[1] + dy])  # later -> earlier frame
+    after = np.array(
+        [[8.0, 6.0, 0, 4.5, 2.0], [-4.0, -6.0, 0, 4.5, 2.0], [2.0, -6.0, 0, 4.5, 2.0], [1.0, 1.0, 0, 4.5, 2.0]]
+    )
+    town_move = np.array([[0.0, 0.0], [2.0, 0.0], [0.0, 1.0], [1.0, 1.0]])  # in the later frame's axes
+    before = np.array([np.r_[to_earlier(a[:2] - m), a[2:]] for a, m in zip(after, town_move)])
+    valid = np.array([True, True, True, False])
+    got = bev_latent.vehicle_flow(
+        jnp.asarray(before[None], jnp.float32),
+        jnp.asarray(after[None], jnp.float32),
+        jnp.asarray(valid[None]),
+        jnp.asarray([motion], jnp.float32),
+        8,
+        jnp.asarray([offset], jnp.float32),
+    )[0]
+    want = _vehicle_flow_by_hand(before, after, valid, motion, offset)
+    np.testing.assert_allclose(np.asarray(got), want, atol=1e-5)
+    covered = np.abs(want).sum(-1) > 0
+    assert 2 <= covered.sum() and np.allclose(want[covered & (want[..., 1] == 0)], [2.0, 0.0], atol=1e-5)
+
+
 def test_relative_motion_is_the_later_pose_in_the_earlier_ego_frame():
     """Heading north (yaw pi/2) and moving 1 m north and 0.5 m west, turning 0.1 rad left: 1 m ahead, 0.5 m to
     the left, +0.1 rad; across the +-pi seam the heading change wraps."""
@@ -170,10 +225,44 @@ def test_a_zero_scene_flow_leaves_the_grid_as_the_egos_motion_does():
         lambda p, c: model.filter_sequence(p, batch["camera"], batch["lidar"], batch["action"], None, c),
         static_argnums=1,
     )
-    ego_only = run(without, CFG)
-    jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, atol=1e-5), run(still, cfg), ego_only)
+    ego_only, zero_flow = run(without, CFG), run(still, cfg)
+    np.testing.assert_array_equal(zero_flow.pop("flow"), 0.0)
+    jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, atol=1e-5), zero_flow, ego_only)
     moved = np.abs(np.asarray(run(with_flow, cfg)["p_grid_loc"] - ego_only["p_grid_loc"]))[:, 2:]
     assert moved.max() > 1e-2
+
+
+@pytest.mark.slow
+def test_the_flow_term_is_the_flows_error_against_each_frame_pairs_vehicle_flow():
+    """``--train.flow_weight``: the loss's ``flow`` is weight x perception weight x the squared error / 2 of the
+    filter's flow against ``vehicle_flow`` of each pair of consecutive frames (their boxes, the poses' true
+    motion, the lattice's offset of the later frame), summed over cells and frames 1..T, per sequence."""
+    cfg = config_lib.replace(
+        CFG, model=dict(grid_warp="lattice", grid_motion="ego_and_flow"), train=dict(flow_weight=2.0)
+    )
+    batch = synthetic_batch(3, cfg)
+    b, t1 = batch["pose"].shape[:2]
+    rng = np.random.default_rng(3)
+    boxes = np.concatenate([rng.uniform(-14, 14, (b, t1, 6, 2)), rng.uniform(-3, 3, (b, t1, 6, 1))], -1)
+    batch["boxes"] = np.concatenate([boxes, np.broadcast_to([4.5, 2.0], (b, t1, 6, 2))], -1).astype(np.float32)
+    batch["boxes_valid"] = rng.uniform(size=(b, t1, 6)) < 0.7
+    params = model.init_params(jax.random.PRNGKey(1), cfg)
+    _, metrics = loss.loss_fn(params, batch, None, cfg)
+    out = model.filter_sequence(params, batch["camera"], batch["lidar"], batch["action"], None, cfg)
+    total = 0.0
+    for t in range(1, t1):
+        motion = bev_latent.relative_motion(batch["pose"][:, t - 1], batch["pose"][:, t])
+        target = bev_latent.vehicle_flow(
+            batch["boxes"][:, t - 1],
+            batch["boxes"][:, t],
+            batch["boxes_valid"][:, t],
+            motion,
+            16,
+            out["grid_offset"][:, t],
+        )
+        total += np.sum(0.5 * np.square(np.asarray(out["flow"][:, t], np.float64) - np.asarray(target)))
+    assert total > 0
+    np.testing.assert_allclose(metrics["flow"], 2.0 * 32.0 * total / b, rtol=2e-4)
 
 
 @pytest.mark.slow

@@ -34,6 +34,7 @@ def test_paper_preset_is_the_papers_network_with_the_cpu_recipe():
     assert (cfg.model.z1_dim, cfg.model.z2_dim) == (32, 256)
     assert cfg.train == cpu.train and cfg.model.pose_hidden_dim == cpu.model.pose_hidden_dim
     assert (cfg.data.place_frames, cfg.data.batches_per_drive) == (cpu.data.place_frames, cpu.data.batches_per_drive)
+    assert cfg.eval == cpu.eval  # its rows sit beside the cpu rows: the same drives
 
 
 def test_flags_override_only_the_named_fields():
@@ -130,3 +131,19 @@ def test_each_choice_field_takes_its_choices_and_names_itself_otherwise(name, al
     if name.startswith("grid_"):  # the grid's own fields name the latent they need
         with pytest.raises(ValueError, match=rf"^--model\.{name}='{allowed[-1]}' .*: needs --model\.latent=bev$"):
             config_lib.validate(config_lib.replace(cfg, model={"latent": "vector", name: allowed[-1]}))
+
+
+def test_the_flow_weight_needs_the_grids_scene_flow_and_is_never_negative():
+    """--train.flow_weight teaches the flow that --model.grid_motion=ego_and_flow adds: without it (or
+    without the grid) the flag names what it needs; a negative weight names itself."""
+    tiny = config_lib.get_config("tiny")
+    flow = config_lib.replace(tiny, model=dict(latent="bev", grid_motion="ego_and_flow"), train=dict(flow_weight=2.0))
+    config_lib.validate(flow)
+    for model in (dict(latent="bev"), dict(latent="vector")):
+        with pytest.raises(
+            ValueError,
+            match=r"^--train\.flow_weight=2\.0 .*needs --model\.latent=bev and --model\.grid_motion=ego_and_flow$",
+        ):
+            config_lib.validate(config_lib.replace(flow, model=dict(model, grid_motion="ego")))
+    with pytest.raises(ValueError, match=r"^--train\.flow_weight=-1\.0: must be at least 0$"):
+        config_lib.validate(config_lib.replace(flow, train=dict(flow_weight=-1.0)))
