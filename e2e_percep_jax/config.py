@@ -63,8 +63,11 @@ LIDAR_DECODER_INPUTS = ("latent_and_grid", "latent")
 GRID_WARPS = ("bilinear", "lattice")
 # What carries the bird-eye grid's content between frames (latent "bev"): ego, the ego's motion alone (the warp
 # above), so a vehicle that drives on while hidden leaves the cells that hold it; ego_and_flow, then a learned
-# flow per cell (bev_latent.transport), read from the warped grid, so the prior can move a car along its lane.
-GRID_MOTIONS = ("ego", "ego_and_flow")
+# flow per cell (bev_latent.transport), read from the warped grid, so the prior can move a car along its lane;
+# ego_and_taught_flow, the same flow learnt from the vehicles' true moves alone (--train.flow_weight), its
+# gradient stopped where it carries the grid, as the ego-motion head's is.
+GRID_MOTIONS = ("ego", "ego_and_flow", "ego_and_taught_flow")
+FLOW_MOTIONS = GRID_MOTIONS[1:]  # the grid motions with a scene flow
 DEFAULT_TOWN_SEED = 0
 
 
@@ -205,7 +208,7 @@ class TrainConfig:
     # cars it has no evidence of; that does not lift precision (BUILD_NOTES, "Unseen vehicles left out of
     # the detection loss"). 1 = the paper.
     unseen_weight: float = 1.0
-    # A memory lever, with --model.grid_motion=ego_and_flow: the weight of the scene flow's squared error
+    # A memory lever, with a scene flow (--model.grid_motion, FLOW_MOTIONS): the weight of its squared error
     # (metres^2, summed over the grid's cells, times perception_weight) against the vehicles' true moves
     # between frames (``bev_latent.vehicle_flow``), so that the flow carries a hidden car along its lane as
     # the ego-motion head carries the grid. 0 = the flow learns from the ELBO alone.
@@ -485,10 +488,15 @@ def validate(cfg: Config) -> Config:
     for name in ("unseen_weight", "flow_weight"):
         if not getattr(cfg.train, name) >= 0:
             raise ValueError(f"--train.{name}={getattr(cfg.train, name)}: must be at least 0")
-    if cfg.train.flow_weight and (cfg.model.latent != "bev" or cfg.model.grid_motion != "ego_and_flow"):
+    if cfg.train.flow_weight and (cfg.model.latent != "bev" or cfg.model.grid_motion not in FLOW_MOTIONS):
         raise ValueError(
             f"--train.flow_weight={cfg.train.flow_weight} teaches the grid's scene flow: needs --model.latent=bev "
-            "and --model.grid_motion=ego_and_flow"
+            f"and --model.grid_motion one of {FLOW_MOTIONS}"
+        )
+    if cfg.model.grid_motion == "ego_and_taught_flow" and not cfg.train.flow_weight:
+        raise ValueError(
+            "--model.grid_motion=ego_and_taught_flow learns the flow from the vehicles' moves alone: needs "
+            "--train.flow_weight > 0"
         )
     for name in ("observation_drop_share", "lidar_shadow_share"):
         if not 0.0 <= getattr(cfg.train, name) < 1.0:

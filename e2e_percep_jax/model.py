@@ -9,7 +9,8 @@ One frame t flows as (R = image size, F = ``feature_dim``, Z = ``z1_dim + z2_dim
 
 With ``model.latent="bev"`` a bird-eye grid s_t [B, G, G, C] (C Gaussians per cell) joins the vector:
     motion t-1 -> t predicted from (features t, z t-1, action t-1); s_t-1 warped by it (bev_latent.warp)
-    (with ``model.grid_motion="ego_and_flow"`` then carried along a learned flow per cell, bev_latent.transport)
+    (with a scene flow, ``model.grid_motion`` in config.FLOW_MOTIONS, then carried along a flow per cell,
+    bev_latent.transport)
     prior p(s_t | warped s_t-1, action t-1) and posterior q(s_t | warped s_t-1, lidar map t, features t), per cell
     the PIXOR, lidar and roadmap decoders read s_t where their trunks reach G x G
     (with ``model.lidar_decoder_input="latent"`` the lidar decoder reads z alone)
@@ -44,7 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from e2e_percep_jax import bev_latent, pose_belief
-from e2e_percep_jax.config import Config, ModelConfig
+from e2e_percep_jax.config import FLOW_MOTIONS, Config, ModelConfig
 
 LEAK = 0.2  # leaky-ReLU slope of the reference (flax's default is 0.01)
 MIN_SCALE = 1e-5  # Gaussian scale = softplus(raw) + MIN_SCALE
@@ -352,7 +353,7 @@ class PerceptionModel(nn.Module):
             self.camera_lift = nn.Dense(g * g * c)  # the frame's features -> a map over the grid
             self.p_grid = GaussianConv(4 * c, c)  # p(s_t | warp(s_t-1), inside, a_t-1)
             self.q_grid = GaussianConv(4 * c, c)  # q(s_t | warp(s_t-1), inside, lidar map t, lifted features t)
-            if m.grid_motion == "ego_and_flow":
+            if m.grid_motion in FLOW_MOTIONS:
                 self.grid_flow = FlowConv(4 * c)  # (warp(s_t-1), inside, a_t-1) -> the scene's flow t-1 -> t
 
     def encode(self, camera, lidar):
@@ -394,7 +395,9 @@ class PerceptionModel(nn.Module):
         sees the cell: :func:`gated_update`; with ``"lidar_fused"``, the prior times the cell's observation
         Gaussian, weighted by the same share: :func:`fused_update`; the prior where ``seen`` [N], if given, is
         False). With ``grid_motion="ego_and_flow"`` the warped grid is then carried along the flow that
-        :class:`FlowConv` reads from it (``bev_latent.transport``; output ``flow`` [N, G, G, 2] m). With ``grid_warp="lattice"`` the grid is
+        :class:`FlowConv` reads from it (``bev_latent.transport``; output ``flow`` [N, G, G, 2] m); with
+        ``"ego_and_taught_flow"`` likewise, the flow's gradient stopped there (it learns from the vehicles' true
+        moves alone, ``loss.flow_term``; its input, the grid, still takes that term's gradient). With ``grid_warp="lattice"`` the grid is
         carried on its lattice (``bev_latent.warp_on_lattice``), the frame's lidar map and visibility sampled onto
         it, and its outputs ``grid_carried`` and ``grid_offset`` are the state's; ``grid`` is then the sample on
         the ego's cells, what the decoders read. Returns the outputs."""
@@ -415,9 +418,10 @@ class PerceptionModel(nn.Module):
         warped, inside = jnp.where(first, 0.0, warped), jnp.where(first, 0.0, inside)
         action_map = jnp.broadcast_to(prev_action[:, None, None], inside.shape[:3] + (2,))
         flow_m = None
-        if self.cfg.grid_motion == "ego_and_flow":  # then the scene's own motion, which the ego's leaves out
+        if self.cfg.grid_motion in FLOW_MOTIONS:  # then the scene's own motion, which the ego's leaves out
             flow_m = self.grid_flow(warped, inside, action_map)
-            carried = bev_latent.transport(jnp.concatenate([warped, inside], -1), flow_m)
+            carrier = jax.lax.stop_gradient(flow_m) if self.cfg.grid_motion == "ego_and_taught_flow" else flow_m
+            carried = bev_latent.transport(jnp.concatenate([warped, inside], -1), carrier)
             warped, inside = carried[..., :-1], carried[..., -1:]
         p_loc, p_scale = self.p_grid(warped, inside, action_map)
         p_loc, p_scale = jnp.where(first, 0.0, p_loc), jnp.where(first, 1.0, p_scale)  # N(0, I) on first frames
@@ -599,7 +603,7 @@ def filter_step(params, state: FilterState, camera, lidar, prev_action, key, cfg
     ``p_grid_loc``/``p_grid_scale``) and the ego-motion head's ``motion`` [B, 3] (dx m, dy m, dyaw rad from
     frame t-1 to t, in frame t-1's axes; :func:`bev_latent.relative_motion` is its truth); with
     ``--model.grid_warp=lattice`` also the state's ``grid_carried`` and ``grid_offset``
-    (:class:`FilterState`), ``grid`` being what the decoders read; with ``--model.grid_motion=ego_and_flow``
+    (:class:`FilterState`), ``grid`` being what the decoders read; with a scene flow (``--model.grid_motion``)
     the scene flow ``flow`` [B, G, G, 2] (m, in the lattice's cells where there is one) that carried the grid.
     """
     model = build_model(cfg)

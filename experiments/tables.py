@@ -30,7 +30,7 @@ import numpy as np
 from absl import app, flags
 
 from e2e_percep_jax import baselines as baselines_lib
-from e2e_percep_jax import checkpoint, pictures, pose_belief, protocol, report
+from e2e_percep_jax import checkpoint, pictures, pose_belief, protocol, report, train_state
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import metrics as metrics_lib
 from e2e_percep_jax.summary import markdown_table, mean_std, summary_metrics
@@ -208,15 +208,15 @@ def command(evaluations: dict) -> str:
     runs = _main_runs(evaluations)
 
     def trained(m):
-        """At a constant learning rate a run's checkpoint is a run of that many steps; under a decaying one
-        only its last checkpoint is (the decay starts from the end of ``num_steps``)."""
+        """At a constant learning rate a run's checkpoint is a run of that many steps; under a decaying one, so
+        is a checkpoint before the decay starts (the rate was constant up to it); a later one is the run of its
+        own ``num_steps`` stopped there (:func:`stopped_at`)."""
         cfg, steps = config_lib.Config.from_dict(m["config"]), _trained_steps(m)
-        if cfg.train.lr_decay_share and steps != cfg.train.num_steps:
-            raise ValueError(
-                f"checkpoint {steps} of a run whose rate decays to step {cfg.train.num_steps}: "
-                "not the run its command would train"
-            )
-        return config_lib.replace(cfg, train=dict(num_steps=steps))
+        if not cfg.train.lr_decay_share:
+            return config_lib.replace(cfg, train=dict(num_steps=steps))
+        if steps <= train_state.decay_start(cfg) < cfg.train.num_steps:
+            return config_lib.replace(cfg, train=dict(num_steps=steps, lr_decay_share=0.0))
+        return cfg
 
     # left out: the evaluation's flags, and those a run may change on resuming (they leave its weights as they are)
     unsaid = ("--eval.", *(f"--{name}=" for name in checkpoint.RESUMABLE_CHANGES if name != "train.num_steps"))
@@ -233,6 +233,19 @@ def command(evaluations: dict) -> str:
     # a baseline's run is named after it ("detector", or "baselines-seed0-detector" collected from a sweep)
     name = next(b for b in config_lib.BASELINES if re.fullmatch(rf"(.*-)?{b}", runs[0]["run"]))
     return f"python experiments/baselines.py --baseline={name} {lines.pop()}"
+
+
+def stopped_at(evaluations: dict) -> int | None:
+    """The step at which a method's runs were stopped inside their learning rate's decay (a signal, a lease
+    ended), where :func:`command` trains them further: the runs' step, or None."""
+    stops = set()
+    for m in _main_runs(evaluations):
+        cfg, steps = config_lib.Config.from_dict(m["config"]), _trained_steps(m)
+        if cfg.train.lr_decay_share and train_state.decay_start(cfg) < steps < cfg.train.num_steps:
+            stops.add(steps)
+    if len(stops) > 1:
+        raise ValueError(f"a method's runs were stopped at different steps: {sorted(stops)}")
+    return stops.pop() if stops else None
 
 
 # ----------------------------------------------------------------------------- cells
@@ -329,7 +342,11 @@ def _paper_figures(table: str) -> dict:
 def _runs_note(found: dict, methods: list[str]) -> str:
     """A line per method: its runs and the command that trained them."""
     runs = {m: len(_main_runs(found[m])) for m in methods}
-    return "\n".join(f"- `{m}` ({runs[m]} run{'s' if runs[m] > 1 else ''}): `{command(found[m])}`" for m in methods)
+    stops = {m: stopped_at(found[m]) for m in methods}
+    stop = lambda m: "" if stops[m] is None else f", stopped at step {stops[m]:,} (the rate part-way down)"
+    return "\n".join(
+        f"- `{m}` ({runs[m]} run{'s' if runs[m] > 1 else ''}): `{command(found[m])}`{stop(m)}" for m in methods
+    )
 
 
 # ----------------------------------------------------------------------------- the tables

@@ -232,6 +232,38 @@ def test_a_zero_scene_flow_leaves_the_grid_as_the_egos_motion_does():
     assert moved.max() > 1e-2
 
 
+def _with_boxes(batch, seed=3):
+    """``batch`` with six random vehicles' boxes per frame (``boxes`` [B, T+1, 6, 5], ``boxes_valid``)."""
+    b, t1 = batch["pose"].shape[:2]
+    rng = np.random.default_rng(seed)
+    boxes = np.concatenate([rng.uniform(-14, 14, (b, t1, 6, 2)), rng.uniform(-3, 3, (b, t1, 6, 1))], -1)
+    boxes = np.concatenate([boxes, np.broadcast_to([4.5, 2.0], (b, t1, 6, 2))], -1).astype(np.float32)
+    return dict(batch, boxes=boxes, boxes_valid=rng.uniform(size=(b, t1, 6)) < 0.7)
+
+
+@pytest.mark.slow
+def test_a_taught_flow_learns_from_the_vehicles_moves_alone():
+    """With ``grid_motion="ego_and_taught_flow"`` no term but ``flow`` moves the flow's network (its gradient
+    stopped where it carries the grid), while the grid still takes that term's gradient; with
+    ``"ego_and_flow"`` the other terms move it too."""
+
+    def gradients(grid_motion):
+        cfg = config_lib.replace(CFG, model=dict(grid_motion=grid_motion), train=dict(flow_weight=1.0))
+        batch = _with_boxes(synthetic_batch(4, cfg))
+        params = model.init_params(jax.random.PRNGKey(2), cfg)
+        term = lambda name: (
+            lambda p: (lambda m: m["total"] - m["flow"] if name == "rest" else m[name])(
+                loss.loss_fn(p, batch, None, cfg)[1]
+            )
+        )
+        return {name: jax.grad(term(name))(params)["params"] for name in ("rest", "flow")}
+
+    norm = lambda tree: float(sum(jnp.sum(jnp.square(x)) for x in jax.tree.leaves(tree)))
+    taught, learnt = gradients("ego_and_taught_flow"), gradients("ego_and_flow")
+    assert norm(taught["rest"]["grid_flow"]) == 0.0 and norm(learnt["rest"]["grid_flow"]) > 0.0
+    assert norm(taught["flow"]["grid_flow"]) > 0.0 and norm(taught["flow"]["q_grid"]) > 0.0
+
+
 @pytest.mark.slow
 def test_the_flow_term_is_the_flows_error_against_each_frame_pairs_vehicle_flow():
     """``--train.flow_weight``: the loss's ``flow`` is weight x perception weight x the squared error / 2 of the
@@ -240,12 +272,8 @@ def test_the_flow_term_is_the_flows_error_against_each_frame_pairs_vehicle_flow(
     cfg = config_lib.replace(
         CFG, model=dict(grid_warp="lattice", grid_motion="ego_and_flow"), train=dict(flow_weight=2.0)
     )
-    batch = synthetic_batch(3, cfg)
+    batch = _with_boxes(synthetic_batch(3, cfg))
     b, t1 = batch["pose"].shape[:2]
-    rng = np.random.default_rng(3)
-    boxes = np.concatenate([rng.uniform(-14, 14, (b, t1, 6, 2)), rng.uniform(-3, 3, (b, t1, 6, 1))], -1)
-    batch["boxes"] = np.concatenate([boxes, np.broadcast_to([4.5, 2.0], (b, t1, 6, 2))], -1).astype(np.float32)
-    batch["boxes_valid"] = rng.uniform(size=(b, t1, 6)) < 0.7
     params = model.init_params(jax.random.PRNGKey(1), cfg)
     _, metrics = loss.loss_fn(params, batch, None, cfg)
     out = model.filter_sequence(params, batch["camera"], batch["lidar"], batch["action"], None, cfg)

@@ -301,20 +301,27 @@ def test_learning_curve_reads_each_checkpoints_evaluations(results):
     )
 
 
-def test_a_decaying_rate_is_in_the_command_and_only_its_last_checkpoint_is_a_run():
-    """Under ``--train.lr_decay_share`` a checkpoint before ``num_steps`` saw a rate no run of that many steps
-    sees, so no command trains it; the last one is the run its command trains."""
+def test_a_decaying_rate_is_in_the_command_and_a_checkpoint_inside_it_is_a_stopped_run():
+    """Under ``--train.lr_decay_share`` the last checkpoint is the run its command trains; one before the decay
+    starts saw a constant rate, so it is that many steps at a constant rate; one inside the decay saw a rate no
+    shorter run sees: the same command, stopped there (:func:`tables.stopped_at`)."""
 
     def decayed(seed, step):
         m = dict(_metrics(seed, step=step), run=f"decay_s{seed}")
-        m["config"]["train"].update(num_steps=9000, lr_decay_share=0.5)  # the `cpu` preset's share is 0.3
+        m["config"]["train"].update(num_steps=9000, lr_decay_share=0.5)  # decays from step 4,500 on
         return m
 
-    assert tables.command({"eval": [decayed(0, 9000), decayed(1, 9000)]}) == (
-        "python experiments/main.py --config=cpu --train.num_steps=9000 --train.lr_decay_share=0.5 --train.seed={0,1}"
+    full = "python experiments/main.py --config=cpu --train.num_steps=9000 --train.lr_decay_share=0.5"
+    assert tables.command({"eval": [decayed(0, 9000), decayed(1, 9000)]}) == full + " --train.seed={0,1}"
+    assert tables.stopped_at({"eval": [decayed(0, 9000)]}) is None
+    assert tables.command({"eval": [decayed(0, 4500)]}) == (
+        "python experiments/main.py --config=cpu --train.num_steps=4500 --train.lr_decay_share=0.0"
     )
-    with pytest.raises(ValueError, match="checkpoint 6000 of a run whose rate decays to step 9000"):
-        tables.command({"eval_step6000": [decayed(0, 6000)]})
+    assert tables.stopped_at({"eval": [decayed(0, 4500)]}) is None
+    assert tables.command({"eval": [decayed(0, 6000)]}) == full
+    assert tables.stopped_at({"eval": [decayed(0, 6000)]}) == 6000
+    with pytest.raises(ValueError, match=r"stopped at different steps: \[6000, 7000\]"):
+        tables.stopped_at({"eval": [decayed(0, 6000), decayed(1, 7000)]})
 
 
 def test_collected_runs_are_named_by_their_path_below_the_common_folder(tmp_path):
