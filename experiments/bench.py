@@ -115,15 +115,9 @@ def main(argv):
             raise ValueError(f"--place_frames={','.join(FLAGS.place_frames)}: expected positive integers")
         if not all(c.isdigit() for c in FLAGS.grid_cells):
             raise ValueError(f"--grid_cells={','.join(FLAGS.grid_cells)}: expected positive integers")
-        if unknown_warps := sorted(set(FLAGS.grid_warps) - set(config_lib.GRID_WARPS)):
-            raise ValueError(
-                f"--grid_warps={','.join(FLAGS.grid_warps)}: unknown {unknown_warps}; choose from {config_lib.GRID_WARPS}"
-            )
-        if unknown_motions := sorted(set(FLAGS.grid_motions) - set(config_lib.GRID_MOTIONS)):
-            raise ValueError(
-                f"--grid_motions={','.join(FLAGS.grid_motions)}: unknown {unknown_motions}; "
-                f"choose from {config_lib.GRID_MOTIONS}"
-            )
+        for flag, allowed in (("grid_warps", config_lib.GRID_WARPS), ("grid_motions", config_lib.GRID_MOTIONS)):
+            if unknown := sorted(set(FLAGS[flag].value) - set(allowed)):
+                raise ValueError(f"--{flag}={','.join(FLAGS[flag].value)}: unknown {unknown}; choose from {allowed}")
         for cells in FLAGS.grid_cells:  # valid at both networks' sizes: the cpu preset's R (64) is the smaller
             grid = dict(latent="bev", grid_cells=int(cells))
             try:
