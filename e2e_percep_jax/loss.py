@@ -59,7 +59,7 @@ BATCH_KEYS = ("camera", "lidar", "roadmap", "det_cls", "det_reg", "pose", "actio
 PLACE_KEYS = ("place_camera", "place_lidar", "place_pose")  # and of the place stream, when a batch has it
 # and who saw each box, under train.remembered_weight or train.unseen_weight
 MEMORY_KEYS = ("boxes", "boxes_valid", "boxes_lidar_visible", "boxes_camera_visible", "boxes_frames_since_seen")
-FLOW_KEYS = ("boxes", "boxes_valid")  # and the vehicles' moves, under train.flow_weight
+FLOW_KEYS = MEMORY_KEYS[:2]  # and the vehicles' moves, under train.flow_weight
 OBSERVATION_DROP_STREAM = 7  # fold_in data of the dropped frames' draw (the latents' draws split the key itself)
 SHADOW_STREAM = 8  # and of the lidar shadows' draw
 # A shadow: every azimuth within SHADOW_HALF_WIDTH_DEG of its centre (uniform all round), beyond its start
@@ -104,9 +104,7 @@ def per_sequence(x, batch_size: int):
 def batch_keys(cfg: Config) -> tuple:
     """The frame contract's fields that the loss reads under ``cfg`` (the place stream's when a batch has it)."""
     weighted = cfg.train.remembered_weight != 1.0 or cfg.train.unseen_weight != 1.0
-    keys = BATCH_KEYS + (MEMORY_KEYS if weighted else ())
-    keys += tuple(k for k in FLOW_KEYS if cfg.train.flow_weight and k not in keys)
-    return keys + PLACE_KEYS
+    return BATCH_KEYS + (MEMORY_KEYS if weighted else FLOW_KEYS if cfg.train.flow_weight else ()) + PLACE_KEYS
 
 
 def group_pixels(batch: dict, group: str):

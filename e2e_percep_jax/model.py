@@ -397,10 +397,10 @@ class PerceptionModel(nn.Module):
         False). With ``grid_motion="ego_and_flow"`` the warped grid is then carried along the flow that
         :class:`FlowConv` reads from it (``bev_latent.transport``; output ``flow`` [N, G, G, 2] m); with
         ``"ego_and_taught_flow"`` likewise, the flow's gradient stopped there (it learns from the vehicles' true
-        moves alone, ``loss.flow_term``; its input, the grid, still takes that term's gradient). With ``grid_warp="lattice"`` the grid is
-        carried on its lattice (``bev_latent.warp_on_lattice``), the frame's lidar map and visibility sampled onto
-        it, and its outputs ``grid_carried`` and ``grid_offset`` are the state's; ``grid`` is then the sample on
-        the ego's cells, what the decoders read. Returns the outputs."""
+        moves alone, ``loss.flow_term``; its input, the grid, still takes that term's gradient). With
+        ``grid_warp="lattice"`` the grid is carried on its lattice (``bev_latent.warp_on_lattice``), the frame's
+        lidar map and visibility sampled onto it, and its outputs ``grid_carried`` and ``grid_offset`` are the
+        state's; ``grid`` is then the sample on the ego's cells, what the decoders read. Returns the outputs."""
         first = state.first[:, None, None, None]
         inputs = [encoded["features"], state.z1, state.z2, prev_action]
         motion = self.motion_head(jnp.concatenate(inputs, -1)) * bev_latent.MOTION_UNIT

@@ -202,21 +202,24 @@ def _main_runs(evaluations: dict) -> list[dict]:
     return evaluations.get("eval") or next(iter(evaluations.values()))
 
 
+def _as_trained(m: dict) -> tuple:
+    """(the config whose command trains a run's evaluated checkpoint, the step it was stopped at or None). At a
+    constant learning rate a checkpoint is a run of that many steps; under a decaying one, so is a checkpoint
+    before the decay starts (the rate was constant up to it); a later one short of ``num_steps`` is the run of
+    its own ``num_steps`` stopped there (a signal, a lease ended)."""
+    cfg, steps = config_lib.Config.from_dict(m["config"]), _trained_steps(m)
+    if not cfg.train.lr_decay_share:
+        return config_lib.replace(cfg, train=dict(num_steps=steps)), None
+    if steps <= train_state.decay_start(cfg):
+        return config_lib.replace(cfg, train=dict(num_steps=steps, lr_decay_share=0.0)), None
+    return cfg, (steps if steps < cfg.train.num_steps else None)
+
+
 def command(evaluations: dict) -> str:
     """The training command of a method's runs (``{0,1}`` where the seeds differ; the evaluation's own
     flags left out)."""
     runs = _main_runs(evaluations)
-
-    def trained(m):
-        """At a constant learning rate a run's checkpoint is a run of that many steps; under a decaying one, so
-        is a checkpoint before the decay starts (the rate was constant up to it); a later one is the run of its
-        own ``num_steps`` stopped there (:func:`stopped_at`)."""
-        cfg, steps = config_lib.Config.from_dict(m["config"]), _trained_steps(m)
-        if not cfg.train.lr_decay_share:
-            return config_lib.replace(cfg, train=dict(num_steps=steps))
-        if steps <= train_state.decay_start(cfg) < cfg.train.num_steps:
-            return config_lib.replace(cfg, train=dict(num_steps=steps, lr_decay_share=0.0))
-        return cfg
+    trained = lambda m: _as_trained(m)[0]
 
     # left out: the evaluation's flags, and those a run may change on resuming (they leave its weights as they are)
     unsaid = ("--eval.", *(f"--{name}=" for name in checkpoint.RESUMABLE_CHANGES if name != "train.num_steps"))
@@ -238,11 +241,7 @@ def command(evaluations: dict) -> str:
 def stopped_at(evaluations: dict) -> int | None:
     """The step at which a method's runs were stopped inside their learning rate's decay (a signal, a lease
     ended), where :func:`command` trains them further: the runs' step, or None."""
-    stops = set()
-    for m in _main_runs(evaluations):
-        cfg, steps = config_lib.Config.from_dict(m["config"]), _trained_steps(m)
-        if cfg.train.lr_decay_share and train_state.decay_start(cfg) < steps < cfg.train.num_steps:
-            stops.add(steps)
+    stops = {_as_trained(m)[1] for m in _main_runs(evaluations)} - {None}
     if len(stops) > 1:
         raise ValueError(f"a method's runs were stopped at different steps: {sorted(stops)}")
     return stops.pop() if stops else None
