@@ -147,13 +147,14 @@ def detection_terms(
 
 
 def flow_term(filtered: dict, batch: dict, motion, cfg: Config):
-    """The scene flow's squared error / 2 (m^2, summed over cells and frames 1..T, per sequence) against the
-    vehicles' true moves (``bev_latent.vehicle_flow``), for ``filtered`` (``model.filter_sequence``'s, with
+    """The scene flow's squared error / 2 (m^2, summed over cells and frames 1..T, per sequence; the cells a
+    vehicle covers weighted by ``train.flow_vehicle_weight``) against the vehicles' true moves
+    (``bev_latent.vehicle_flow``), for ``filtered`` (``model.filter_sequence``'s, with
     ``flow``) and the ego's true ``motion`` [B, T, 3] between the batch's consecutive frames."""
     b, t = motion.shape[:2]
     merge = lambda x: x.reshape((b * t,) + x.shape[2:])  # frames 1..T as one batch of frame pairs
     offset = filtered.get("grid_offset")
-    target = bev_latent.vehicle_flow(
+    target, covered = bev_latent.vehicle_flow(
         merge(batch["boxes"][:, :-1]),
         merge(batch["boxes"][:, 1:]),
         merge(batch["boxes_valid"][:, 1:]),
@@ -161,7 +162,8 @@ def flow_term(filtered: dict, batch: dict, motion, cfg: Config):
         cfg.model.grid_cells,
         None if offset is None else merge(offset[:, 1:]),
     )
-    return per_sequence(0.5 * jnp.square(merge(filtered["flow"][:, 1:]) - target), b)
+    weight = jnp.where(covered, cfg.train.flow_vehicle_weight, 1.0)[..., None]
+    return per_sequence(0.5 * weight * jnp.square(merge(filtered["flow"][:, 1:]) - target), b)
 
 
 def pose_term(pred_pose, pose, weight: float, raw_metres: bool = False):

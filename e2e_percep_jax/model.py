@@ -10,7 +10,7 @@ One frame t flows as (R = image size, F = ``feature_dim``, Z = ``z1_dim + z2_dim
 With ``model.latent="bev"`` a bird-eye grid s_t [B, G, G, C] (C Gaussians per cell) joins the vector:
     motion t-1 -> t predicted from (features t, z t-1, action t-1); s_t-1 warped by it (bev_latent.warp)
     (with a scene flow, ``model.grid_motion`` in config.FLOW_MOTIONS, then carried along a flow per cell,
-    bev_latent.transport)
+    bev_latent.transport; with ``ego_and_carried_flow`` the flow is state, corrected from the lidar maps t-1, t)
     prior p(s_t | warped s_t-1, action t-1) and posterior q(s_t | warped s_t-1, lidar map t, features t), per cell
     the PIXOR, lidar and roadmap decoders read s_t where their trunks reach G x G
     (with ``model.lidar_decoder_input="latent"`` the lidar decoder reads z alone)
@@ -46,6 +46,7 @@ import numpy as np
 
 from e2e_percep_jax import bev_latent, pose_belief
 from e2e_percep_jax.config import FLOW_MOTIONS, Config, ModelConfig
+from e2e_percep_jax.sim import geometry as geo
 
 LEAK = 0.2  # leaky-ReLU slope of the reference (flax's default is 0.01)
 MIN_SCALE = 1e-5  # Gaussian scale = softplus(raw) + MIN_SCALE
@@ -72,6 +73,11 @@ def pose_to_metres(pose_normalised):
 def conv_widths(model_cfg: ModelConfig, image_size: int) -> tuple:
     """Widths of the encoder's stride-2 convs: the first log2(R / 4), taking R down to 4 x 4."""
     return tuple(model_cfg.conv_channels[: int(math.log2(image_size // 4))])
+
+
+def lidar_map_width(model_cfg: ModelConfig, image_size: int) -> int:
+    """Channels of the lidar encoder's map at the bird-eye grid's size (what the grid's posterior reads)."""
+    return conv_widths(model_cfg, image_size)[int(math.log2(image_size // model_cfg.grid_cells)) - 1]
 
 
 def reconstructed_images(variant: str) -> tuple:
@@ -353,7 +359,9 @@ class PerceptionModel(nn.Module):
             self.camera_lift = nn.Dense(g * g * c)  # the frame's features -> a map over the grid
             self.p_grid = GaussianConv(4 * c, c)  # p(s_t | warp(s_t-1), inside, a_t-1)
             self.q_grid = GaussianConv(4 * c, c)  # q(s_t | warp(s_t-1), inside, lidar map t, lifted features t)
-            if m.grid_motion in FLOW_MOTIONS:
+            if m.grid_motion == "ego_and_carried_flow":  # (flow t-2 -> t-1 carried, inside, lidar maps t, t-1)
+                self.grid_flow = FlowConv(4 * c)  # -> its correction: the scene's flow t-1 -> t
+            elif m.grid_motion in FLOW_MOTIONS:
                 self.grid_flow = FlowConv(4 * c)  # (warp(s_t-1), inside, a_t-1) -> the scene's flow t-1 -> t
 
     def encode(self, camera, lidar):
@@ -398,27 +406,47 @@ class PerceptionModel(nn.Module):
         :class:`FlowConv` reads from it (``bev_latent.transport``; output ``flow`` [N, G, G, 2] m); with
         ``"ego_and_taught_flow"`` likewise, the flow's gradient stopped there (it learns from the vehicles' true
         moves alone, ``loss.flow_term``; its input, the grid, still takes that term's gradient). With
-        ``grid_warp="lattice"`` the grid is carried on its lattice (``bev_latent.warp_on_lattice``), the frame's
+        ``"ego_and_carried_flow"`` the flow is the state's: the flow of the frame before and the lidar map of
+        the frame before, warped with the grid (the flow's vectors turned into the new axes), the grid and the
+        flow then carried along that flow (a car keeps its last move), and the flow corrected by what
+        :class:`FlowConv` reads from the two frames' lidar maps (the state's flow and map are kept where
+        ``seen`` is False); its gradient is stopped where it carries the grid, and it learns from the vehicles'
+        moves alone (outputs ``flow``, ``grid_lidar``). With ``grid_warp="lattice"`` the grid is carried on its lattice (``bev_latent.warp_on_lattice``), the frame's
         lidar map and visibility sampled onto it, and its outputs ``grid_carried`` and ``grid_offset`` are the
         state's; ``grid`` is then the sample on the ego's cells, what the decoders read. Returns the outputs."""
         first = state.first[:, None, None, None]
         inputs = [encoded["features"], state.z1, state.z2, prev_action]
         motion = self.motion_head(jnp.concatenate(inputs, -1)) * bev_latent.MOTION_UNIT
         lidar_map, lidar_seen = encoded["lidar_map"], encoded.get("lidar_seen")
-        offset = None
+        offset, carries_flow, c = None, self.cfg.grid_motion == "ego_and_carried_flow", self.cfg.grid_channels
+        carried = jnp.concatenate([state.grid, state.grid_flow, state.grid_lidar], -1) if carries_flow else state.grid
         if self.cfg.grid_warp == "lattice":  # the frame's maps sampled onto the grid's cells
             warped, inside, offset = bev_latent.warp_on_lattice(
-                state.grid, state.grid_offset, jax.lax.stop_gradient(motion)
+                carried, state.grid_offset, jax.lax.stop_gradient(motion)
             )
             offset = jnp.where(state.first[:, None], 0.0, offset)
             lidar_map = bev_latent.shift(lidar_map, offset)
             lidar_seen = None if lidar_seen is None else bev_latent.shift(lidar_seen, offset)
         else:
-            warped, inside = bev_latent.warp(state.grid, jax.lax.stop_gradient(motion))
+            warped, inside = bev_latent.warp(carried, jax.lax.stop_gradient(motion))
         warped, inside = jnp.where(first, 0.0, warped), jnp.where(first, 0.0, inside)
         action_map = jnp.broadcast_to(prev_action[:, None, None], inside.shape[:3] + (2,))
-        flow_m = None
-        if self.cfg.grid_motion in FLOW_MOTIONS:  # then the scene's own motion, which the ego's leaves out
+        flow_m, lidar_kept = None, None
+        if carries_flow:  # a hidden car keeps its last move; the two frames' lidar maps correct it where seen
+            warped, flow_before, lidar_before = jnp.split(warped, [c, c + 2], -1)
+            flow_before = geo.rotate(flow_before, -jax.lax.stop_gradient(motion)[:, 2, None, None])
+            moved = bev_latent.transport(
+                jnp.concatenate([warped, inside, flow_before], -1), jax.lax.stop_gradient(flow_before)
+            )
+            warped, inside, flow_before = jnp.split(moved, [c, c + 1], -1)
+            correction = self.grid_flow(flow_before, inside, lidar_map, lidar_before)
+            flow_m = jnp.clip(flow_before + correction, -bev_latent.FLOW_MAX_M, bev_latent.FLOW_MAX_M)
+            lidar_kept = lidar_map
+            if seen is not None:
+                flow_m, lidar_kept = _unless_seen(
+                    seen[:, None, None, None], (flow_m, lidar_map), (flow_before, lidar_before)
+                )
+        elif self.cfg.grid_motion in FLOW_MOTIONS:  # then the scene's own motion, which the ego's leaves out
             flow_m = self.grid_flow(warped, inside, action_map)
             carrier = jax.lax.stop_gradient(flow_m) if self.cfg.grid_motion == "ego_and_taught_flow" else flow_m
             carried = bev_latent.transport(jnp.concatenate([warped, inside], -1), carrier)
@@ -443,6 +471,8 @@ class PerceptionModel(nn.Module):
         }
         if flow_m is not None:
             outputs["flow"] = flow_m
+        if lidar_kept is not None:
+            outputs["grid_lidar"] = lidar_kept
         if offset is not None:  # the state keeps the lattice; the decoders read the grid on the ego's cells
             outputs.update(grid=bev_latent.shift(grid, -offset), grid_carried=grid, grid_offset=offset)
         return outputs
@@ -468,6 +498,8 @@ class PerceptionModel(nn.Module):
             grid_outputs = self.grid_step(state, encoded, prev_action, grid_key, seen)
             carried = grid_outputs.get("grid_carried", grid_outputs["grid"])
             new_state = new_state.replace(grid=carried, grid_offset=grid_outputs.get("grid_offset"))
+            if "grid_lidar" in grid_outputs:  # a carried flow
+                new_state = new_state.replace(grid_flow=grid_outputs["flow"], grid_lidar=grid_outputs["grid_lidar"])
         outputs = {
             "z1": z1,
             "z2": z2,
@@ -535,6 +567,10 @@ class FilterState:
     grid_offset: with ``--model.grid_warp=lattice``, float32 [B, 2]: where the grid's cell centres lie from
         the ego's (metres ahead, to the left; each within half a cell), the grid being carried on that lattice
         (``bev_latent.warp_on_lattice``); None otherwise.
+    grid_flow, grid_lidar: with ``--model.grid_motion=ego_and_carried_flow``, float32 [B, G, G, 2] and
+        [B, G, G, W]: the scene flow that carried each cell's content into the last frame (metres, the grid's
+        axes and cells) and the lidar encoder's map of the last frame seen (W channels,
+        :func:`lidar_map_width`), both carried with the grid; None otherwise.
     pose: the pose belief's histogram filter (:class:`pose_belief.PoseBeliefState`), which the inference
         API (``api.Perceiver``) keeps with the belief pose head; None otherwise, and in the latent filter
         of this module (:func:`filter_step`, :func:`filter_sequence`).
@@ -545,19 +581,25 @@ class FilterState:
     first: jax.Array
     grid: jax.Array | None = None
     grid_offset: jax.Array | None = None
+    grid_flow: jax.Array | None = None
+    grid_lidar: jax.Array | None = None
     pose: pose_belief.PoseBeliefState | None = None
 
 
 def init_filter_state(batch_size: int, cfg: Config) -> FilterState:
     """The latent filter's state before a sequence's first frame: zero latents, ``first`` True, no pose."""
     m = cfg.model
-    grid = jnp.zeros((batch_size, m.grid_cells, m.grid_cells, m.grid_channels)) if m.latent == "bev" else None
+    cells = (batch_size, m.grid_cells, m.grid_cells)
+    grid = jnp.zeros(cells + (m.grid_channels,)) if m.latent == "bev" else None
+    carries_flow = m.latent == "bev" and m.grid_motion == "ego_and_carried_flow"
     return FilterState(
         z1=jnp.zeros((batch_size, m.z1_dim)),
         z2=jnp.zeros((batch_size, m.z2_dim)),
         first=jnp.ones((batch_size,), bool),
         grid=grid,
         grid_offset=jnp.zeros((batch_size, 2)) if m.grid_warp == "lattice" else None,
+        grid_flow=jnp.zeros(cells + (2,)) if carries_flow else None,
+        grid_lidar=jnp.zeros(cells + (lidar_map_width(m, cfg.data.image_size),)) if carries_flow else None,
     )
 
 
@@ -656,7 +698,16 @@ def end_state(outputs: dict, action):
     first = jnp.zeros(outputs["z1"].shape[:1], bool)
     last = lambda name: outputs[name][:, -1] if name in outputs else None
     grid = last("grid_carried") if "grid_carried" in outputs else last("grid")
-    state = FilterState(z1=last("z1"), z2=last("z2"), first=first, grid=grid, grid_offset=last("grid_offset"))
+    flow = last("flow") if "grid_lidar" in outputs else None  # only a carried flow is the state's
+    state = FilterState(
+        z1=last("z1"),
+        z2=last("z2"),
+        first=first,
+        grid=grid,
+        grid_offset=last("grid_offset"),
+        grid_flow=flow,
+        grid_lidar=last("grid_lidar"),
+    )
     return state, action[:, -1]
 
 

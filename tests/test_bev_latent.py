@@ -141,12 +141,13 @@ def test_on_a_lattice_a_quarter_turn_is_the_bilinear_warp():
 
 def _vehicle_flow_by_hand(before, after, valid, motion, offset):
     """``bev_latent.vehicle_flow`` for one frame pair of boxes at yaw 0 in the later frame, cell by cell: a
-    cell's centre inside a box grown by half a 4 m cell each way takes the mean of those boxes' moves."""
+    cell's centre inside a box grown by half a 4 m cell each way takes the mean of those boxes' moves, and is
+    covered."""
     dx, dy, dyaw = motion
     c, s = np.cos(dyaw), np.sin(dyaw)
     rel = before[:, :2] - [dx, dy]
     earlier = np.stack([c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1]], -1)  # rotated by -dyaw
-    want = np.zeros((8, 8, 2))
+    want, covered = np.zeros((8, 8, 2)), np.zeros((8, 8), bool)
     for row in range(8):
         for col in range(8):
             x, y = 20.0 - G8_CELL_M * (row + 0.5) + offset[0], 16.0 - G8_CELL_M * (col + 0.5) + offset[1]
@@ -159,7 +160,8 @@ def _vehicle_flow_by_hand(before, after, valid, motion, offset):
             ]
             if moves:
                 want[row, col] = np.mean(moves, 0)
-    return want
+                covered[row, col] = True
+    return want, covered
 
 
 @pytest.mark.parametrize(
@@ -180,18 +182,20 @@ def test_the_vehicle_flow_is_each_cars_move_on_the_cells_it_covers(motion, offse
     town_move = np.array([[0.0, 0.0], [2.0, 0.0], [0.0, 1.0], [1.0, 1.0]])  # in the later frame's axes
     before = np.array([np.r_[to_earlier(a[:2] - m), a[2:]] for a, m in zip(after, town_move)])
     valid = np.array([True, True, True, False])
-    got = bev_latent.vehicle_flow(
+    got, got_covered = bev_latent.vehicle_flow(
         jnp.asarray(before[None], jnp.float32),
         jnp.asarray(after[None], jnp.float32),
         jnp.asarray(valid[None]),
         jnp.asarray([motion], jnp.float32),
         8,
         jnp.asarray([offset], jnp.float32),
-    )[0]
-    want = _vehicle_flow_by_hand(before, after, valid, motion, offset)
-    np.testing.assert_allclose(np.asarray(got), want, atol=1e-5)
-    covered = np.abs(want).sum(-1) > 0
-    assert 2 <= covered.sum() and np.allclose(want[covered & (want[..., 1] == 0)], [2.0, 0.0], atol=1e-5)
+    )
+    want, want_covered = _vehicle_flow_by_hand(before, after, valid, motion, offset)
+    np.testing.assert_allclose(np.asarray(got[0]), want, atol=1e-5)
+    np.testing.assert_array_equal(got_covered[0], want_covered)
+    moving = np.abs(want).sum(-1) > 0
+    assert 2 <= moving.sum() and np.allclose(want[moving & (want[..., 1] == 0)], [2.0, 0.0], atol=1e-5)
+    assert want_covered[moving].all()
 
 
 def test_relative_motion_is_the_later_pose_in_the_earlier_ego_frame():
@@ -245,7 +249,7 @@ def _with_boxes(batch, seed=3):
 def test_a_taught_flow_learns_from_the_vehicles_moves_alone():
     """With ``grid_motion="ego_and_taught_flow"`` no term but ``flow`` moves the flow's network (its gradient
     stopped where it carries the grid), while the grid still takes that term's gradient; with
-    ``"ego_and_flow"`` the other terms move it too."""
+    ``"ego_and_flow"`` the other terms move it too; with ``"ego_and_carried_flow"`` again ``flow`` alone."""
 
     def gradients(grid_motion):
         cfg = config_lib.replace(CFG, model=dict(grid_motion=grid_motion), train=dict(flow_weight=1.0))
@@ -259,28 +263,101 @@ def test_a_taught_flow_learns_from_the_vehicles_moves_alone():
         return {name: jax.grad(term(name))(params)["params"] for name in ("rest", "flow")}
 
     norm = lambda tree: float(sum(jnp.sum(jnp.square(x)) for x in jax.tree.leaves(tree)))
-    taught, learnt = gradients("ego_and_taught_flow"), gradients("ego_and_flow")
+    taught, learnt, carried = (gradients(m) for m in ("ego_and_taught_flow", "ego_and_flow", "ego_and_carried_flow"))
     assert norm(taught["rest"]["grid_flow"]) == 0.0 and norm(learnt["rest"]["grid_flow"]) > 0.0
     assert norm(taught["flow"]["grid_flow"]) > 0.0 and norm(taught["flow"]["q_grid"]) > 0.0
+    assert norm(carried["rest"]["grid_flow"]) == 0.0 and norm(carried["flow"]["grid_flow"]) > 0.0
+
+
+@pytest.mark.slow
+def test_a_hidden_frame_carries_the_grid_and_its_flow_along_the_carried_flow():
+    """``--model.grid_motion=ego_and_carried_flow`` with the ego standing (the motion head's last layer at zero)
+    and no correction (the flow network's last layer at zero): on a frame the filter does not see, the state's
+    flow of one cell a frame ahead carries itself and the grid one row ahead (row r takes row r + 1, the back
+    row nothing), so the prior is the ego-only model's prior of the grid moved a row, away from the back rows
+    that its convs reach; the flow and the lidar map kept are the state's, so moved and as they were."""
+    cfg = config_lib.replace(CFG, model=dict(grid_motion="ego_and_carried_flow"), train=dict(flow_weight=1.0))
+    params = model.init_params(jax.random.PRNGKey(4), cfg)
+    still = jax.tree.map(lambda x: x, params)
+    for net, layer in (("motion_head", "Dense_2"), ("grid_flow", "Conv_2")):
+        still["params"][net][layer] = jax.tree.map(jnp.zeros_like, still["params"][net][layer])
+    ego_params = {"params": {k: v for k, v in still["params"].items() if k != "grid_flow"}}
+    b, g, c = 2, 16, cfg.model.grid_channels
+    rng = np.random.default_rng(5)
+    grid = rng.normal(size=(b, g, g, c)).astype(np.float32)
+    lidar_before = rng.normal(size=(b, g, g, model.lidar_map_width(cfg.model, cfg.data.image_size))).astype(np.float32)
+    state = model.init_filter_state(b, cfg).replace(
+        first=jnp.zeros(b, bool),
+        grid=jnp.asarray(grid),
+        grid_flow=jnp.broadcast_to(jnp.array([16.0 * 2.0 / g, 0.0]), (b, g, g, 2)),  # 2 m ahead: a cell
+        grid_lidar=jnp.asarray(lidar_before),
+    )
+    batch = synthetic_batch(6, cfg)
+    camera, lidar, action = batch["camera"][:b, 1], batch["lidar"][:b, 1], batch["action"][:b, 0]
+
+    def step(p, c, state):
+        net = model.build_model(c)
+        encoded = net.apply(p, camera, lidar, method=model.PerceptionModel.encode)
+        hidden = jnp.zeros(b, bool)
+        return net.apply(p, state, encoded, action, None, hidden, method=model.PerceptionModel.posterior_step)
+
+    new_state, out = step(still, cfg, state)
+    moved = np.zeros_like(grid)
+    moved[:, :-1] = grid[:, 1:]
+    ego_state = model.init_filter_state(b, CFG).replace(first=jnp.zeros(b, bool), grid=jnp.asarray(moved))
+    _, ego_out = step(ego_params, CFG, ego_state)
+    np.testing.assert_allclose(out["p_grid_loc"][:, : g - 4], ego_out["p_grid_loc"][:, : g - 4], atol=1e-5)
+    assert np.abs(np.asarray(out["p_grid_loc"] - ego_out["p_grid_loc"]))[:, g - 1].max() > 1e-3  # the back row
+    want_flow = np.zeros((b, g, g, 2), np.float32)
+    want_flow[:, :-1, :, 0] = 2.0
+    np.testing.assert_allclose(out["flow"], want_flow, atol=1e-5)
+    np.testing.assert_allclose(new_state.grid_flow, want_flow, atol=1e-5)
+    np.testing.assert_allclose(new_state.grid_lidar, lidar_before, atol=1e-5)
+
+
+@pytest.mark.slow
+def test_a_carried_flow_travels_in_the_drive_streams_carry():
+    """With ``--data.carry_state`` a carried flow's state (its flow and lidar map) is part of each drive slot's
+    carry: a step on slot 0 leaves there the scan's end state, the flow and map included (the same latent noise,
+    so the same draws), and slot 1 untouched."""
+    cfg = config_lib.replace(
+        CFG,
+        data=dict(batches_per_drive=2, carry_state=True),
+        model=dict(grid_warp="lattice", grid_motion="ego_and_carried_flow"),
+        train=dict(flow_weight=1.0),
+    )
+    state = train_lib.init_state(cfg)
+    batch = _with_boxes(synthetic_batch(7, cfg))
+    batch = {k: batch[k] for k in loss.batch_keys(cfg) if k in batch}
+    key = jax.random.PRNGKey(8)
+    stepped, _ = jax.jit(lambda s, b: train_lib.train_step(s, b, key, cfg))(state, batch)
+    filtered = loss.sequence_loss(state.params, batch, key, cfg)[1][1]
+    ended, _ = filtered
+    for name in ("grid", "grid_offset", "grid_flow", "grid_lidar"):
+        np.testing.assert_allclose(stepped.carry[name][0], getattr(ended, name), rtol=1e-4, atol=1e-5)
+        np.testing.assert_array_equal(stepped.carry[name][1], 0.0)
+    assert np.abs(np.asarray(stepped.carry["grid_flow"][0])).max() > 0.0
 
 
 @pytest.mark.slow
 def test_the_flow_term_is_the_flows_error_against_each_frame_pairs_vehicle_flow():
     """``--train.flow_weight``: the loss's ``flow`` is weight x perception weight x the squared error / 2 of the
-    filter's flow against ``vehicle_flow`` of each pair of consecutive frames (their boxes, the poses' true
+    filter's flow (the cells a vehicle covers weighted by ``--train.flow_vehicle_weight``) against ``vehicle_flow`` of each pair of consecutive frames (their boxes, the poses' true
     motion, the lattice's offset of the later frame), summed over cells and frames 1..T, per sequence."""
     cfg = config_lib.replace(
-        CFG, model=dict(grid_warp="lattice", grid_motion="ego_and_flow"), train=dict(flow_weight=2.0)
+        CFG,
+        model=dict(grid_warp="lattice", grid_motion="ego_and_flow"),
+        train=dict(flow_weight=2.0, flow_vehicle_weight=5.0),
     )
     batch = _with_boxes(synthetic_batch(3, cfg))
     b, t1 = batch["pose"].shape[:2]
     params = model.init_params(jax.random.PRNGKey(1), cfg)
     _, metrics = loss.loss_fn(params, batch, None, cfg)
     out = model.filter_sequence(params, batch["camera"], batch["lidar"], batch["action"], None, cfg)
-    total = 0.0
+    total, covered_cells = 0.0, 0
     for t in range(1, t1):
         motion = bev_latent.relative_motion(batch["pose"][:, t - 1], batch["pose"][:, t])
-        target = bev_latent.vehicle_flow(
+        target, covered = bev_latent.vehicle_flow(
             batch["boxes"][:, t - 1],
             batch["boxes"][:, t],
             batch["boxes_valid"][:, t],
@@ -288,8 +365,10 @@ def test_the_flow_term_is_the_flows_error_against_each_frame_pairs_vehicle_flow(
             16,
             out["grid_offset"][:, t],
         )
-        total += np.sum(0.5 * np.square(np.asarray(out["flow"][:, t], np.float64) - np.asarray(target)))
-    assert total > 0
+        weight = np.where(np.asarray(covered), 5.0, 1.0)[..., None]
+        total += np.sum(0.5 * weight * np.square(np.asarray(out["flow"][:, t], np.float64) - np.asarray(target)))
+        covered_cells += int(np.sum(covered))
+    assert total > 0 and covered_cells > 0
     np.testing.assert_allclose(metrics["flow"], 2.0 * 32.0 * total / b, rtol=2e-4)
 
 
@@ -320,12 +399,17 @@ def test_the_grid_kl_and_the_motion_term_match_numpy(params):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("grid_warp", ["bilinear", "lattice"])
-def test_streaming_the_grid_equals_the_training_scan(params, grid_warp):
+@pytest.mark.parametrize(
+    "grid_warp, grid_motion", [("bilinear", "ego"), ("lattice", "ego"), ("lattice", "ego_and_carried_flow")]
+)
+def test_streaming_the_grid_equals_the_training_scan(params, grid_warp, grid_motion):
     """filter_step frame by frame (the grid in the state) gives filter_sequence's grid, with sampled latents
     (each frame's key as the scan splits it; the means are the same code with no key). On the lattice the
-    state carries the lattice's grid and offset, and :func:`model.end_state` of the scan is the streamed state."""
-    cfg = config_lib.replace(CFG, model=dict(grid_warp=grid_warp))
+    state carries the lattice's grid and offset (and a carried flow its flow and lidar map), and
+    :func:`model.end_state` of the scan is the streamed state."""
+    cfg = config_lib.replace(CFG, model=dict(grid_warp=grid_warp, grid_motion=grid_motion))
+    if grid_motion != "ego":
+        params = model.init_params(jax.random.PRNGKey(0), cfg)
     batch = synthetic_batch(1, cfg)
     key = jax.random.PRNGKey(3)
     scanned = model.filter_sequence(params, batch["camera"], batch["lidar"], batch["action"], key, cfg)

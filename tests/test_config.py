@@ -125,7 +125,7 @@ def test_after_a_failed_restore_the_unawaited_reads_warn_no_more(failed_restore)
 def test_each_choice_field_takes_its_choices_and_names_itself_otherwise(name, allowed):
     cfg = config_lib.replace(config_lib.get_config("tiny"), model=dict(latent="bev"))
     for value in allowed:  # a taught flow is taught by a weight of its own
-        taught = dict(train=dict(flow_weight=1.0)) if value == "ego_and_taught_flow" else {}
+        taught = dict(train=dict(flow_weight=1.0)) if value in config_lib.TAUGHT_FLOW_MOTIONS else {}
         config_lib.validate(config_lib.replace(cfg, model={name: value}, **taught))
     with pytest.raises(ValueError, match=rf"^--model\.{name}='nonsense': choose one of \("):
         config_lib.validate(config_lib.replace(cfg, model={name: "nonsense"}))
@@ -137,7 +137,7 @@ def test_each_choice_field_takes_its_choices_and_names_itself_otherwise(name, al
 def test_the_flow_weight_needs_the_grids_scene_flow_and_is_never_negative():
     """--train.flow_weight teaches the flow that --model.grid_motion=ego_and_flow adds: without it (or
     without the grid) the flag names what it needs; a negative weight names itself; a flow taught by the moves
-    alone needs the weight."""
+    alone (taught or carried) needs the weight."""
     tiny = config_lib.get_config("tiny")
     flow = config_lib.replace(tiny, model=dict(latent="bev", grid_motion="ego_and_flow"), train=dict(flow_weight=2.0))
     config_lib.validate(flow)
@@ -147,11 +147,11 @@ def test_the_flow_weight_needs_the_grids_scene_flow_and_is_never_negative():
             match=r"^--train\.flow_weight=2\.0 .*needs --model\.latent=bev and --model\.grid_motion one of \(",
         ):
             config_lib.validate(config_lib.replace(flow, model=dict(model, grid_motion="ego")))
-    with pytest.raises(ValueError, match=r"^--train\.flow_weight=-1\.0: must be at least 0$"):
-        config_lib.validate(config_lib.replace(flow, train=dict(flow_weight=-1.0)))
-    taught = config_lib.replace(flow, model=dict(grid_motion="ego_and_taught_flow"))
-    config_lib.validate(taught)
-    with pytest.raises(
-        ValueError, match=r"^--model\.grid_motion=ego_and_taught_flow .*needs --train\.flow_weight > 0$"
-    ):
-        config_lib.validate(config_lib.replace(taught, train=dict(flow_weight=0.0)))
+    for name in ("flow_weight", "flow_vehicle_weight"):
+        with pytest.raises(ValueError, match=rf"^--train\.{name}=-1\.0: must be at least 0$"):
+            config_lib.validate(config_lib.replace(flow, train={name: -1.0}))
+    for motion in config_lib.TAUGHT_FLOW_MOTIONS:
+        taught = config_lib.replace(flow, model=dict(grid_motion=motion))
+        config_lib.validate(taught)
+        with pytest.raises(ValueError, match=rf"^--model\.grid_motion={motion} .*needs --train\.flow_weight > 0$"):
+            config_lib.validate(config_lib.replace(taught, train=dict(flow_weight=0.0)))
