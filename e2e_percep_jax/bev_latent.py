@@ -90,9 +90,9 @@ def transport(grid, flow_m):
 
 def vehicle_flow(boxes_before, boxes_after, valid_after, motion, cells: int, offset_m=None):
     """The scene flow that carries the vehicles from one frame to the next (``--train.flow_weight``'s target):
-    (flow [B, G, G, 2] in metres, in :func:`transport`'s units, covered [B, G, G] bool): each cell that a vehicle covers in the later frame
-    (its box, grown by half a cell each way, so that a car 2 m wide marks the cells it overlaps; ``valid_after``
-    [B, N]) takes that vehicle's move, its centre in the later frame less its earlier centre seen from the
+    (flow [B, G, G, 2] in metres, in :func:`transport`'s units, covered [B, G, G] bool): each cell that a
+    vehicle covers in the later frame (its box, grown by half a cell each way, so that a car 2 m wide marks the
+    cells it overlaps; ``valid_after`` [B, N]) takes that vehicle's move, its centre in the later frame less its earlier centre seen from the
     later frame; every other cell 0 (the town stands still once the ego's motion is taken out). ``boxes_*``
     [B, N, 5] are the frame contract's (ego frame, the world's vehicle order), ``motion`` [B, 3] the ego's
     true motion between them (:func:`relative_motion`), ``offset_m`` [B, 2] the lattice's offset of the cells

@@ -411,9 +411,10 @@ class PerceptionModel(nn.Module):
         flow then carried along that flow (a car keeps its last move), and the flow corrected by what
         :class:`FlowConv` reads from the two frames' lidar maps (the state's flow and map are kept where
         ``seen`` is False); its gradient is stopped where it carries the grid, and it learns from the vehicles'
-        moves alone (outputs ``flow``, ``grid_lidar``). With ``grid_warp="lattice"`` the grid is carried on its lattice (``bev_latent.warp_on_lattice``), the frame's
-        lidar map and visibility sampled onto it, and its outputs ``grid_carried`` and ``grid_offset`` are the
-        state's; ``grid`` is then the sample on the ego's cells, what the decoders read. Returns the outputs."""
+        moves alone (outputs ``flow``, ``grid_lidar``). With ``grid_warp="lattice"`` the grid is carried on its
+        lattice (``bev_latent.warp_on_lattice``), the frame's lidar map and visibility sampled onto it, and its
+        outputs ``grid_carried`` and ``grid_offset`` are the state's; ``grid`` is then the sample on the ego's
+        cells, what the decoders read. Returns the outputs."""
         first = state.first[:, None, None, None]
         inputs = [encoded["features"], state.z1, state.z2, prev_action]
         motion = self.motion_head(jnp.concatenate(inputs, -1)) * bev_latent.MOTION_UNIT

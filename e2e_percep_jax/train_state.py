@@ -50,8 +50,9 @@ class CarriedTrainState(TrainState):
     """The train state of a ``--data.carry_state`` run: also, per drive slot of the stream (K =
     ``batches_per_drive``), where its drive's last segment left the latent filter: carry = {z1 [K, B,
     z1_dim], z2 [K, B, z2_dim] (the last frame's samples), action [K, B, 2] (from that frame to the
-    next segment's first), and with the bird-eye latent grid [K, B, G, G, C], on its lattice grid_offset [K, B, 2], with a
-    carried flow grid_flow and grid_lidar (model.FilterState)}. Saved with the rest, so a resumed run continues its chains exactly."""
+    next segment's first), and with the bird-eye latent grid [K, B, G, G, C], on its lattice grid_offset
+    [K, B, 2], with a carried flow grid_flow and grid_lidar (model.FilterState)}. Saved with the rest, so a
+    resumed run continues its chains exactly."""
 
     carry: Any
 

@@ -342,8 +342,9 @@ def test_a_carried_flow_travels_in_the_drive_streams_carry():
 @pytest.mark.slow
 def test_the_flow_term_is_the_flows_error_against_each_frame_pairs_vehicle_flow():
     """``--train.flow_weight``: the loss's ``flow`` is weight x perception weight x the squared error / 2 of the
-    filter's flow (the cells a vehicle covers weighted by ``--train.flow_vehicle_weight``) against ``vehicle_flow`` of each pair of consecutive frames (their boxes, the poses' true
-    motion, the lattice's offset of the later frame), summed over cells and frames 1..T, per sequence."""
+    filter's flow (the cells a vehicle covers weighted by ``--train.flow_vehicle_weight``) against
+    ``vehicle_flow`` of each pair of consecutive frames (their boxes, the poses' true motion, the lattice's
+    offset of the later frame), summed over cells and frames 1..T, per sequence."""
     cfg = config_lib.replace(
         CFG,
         model=dict(grid_warp="lattice", grid_motion="ego_and_flow"),
