@@ -506,8 +506,10 @@ def test_carried_state_chains_segments_and_resumes_bit_identically(tmp_path, lat
     resumed = train.train(cfg, str(tmp_path / "stopped"), batches=synthetic_batches())
     assert_trees_equal(jax.device_get(resumed), jax.device_get(whole))
 
-    state = train.init_state(cfg)
-    step_fn = jax.jit(lambda s, b, k: train.train_step(s, b, k, cfg))
+    # the very step the runs above compiled (its inputs placed as train.train places them): no compile of its own
+    mesh = train.make_mesh()
+    state = jax.device_put(train.init_state(cfg), jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))
+    step_fn = lambda s, b, k: train.make_train_step(cfg, mesh)(s, train.shard_batch(b, mesh), k)
     batches = [{k: b[k] for k in loss.BATCH_KEYS} for _, b in itertools.islice(synthetic_batches()(0), 3)]
     key = jax.random.PRNGKey(5)
     fresh = jax.jit(lambda p, b: loss.loss_fn(p, b, key, cfg)[1]["total"])
