@@ -92,12 +92,13 @@ def vehicle_flow(boxes_before, boxes_after, valid_after, motion, cells: int, off
     """The scene flow that carries the vehicles from one frame to the next (``--train.flow_weight``'s target):
     (flow [B, G, G, 2] in metres, in :func:`transport`'s units, covered [B, G, G] bool): each cell that a
     vehicle covers in the later frame (its box, grown by half a cell each way, so that a car 2 m wide marks the
-    cells it overlaps; ``valid_after`` [B, N]) takes that vehicle's move, its centre in the later frame less its earlier centre seen from the
-    later frame; every other cell 0 (the town stands still once the ego's motion is taken out). ``boxes_*``
-    [B, N, 5] are the frame contract's (ego frame, the world's vehicle order), ``motion`` [B, 3] the ego's
-    true motion between them (:func:`relative_motion`), ``offset_m`` [B, 2] the lattice's offset of the cells
-    from the ego's (:func:`warp_on_lattice`; None: on the ego's cells). Where two vehicles' cells meet, the
-    cell takes the mean of their moves; ``covered`` marks the cells some vehicle covers, moving or not."""
+    cells it overlaps; ``valid_after`` [B, N]) takes that vehicle's move, its centre in the later frame less its
+    earlier centre seen from the later frame; every other cell 0 (the town stands still once the ego's motion
+    is taken out). ``boxes_*`` [B, N, 5] are the frame contract's (ego frame, the world's vehicle order),
+    ``motion`` [B, 3] the ego's true motion between them (:func:`relative_motion`), ``offset_m`` [B, 2] the
+    lattice's offset of the cells from the ego's (:func:`warp_on_lattice`; None: on the ego's cells). Where two
+    vehicles' cells meet, the cell takes the mean of their moves; ``covered`` marks the cells some vehicle
+    covers, moving or not."""
     earlier = geo.rotate(boxes_before[..., :2] - motion[:, None, :2], -motion[:, None, 2])  # [B, N, 2]
     move = boxes_after[..., :2] - earlier  # [B, N, 2]
     centres = geo.bev_pixel_centres(cells)[None]  # [1, G, G, 2]

@@ -168,6 +168,12 @@ class ModelConfig:
         odometry and the belief's regions need)."""
         return self.pose_head == "belief" and self.pose_filter == "histogram"
 
+    @property
+    def carries_flow(self) -> bool:
+        """Whether the filter state carries a scene flow and the frame before's lidar map (the grid's
+        ``ego_and_carried_flow``)."""
+        return self.latent == "bev" and self.grid_motion == "ego_and_carried_flow"
+
 
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:

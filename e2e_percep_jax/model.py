@@ -359,7 +359,7 @@ class PerceptionModel(nn.Module):
             self.camera_lift = nn.Dense(g * g * c)  # the frame's features -> a map over the grid
             self.p_grid = GaussianConv(4 * c, c)  # p(s_t | warp(s_t-1), inside, a_t-1)
             self.q_grid = GaussianConv(4 * c, c)  # q(s_t | warp(s_t-1), inside, lidar map t, lifted features t)
-            if m.grid_motion == "ego_and_carried_flow":  # (flow t-2 -> t-1 carried, inside, lidar maps t, t-1)
+            if m.carries_flow:  # (flow t-2 -> t-1 carried, inside, lidar maps t, t-1)
                 self.grid_flow = FlowConv(4 * c)  # -> its correction: the scene's flow t-1 -> t
             elif m.grid_motion in FLOW_MOTIONS:
                 self.grid_flow = FlowConv(4 * c)  # (warp(s_t-1), inside, a_t-1) -> the scene's flow t-1 -> t
@@ -419,7 +419,7 @@ class PerceptionModel(nn.Module):
         inputs = [encoded["features"], state.z1, state.z2, prev_action]
         motion = self.motion_head(jnp.concatenate(inputs, -1)) * bev_latent.MOTION_UNIT
         lidar_map, lidar_seen = encoded["lidar_map"], encoded.get("lidar_seen")
-        offset, carries_flow, c = None, self.cfg.grid_motion == "ego_and_carried_flow", self.cfg.grid_channels
+        offset, carries_flow, c = None, self.cfg.carries_flow, self.cfg.grid_channels
         carried = jnp.concatenate([state.grid, state.grid_flow, state.grid_lidar], -1) if carries_flow else state.grid
         if self.cfg.grid_warp == "lattice":  # the frame's maps sampled onto the grid's cells
             warped, inside, offset = bev_latent.warp_on_lattice(
@@ -592,15 +592,14 @@ def init_filter_state(batch_size: int, cfg: Config) -> FilterState:
     m = cfg.model
     cells = (batch_size, m.grid_cells, m.grid_cells)
     grid = jnp.zeros(cells + (m.grid_channels,)) if m.latent == "bev" else None
-    carries_flow = m.latent == "bev" and m.grid_motion == "ego_and_carried_flow"
     return FilterState(
         z1=jnp.zeros((batch_size, m.z1_dim)),
         z2=jnp.zeros((batch_size, m.z2_dim)),
         first=jnp.ones((batch_size,), bool),
         grid=grid,
         grid_offset=jnp.zeros((batch_size, 2)) if m.grid_warp == "lattice" else None,
-        grid_flow=jnp.zeros(cells + (2,)) if carries_flow else None,
-        grid_lidar=jnp.zeros(cells + (lidar_map_width(m, cfg.data.image_size),)) if carries_flow else None,
+        grid_flow=jnp.zeros(cells + (2,)) if m.carries_flow else None,
+        grid_lidar=jnp.zeros(cells + (lidar_map_width(m, cfg.data.image_size),)) if m.carries_flow else None,
     )
 
 

@@ -4,6 +4,7 @@ Shared by :mod:`~e2e_percep_jax.train` (which steps the state) and :mod:`~e2e_pe
 (which restores it, and so needs its structure).
 """
 
+import dataclasses
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -58,18 +59,13 @@ class CarriedTrainState(TrainState):
 
 
 def _empty_carry(cfg: Config) -> dict:
-    k, b, m = cfg.data.batches_per_drive, cfg.data.batch_size, cfg.model
-    carry = {"z1": jnp.zeros((k, b, m.z1_dim)), "z2": jnp.zeros((k, b, m.z2_dim)), "action": jnp.zeros((k, b, 2))}
-    if m.latent == "bev":
-        carry["grid"] = jnp.zeros((k, b, m.grid_cells, m.grid_cells, m.grid_channels))
-    if m.grid_warp == "lattice":
-        carry["grid_offset"] = jnp.zeros((k, b, 2))
-    if m.latent == "bev" and m.grid_motion == "ego_and_carried_flow":
-        carry["grid_flow"] = jnp.zeros((k, b, m.grid_cells, m.grid_cells, 2))
-        carry["grid_lidar"] = jnp.zeros(
-            (k, b, m.grid_cells, m.grid_cells, model_lib.lidar_map_width(m, cfg.data.image_size))
-        )
-    return carry
+    """Every drive slot's carry before its drive's first segment: the filter state's latents (the fields that
+    ``model.init_filter_state`` fills) and the action, all zeros, for K = ``batches_per_drive`` slots."""
+    k, b = cfg.data.batches_per_drive, cfg.data.batch_size
+    state = model_lib.init_filter_state(b, cfg)
+    carry = {f.name: getattr(state, f.name) for f in dataclasses.fields(state) if f.name not in ("first", "pose")}
+    carry = {name: x for name, x in carry.items() if x is not None} | {"action": jnp.zeros((b, 2))}
+    return jax.tree.map(lambda x: jnp.zeros((k,) + x.shape, x.dtype), carry)
 
 
 def learning_rate(cfg: Config) -> optax.ScalarOrSchedule:
