@@ -152,14 +152,15 @@ def make_mesh(devices=None) -> Mesh:
     return Mesh(np.asarray(jax.devices() if devices is None else devices), ("data",))
 
 
-def shard_batch(batch: dict, mesh: Mesh, keys=loss_lib.BATCH_KEYS + loss_lib.PLACE_KEYS) -> dict:
-    """The loss's ``keys`` (``loss.batch_keys``) of a global batch [B, T+1, ...], sharded along B over ``mesh``.
+def shard_batch(batch: dict, mesh: Mesh, cfg: Config) -> dict:
+    """The fields of a global batch [B, T+1, ...] that the loss reads under ``cfg`` (``loss.batch_keys``),
+    sharded along B over ``mesh``.
 
     With several processes each holds the same global batch (it is a function of the step) and
     contributes the rows of its own devices.
     """
     sharding = NamedSharding(mesh, PartitionSpec("data"))
-    batch = {k: batch[k] for k in keys if k in batch}
+    batch = {k: batch[k] for k in loss_lib.batch_keys(cfg) if k in batch}
     if jax.process_count() == 1:
         return jax.device_put(batch, sharding)
     host = jax.tree.map(np.asarray, batch)
@@ -339,7 +340,7 @@ def train(cfg: Config, workdir: str, batches: Batches | None = None, objective: 
         for step, batch in stream:
             if step >= t.num_steps or stop.agreed() is not None:
                 break
-            batch = shard_batch(batch, mesh, loss_lib.batch_keys(cfg))
+            batch = shard_batch(batch, mesh, cfg)
             key = jax.random.fold_in(noise_root, step)
             if compiled is None:  # compiled once, timed, outside the steps/s clock
                 compile_start = time.perf_counter()

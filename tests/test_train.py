@@ -91,7 +91,7 @@ def four_device_loss_and_grads(workdir, env):
         from e2e_percep_jax import model, train
         assert jax.device_count() == 4
         mesh = train.make_mesh()
-        batch = train.shard_batch(synthetic_batch(0, TINY, batch_size=4), mesh)
+        batch = train.shard_batch(synthetic_batch(0, TINY, batch_size=4), mesh, TINY)
         assert batch["camera"].sharding.shard_shape(batch["camera"].shape)[0] == 1
         params = jax.device_put(model.init_params(jax.random.PRNGKey(0), TINY), NamedSharding(mesh, PartitionSpec()))
         (_, metrics), grads = loss_and_grads(params, batch, jax.random.PRNGKey(7), TINY)
@@ -130,11 +130,11 @@ def test_nonfinite_batch_skips_the_update():
     fresh = lambda: jax.device_put(train.init_state(cfg), replicated)  # a new one: the step donates its input
     before = jax.device_get(fresh())
     poisoned = dict(synthetic_batch(0, cfg), pose=np.full((2, 4, 5), np.nan, np.float32))
-    state, metrics = step(fresh(), train.shard_batch(poisoned, mesh), jax.random.PRNGKey(0))
+    state, metrics = step(fresh(), train.shard_batch(poisoned, mesh, cfg), jax.random.PRNGKey(0))
     assert not np.isfinite(metrics["total"])
     assert_trees_equal((state.params, state.opt_state), (before.params, before.opt_state))
     assert (int(state.step), int(state.nonfinite_in_a_row), int(state.nonfinite_total)) == (1, 1, 1)
-    state, metrics = step(state, train.shard_batch(synthetic_batch(1, cfg), mesh), jax.random.PRNGKey(1))
+    state, metrics = step(state, train.shard_batch(synthetic_batch(1, cfg), mesh, cfg), jax.random.PRNGKey(1))
     assert np.isfinite(metrics["total"])
     assert (int(state.step), int(state.nonfinite_in_a_row), int(state.nonfinite_total)) == (2, 0, 1)
     assert not np.array_equal(
@@ -152,7 +152,7 @@ def test_compiled_step_uses_the_perception_pose_and_kl_weights():
     reconstructions keep their value."""
     mesh = train.make_mesh()
     replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
-    batch = train.shard_batch(synthetic_batch(0, CFG), mesh)
+    batch = train.shard_batch(synthetic_batch(0, CFG), mesh, CFG)
     w = CFG.train.perception_weight
     assert (w, CFG.train.pose_weight, CFG.train.kl_weight) == (32.0, 1.0, 1.0)
     base, changed = (
@@ -509,7 +509,7 @@ def test_carried_state_chains_segments_and_resumes_bit_identically(tmp_path, lat
     # the very step the runs above compiled (its inputs placed as train.train places them): no compile of its own
     mesh = train.make_mesh()
     state = jax.device_put(train.init_state(cfg), jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))
-    step_fn = lambda s, b, k: train.make_train_step(cfg, mesh)(s, train.shard_batch(b, mesh), k)
+    step_fn = lambda s, b, k: train.make_train_step(cfg, mesh)(s, train.shard_batch(b, mesh, cfg), k)
     batches = [{k: b[k] for k in loss.BATCH_KEYS} for _, b in itertools.islice(synthetic_batches()(0), 3)]
     key = jax.random.PRNGKey(5)
     fresh = jax.jit(lambda p, b: loss.loss_fn(p, b, key, cfg)[1]["total"])

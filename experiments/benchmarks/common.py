@@ -10,7 +10,6 @@ import jax
 from absl import flags
 
 from e2e_percep_jax import config as config_lib
-from e2e_percep_jax import loss as loss_lib
 from e2e_percep_jax import train as train_lib
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -78,7 +77,7 @@ def train_step_runner(cfg, batch):
     mesh = train_lib.make_mesh()
     step_fn = train_lib.make_train_step(cfg, mesh)
     holder = {"state": train_lib.init_state(cfg)}
-    batch = train_lib.shard_batch(batch, mesh, loss_lib.batch_keys(cfg))  # a flow's term reads the boxes too
+    batch = train_lib.shard_batch(batch, mesh, cfg)
     key = jax.random.PRNGKey(0)
     start = time.perf_counter()
     compiled = step_fn.lower(holder["state"], batch, key).compile()

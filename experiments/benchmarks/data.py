@@ -155,7 +155,7 @@ def bench_loop(town, repeats):
     def run(batches):
         start = time.perf_counter()
         jax.block_until_ready(
-            [train_step(train_lib.shard_batch(batch, mesh)) for _, batch in itertools.islice(batches, steps)]
+            [train_step(train_lib.shard_batch(batch, mesh, cfg)) for _, batch in itertools.islice(batches, steps)]
         )
         return (time.perf_counter() - start) / steps
 

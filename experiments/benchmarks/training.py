@@ -145,11 +145,11 @@ def bench_place(town, repeats):
         for p in sizes:
             cfg = config_lib.replace(base, data=dict(place_frames=p))
             stream = batch_lib.batch_stream(town, cfg, seed=0)
-            runners[p] = (train_step_runner(cfg, next(stream)[1])[1], stream)
+            runners[p] = (train_step_runner(cfg, next(stream)[1])[1], stream, cfg)
 
         def run(p):
-            step, stream = runners[p]
-            return median_s(lambda: step(train_lib.shard_batch(next(stream)[1], mesh)), repeats)
+            step, stream, cfg = runners[p]
+            return median_s(lambda: step(train_lib.shard_batch(next(stream)[1], mesh, cfg)), repeats)
 
         rounds, peers = {p: [] for p in sizes}, []
         for _ in range(FLAGS.peer_rounds):
