@@ -217,6 +217,11 @@ class TrainConfig:
     # cars it has no evidence of; that does not lift precision (BUILD_NOTES, "Unseen vehicles left out of
     # the detection loss"). 1 = the paper.
     unseen_weight: float = 1.0
+    # A memory lever: the same weight on the target pixels of vehicles about to hide: the lidar sees them now
+    # and, still in view, no longer does within ``loss.HIDING_FRAMES`` frames of the sequence. Most remembered
+    # vehicles are lost in those frames, while a sliver is seen, before memory is asked for (BUILD_NOTES,
+    # "Vehicles about to hide weighted in the detection loss"). 1 = the paper.
+    hiding_weight: float = 1.0
     # A memory lever, with a scene flow (--model.grid_motion, FLOW_MOTIONS): the weight of its squared error
     # (metres^2, summed over the grid's cells, times perception_weight) against the vehicles' true moves
     # between frames (``bev_latent.vehicle_flow``), so that the flow carries a hidden car along its lane as
@@ -498,7 +503,7 @@ def validate(cfg: Config) -> Config:
     for name, value in positive.items():
         if not value > 0:
             raise ValueError(f"--{name}={value}: must be positive")
-    for name in ("unseen_weight", "flow_weight", "flow_vehicle_weight"):
+    for name in ("unseen_weight", "hiding_weight", "flow_weight", "flow_vehicle_weight"):
         if not getattr(cfg.train, name) >= 0:
             raise ValueError(f"--train.{name}={getattr(cfg.train, name)}: must be at least 0")
     if cfg.train.flow_weight and (cfg.model.latent != "bev" or cfg.model.grid_motion not in FLOW_MOTIONS):

@@ -20,8 +20,9 @@
 - det_cls: focal loss (alpha 0.25 on positives, gamma 2) on the class map.
 - det_reg: 0.1 x smooth-L1 (beta 1) between predicted and target regression maps at positive pixels
   (``det_cls`` > 0.5); targets elsewhere are ignored, whatever their value. Both weigh each pixel 1, but
-  the positive pixels of remembered vehicles ``train.remembered_weight`` and those of unseen ones
-  ``train.unseen_weight`` (:func:`group_pixels`).
+  the positive pixels of remembered vehicles ``train.remembered_weight``, those of unseen ones
+  ``train.unseen_weight`` (:func:`group_pixels`), and those of vehicles the lidar is about to lose
+  ``train.hiding_weight`` (:func:`hiding`).
 - pose, by ``model.pose_head``: ``belief`` (the presets): the belief head's cross-entropies and offset and
   speed losses (``pose_belief.loss_terms``), logged as ``pose_place``, ``pose_heading``, ``pose_offset`` and
   ``pose_speed``; ``regression``: smooth-L1 (beta 1) on the pose in
@@ -57,11 +58,15 @@ DET_REG_WEIGHT = 0.1
 REFERENCE_POSE_WEIGHT = 10.0
 BATCH_KEYS = ("camera", "lidar", "roadmap", "det_cls", "det_reg", "pose", "action")  # what the loss reads
 PLACE_KEYS = ("place_camera", "place_lidar", "place_pose")  # and of the place stream, when a batch has it
-# and who saw each box, under train.remembered_weight or train.unseen_weight
+# and who saw each box, under train.remembered_weight, train.unseen_weight or train.hiding_weight
 MEMORY_KEYS = ("boxes", "boxes_valid", "boxes_lidar_visible", "boxes_camera_visible", "boxes_frames_since_seen")
 FLOW_KEYS = MEMORY_KEYS[:2]  # and the vehicles' moves, under train.flow_weight
 OBSERVATION_DROP_STREAM = 7  # fold_in data of the dropped frames' draw (the latents' draws split the key itself)
 SHADOW_STREAM = 8  # and of the lidar shadows' draw
+# A vehicle is about to hide when the lidar sees it now and, still in view, no longer does within this many of
+# the sequence's next frames (0.3 s, a phantom wall's slide): the frames in which a sliver of it is seen.
+HIDING_FRAMES = 3
+GROUP_WEIGHTS = ("remembered_weight", "unseen_weight", "hiding_weight")  # train's weights on vehicles' pixels
 # A shadow: every azimuth within SHADOW_HALF_WIDTH_DEG of its centre (uniform all round), beyond its start
 # range: a car 4.5 m long 8-30 m away hides 9-30 degrees behind it.
 SHADOW_HALF_WIDTH_DEG, SHADOW_START_M = (4.0, 15.0), (3.0, 15.0)  # (low, high) of the uniform draws
@@ -103,7 +108,7 @@ def per_sequence(x, batch_size: int):
 
 def batch_keys(cfg: Config) -> tuple:
     """The frame contract's fields that the loss reads under ``cfg`` (the place stream's when a batch has it)."""
-    weighted = cfg.train.remembered_weight != 1.0 or cfg.train.unseen_weight != 1.0
+    weighted = any(getattr(cfg.train, name) != 1.0 for name in GROUP_WEIGHTS)
     return BATCH_KEYS + (MEMORY_KEYS if weighted else FLOW_KEYS if cfg.train.flow_weight else ()) + PLACE_KEYS
 
 
@@ -115,7 +120,23 @@ def group_pixels(batch: dict, group: str):
     groups = metrics_lib.box_groups(
         batch["boxes_lidar_visible"], batch["boxes_camera_visible"], batch["boxes_frames_since_seen"]
     )
-    chosen = batch["boxes_valid"] & (groups == metrics_lib.GROUPS.index(group))  # [B, T+1, N]
+    return box_pixels(batch, groups == metrics_lib.GROUPS.index(group))
+
+
+def hiding(batch: dict, frames: int = HIDING_FRAMES):
+    """The vehicles about to hide, bool [B, T+1, N]: in view and seen by the lidar now, in view and not seen
+    by it in one of the sequence's next ``frames`` frames. The loss may look ahead: the model never reads it."""
+    valid, lidar = batch["boxes_valid"], batch["boxes_lidar_visible"]
+    lost = jnp.pad(valid & ~lidar, ((0, 0), (0, frames), (0, 0)))  # [B, T+1+frames, N]
+    t1 = valid.shape[1]
+    lost_soon = jnp.any(jnp.stack([lost[:, k : k + t1] for k in range(1, frames + 1)]), 0)
+    return valid & lidar & lost_soon
+
+
+def box_pixels(batch: dict, chosen):
+    """Whether each pixel of the class map lies inside the box of a vehicle ``chosen`` (bool [B, T+1, N]) and
+    in view, bool [B, T+1, R, R, 1]."""
+    chosen = batch["boxes_valid"] & chosen
     centres = geo.bev_pixel_centres(batch["det_cls"].shape[-2])[:, :, None, :]  # [R, R, 1, 2]
     boxes = batch["boxes"][:, :, None, None]  # [B, T+1, 1, 1, N, 5]
     inside = geo.points_in_boxes(centres, boxes) & chosen[:, :, None, None]  # [B, T+1, R, R, N]
@@ -123,12 +144,18 @@ def group_pixels(batch: dict, group: str):
 
 
 def detection_terms(
-    pred: dict, batch: dict, weight: float, remembered_weight: float = 1.0, unseen_weight: float = 1.0
+    pred: dict,
+    batch: dict,
+    weight: float,
+    remembered_weight: float = 1.0,
+    unseen_weight: float = 1.0,
+    hiding_weight: float = 1.0,
 ) -> dict:
     """``det_cls`` and ``det_reg`` of decoded PIXOR maps ``pred["det_logit"]`` [B, T+1, R, R, 1] and
     ``pred["det_reg"]`` [B, T+1, R, R, 6] against the batch's targets, per sequence, times ``weight``; the
     positive pixels of remembered vehicles count ``remembered_weight`` times, those of unseen vehicles
-    ``unseen_weight`` times (:func:`group_pixels`; a pixel in both takes the remembered weight)."""
+    ``unseen_weight`` times (:func:`group_pixels`), those of vehicles about to hide ``hiding_weight`` times
+    (:func:`hiding`); a pixel in the boxes of more than one takes the last named of them."""
     b = batch["det_cls"].shape[0]
     # Regression targets are defined at positive pixels only (elsewhere they may be anything, even
     # non-finite): select them with `where` on both sides so no NaN reaches the value or the gradient.
@@ -138,6 +165,8 @@ def detection_terms(
         pixel_weight = jnp.where(positive & group_pixels(batch, "unseen"), unseen_weight, pixel_weight)
     if remembered_weight != 1.0:
         pixel_weight = jnp.where(positive & group_pixels(batch, "remembered"), remembered_weight, pixel_weight)
+    if hiding_weight != 1.0:
+        pixel_weight = jnp.where(positive & box_pixels(batch, hiding(batch)), hiding_weight, pixel_weight)
     focal = optax.sigmoid_focal_loss(pred["det_logit"], batch["det_cls"], alpha=FOCAL_ALPHA, gamma=FOCAL_GAMMA)
     terms = {"det_cls": weight * per_sequence(pixel_weight * focal, b)}
     reg_target = jnp.where(positive, batch["det_reg"], 0.0)
@@ -258,9 +287,8 @@ def sequence_loss(params, batch, key, cfg: Config, start=None):
         metrics["motion"] = cfg.train.perception_weight * per_sequence(0.5 * error**2, b)
         if cfg.train.flow_weight:
             metrics["flow"] = cfg.train.flow_weight * cfg.train.perception_weight * flow_term(out, batch, truth, cfg)
-    metrics.update(
-        detection_terms(pred, batch, cfg.train.perception_weight, cfg.train.remembered_weight, cfg.train.unseen_weight)
-    )
+    group_weights = {name: getattr(cfg.train, name) for name in GROUP_WEIGHTS}
+    metrics.update(detection_terms(pred, batch, cfg.train.perception_weight, **group_weights))
     metrics.update(pose_terms(params, out, pred, batch["pose"], cfg))
     metrics.update(place_terms(params, batch, cfg))
     total, metrics = with_total(metrics)

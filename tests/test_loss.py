@@ -301,3 +301,57 @@ def test_group_weights_scale_the_detection_terms_at_their_vehicles_only():
             loss.batch_keys(config.replace(TINY, train=train)) == loss.BATCH_KEYS + loss.MEMORY_KEYS + loss.PLACE_KEYS
         )
     assert loss.batch_keys(TINY) == loss.BATCH_KEYS + loss.PLACE_KEYS
+
+
+def test_hiding_marks_the_frames_before_the_lidar_loses_a_vehicle_in_view():
+    """loss.hiding against a brute-force loop over random visibility: a vehicle is about to hide at frame t
+    when in view and seen by the lidar at t, and in view but unseen by it at one of t+1..t+HIDING_FRAMES;
+    leaving the view is not hiding, nor is a loss beyond the sequence's end."""
+    rng = np.random.default_rng(3)
+    b, t1, n = 3, 12, 7
+    valid = rng.uniform(size=(b, t1, n)) > 0.2
+    lidar = rng.uniform(size=(b, t1, n)) > 0.4
+    got = np.asarray(loss.hiding({"boxes_valid": valid, "boxes_lidar_visible": lidar}))
+    expected = np.zeros((b, t1, n), bool)
+    for i in range(b):
+        for t in range(t1):
+            for j in range(n):
+                later = range(t + 1, min(t + 1 + loss.HIDING_FRAMES, t1))
+                expected[i, t, j] = (
+                    valid[i, t, j] and lidar[i, t, j] and any(valid[i, u, j] and not lidar[i, u, j] for u in later)
+                )
+    np.testing.assert_array_equal(got, expected)
+    assert 0 < expected.sum() < (valid & lidar).sum()  # the draw holds both kinds
+
+
+def test_the_hiding_weight_scales_the_detection_terms_at_the_vehicles_about_to_hide():
+    """--train.hiding_weight: the positive pixels inside the box of a vehicle the lidar sees in frame 0 and
+    loses in frame 1 (still in view) count w times in frame 0 only; one the lidar keeps, and the same boxes in
+    frame 1, count once. Checked against the terms computed without it, pixel by pixel."""
+    r, w = 32, 5.0
+    rng = np.random.default_rng(1)
+    boxes = np.array([[10.0, 3.0, 0.3, 8.0, 4.0], [-6.0, -5.0, 0.0, 8.0, 4.0]], np.float32)
+    batch = {
+        "det_cls": (rng.uniform(size=(1, 2, r, r, 1)) > 0.5).astype(np.float32),
+        "det_reg": rng.normal(size=(1, 2, r, r, 6)).astype(np.float32),
+        "boxes": np.broadcast_to(boxes, (1, 2, 2, 5)),
+        "boxes_valid": np.ones((1, 2, 2), bool),
+        "boxes_lidar_visible": np.array([[[True, True], [False, True]]]),
+        "boxes_camera_visible": np.ones((1, 2, 2), bool),
+        "boxes_frames_since_seen": np.zeros((1, 2, 2), np.int32),
+    }
+    pred = {
+        "det_logit": rng.normal(size=(1, 2, r, r, 1)).astype(np.float32),
+        "det_reg": rng.normal(size=(1, 2, r, r, 6)).astype(np.float32),
+    }
+    inside = np.asarray(loss.box_pixels(batch, np.array([[[True, False], [False, False]]])))[..., 0]
+    assert inside[0, 0].sum() > 10 and not inside[0, 1].any()
+    positive = batch["det_cls"][..., 0] > 0.5
+    focal = np_focal(pred["det_logit"][..., 0].astype(np.float64), batch["det_cls"][..., 0])
+    reg = np_smooth_l1(pred["det_reg"].astype(np.float64) - batch["det_reg"]).sum(-1) * positive
+    weight = np.where(positive & inside, w, 1.0)
+    got = loss.detection_terms(pred, batch, 2.0, hiding_weight=w)
+    np.testing.assert_allclose(got["det_cls"], 2.0 * np.sum(weight * focal), rtol=1e-4)
+    np.testing.assert_allclose(got["det_reg"], 2.0 * loss.DET_REG_WEIGHT * np.sum(weight * reg), rtol=1e-4)
+    hiding_cfg = config.replace(TINY, train=dict(hiding_weight=w))
+    assert loss.batch_keys(hiding_cfg) == loss.BATCH_KEYS + loss.MEMORY_KEYS + loss.PLACE_KEYS
