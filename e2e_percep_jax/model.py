@@ -499,7 +499,7 @@ class PerceptionModel(nn.Module):
             grid_outputs = self.grid_step(state, encoded, prev_action, grid_key, seen)
             carried = grid_outputs.get("grid_carried", grid_outputs["grid"])
             new_state = new_state.replace(grid=carried, grid_offset=grid_outputs.get("grid_offset"))
-            if "grid_lidar" in grid_outputs:  # a carried flow
+            if self.cfg.carries_flow:
                 new_state = new_state.replace(grid_flow=grid_outputs["flow"], grid_lidar=grid_outputs["grid_lidar"])
         outputs = {
             "z1": z1,
