@@ -155,7 +155,7 @@ def detection_terms(
     ``pred["det_reg"]`` [B, T+1, R, R, 6] against the batch's targets, per sequence, times ``weight``; the
     positive pixels of remembered vehicles count ``remembered_weight`` times, those of unseen vehicles
     ``unseen_weight`` times (:func:`group_pixels`), those of vehicles about to hide ``hiding_weight`` times
-    (:func:`hiding`); a pixel in the boxes of more than one takes the last named of them."""
+    (:func:`hiding`); a pixel inside the boxes of more than one takes the hiding weight, else the remembered one."""
     b = batch["det_cls"].shape[0]
     # Regression targets are defined at positive pixels only (elsewhere they may be anything, even
     # non-finite): select them with `where` on both sides so no NaN reaches the value or the gradient.
