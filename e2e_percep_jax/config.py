@@ -157,6 +157,10 @@ class ModelConfig:
     # per cell, each a Gaussian; G is a size the decoders' trunk passes through: a power of two in [4, R / 2].
     grid_cells: int = 16
     grid_channels: int = 8
+    # D channels of a deterministic recurrent memory per cell beside the grid's C Gaussians (Dreamer's path,
+    # per cell): h_t = GRU(warped h_t-1, warped s_t-1, a_t-1), read by the grid's prior and posterior and by
+    # the decoders beside s_t, and carried with it. What h holds costs no KL and no sampling noise. 0 = none.
+    grid_memory_channels: int = 0
     grid_update: str = "learned"  # one of GRID_UPDATES
     lidar_decoder_input: str = "latent_and_grid"  # one of LIDAR_DECODER_INPUTS
     grid_warp: str = "bilinear"  # one of GRID_WARPS
@@ -457,6 +461,11 @@ def validate(cfg: Config) -> Config:
         raise ValueError(f"--model.grid_cells={g}: must be a power of two in [4, data.image_size / 2 = {r // 2}]")
     if cfg.model.latent == "bev" and cfg.model.grid_channels < 1:
         raise ValueError(f"--model.grid_channels={cfg.model.grid_channels}: must be >= 1")
+    if cfg.model.grid_memory_channels < 0 or (cfg.model.grid_memory_channels and cfg.model.latent != "bev"):
+        raise ValueError(
+            f"--model.grid_memory_channels={cfg.model.grid_memory_channels}: must be >= 0, and > 0 only with "
+            "--model.latent=bev (it is the bird-eye grid's memory)"
+        )
     for name, verb in (("grid_update", "updates"), ("grid_warp", "carries"), ("grid_motion", "carries")):
         value = getattr(cfg.model, name)  # the grid's own fields: any but the default needs the grid
         if value != getattr(ModelConfig, name) and cfg.model.latent != "bev":

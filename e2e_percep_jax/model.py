@@ -12,6 +12,8 @@ With ``model.latent="bev"`` a bird-eye grid s_t [B, G, G, C] (C Gaussians per ce
     (with a scene flow, ``model.grid_motion`` in config.FLOW_MOTIONS, then carried along a flow per cell,
     bev_latent.transport; with ``ego_and_carried_flow`` the flow is state, corrected from the lidar maps t-1, t)
     prior p(s_t | warped s_t-1, action t-1) and posterior q(s_t | warped s_t-1, lidar map t, features t), per cell
+    (with ``model.grid_memory_channels`` D > 0, a deterministic memory per cell h_t = GRU(warped h_t-1, warped
+    s_t-1, action t-1) joins s: both distributions and the decoders read it, and it is carried with s)
     the PIXOR, lidar and roadmap decoders read s_t where their trunks reach G x G
     (with ``model.lidar_decoder_input="latent"`` the lidar decoder reads z alone)
     (with ``model.detection_input="grid"`` the PIXOR decoder reads s_t alone, z zeroed)
@@ -273,6 +275,19 @@ def _cell_convs(maps, hidden: int, out: int):
     return Conv3x3(out, name="Conv_2")(x)
 
 
+class CellGRU(nn.Module):
+    """(memory [N, G, G, D], maps [N, G, G, *]) -> the memory updated per cell by flax's ``GRUCell``, whose input
+    is a leaky 3 x 3 conv of ``hidden`` channels over the memory and the maps (so that what a cell holds can pass
+    to its neighbours)."""
+
+    hidden: int
+
+    @nn.compact
+    def __call__(self, memory, *maps):
+        x = _act(Conv3x3(self.hidden)(jnp.concatenate([memory, *maps], -1)))
+        return nn.GRUCell(memory.shape[-1])(memory, x)[0]
+
+
 class GaussianConv(nn.Module):
     """Maps [N, G, G, in] (concatenated on channels) -> (loc, scale) [N, G, G, out] per cell: two leaky 3 x 3
     convs of ``hidden`` channels, then a 3 x 3 conv; scale = softplus + 1e-5."""
@@ -359,6 +374,8 @@ class PerceptionModel(nn.Module):
             self.camera_lift = nn.Dense(g * g * c)  # the frame's features -> a map over the grid
             self.p_grid = GaussianConv(4 * c, c)  # p(s_t | warp(s_t-1), inside, a_t-1)
             self.q_grid = GaussianConv(4 * c, c)  # q(s_t | warp(s_t-1), inside, lidar map t, lifted features t)
+            if m.grid_memory_channels:
+                self.grid_memory = CellGRU(4 * c)  # h_t = GRU(warp(h_t-1), warp(s_t-1), inside, a_t-1)
             if m.carries_flow:  # (flow t-2 -> t-1 carried, inside, lidar maps t, t-1)
                 self.grid_flow = FlowConv(4 * c)  # -> its correction: the scene's flow t-1 -> t
             elif m.grid_motion in FLOW_MOTIONS:
@@ -414,12 +431,16 @@ class PerceptionModel(nn.Module):
         moves alone (outputs ``flow``, ``grid_lidar``). With ``grid_warp="lattice"`` the grid is carried on its
         lattice (``bev_latent.warp_on_lattice``), the frame's lidar map and visibility sampled onto it, and its
         outputs ``grid_carried`` and ``grid_offset`` are the state's; ``grid`` is then the sample on the ego's
-        cells, what the decoders read. Returns the outputs."""
+        cells, what the decoders read. With ``grid_memory_channels`` D > 0 the state's grid holds the sample's C
+        channels, then the memory's D: the memory is carried with the sample, updated by :class:`CellGRU` from
+        what was carried alone (it never reads the frame, so the prior may read it), and ``grid`` is the sample
+        with the memory after it. Returns the outputs."""
         first = state.first[:, None, None, None]
         inputs = [encoded["features"], state.z1, state.z2, prev_action]
         motion = self.motion_head(jnp.concatenate(inputs, -1)) * bev_latent.MOTION_UNIT
         lidar_map, lidar_seen = encoded["lidar_map"], encoded.get("lidar_seen")
         offset, carries_flow, c = None, self.cfg.carries_flow, self.cfg.grid_channels
+        cells = c + self.cfg.grid_memory_channels  # the state's channels per cell: the sample's, then the memory's
         carried = jnp.concatenate([state.grid, state.grid_flow, state.grid_lidar], -1) if carries_flow else state.grid
         if self.cfg.grid_warp == "lattice":  # the frame's maps sampled onto the grid's cells
             warped, inside, offset = bev_latent.warp_on_lattice(
@@ -434,12 +455,12 @@ class PerceptionModel(nn.Module):
         action_map = jnp.broadcast_to(prev_action[:, None, None], inside.shape[:3] + (2,))
         flow_m, lidar_kept = None, None
         if carries_flow:  # a hidden car keeps its last move; the two frames' lidar maps correct it where seen
-            warped, flow_before, lidar_before = jnp.split(warped, [c, c + 2], -1)
+            warped, flow_before, lidar_before = jnp.split(warped, [cells, cells + 2], -1)
             flow_before = geo.rotate(flow_before, -jax.lax.stop_gradient(motion)[:, 2, None, None])
             moved = bev_latent.transport(
                 jnp.concatenate([warped, inside, flow_before], -1), jax.lax.stop_gradient(flow_before)
             )
-            warped, inside, flow_before = jnp.split(moved, [c, c + 1], -1)
+            warped, inside, flow_before = jnp.split(moved, [cells, cells + 1], -1)
             correction = self.grid_flow(flow_before, inside, lidar_map, lidar_before)
             flow_m = jnp.clip(flow_before + correction, -bev_latent.FLOW_MAX_M, bev_latent.FLOW_MAX_M)
             lidar_kept = lidar_map
@@ -452,9 +473,14 @@ class PerceptionModel(nn.Module):
             carrier = jax.lax.stop_gradient(flow_m) if self.cfg.grid_motion == "ego_and_taught_flow" else flow_m
             carried = bev_latent.transport(jnp.concatenate([warped, inside], -1), carrier)
             warped, inside = carried[..., :-1], carried[..., -1:]
+        memory = None
+        if self.cfg.grid_memory_channels:  # what was carried, updated before the frame is read
+            sample_before, memory_before = jnp.split(warped, [c], -1)
+            memory = self.grid_memory(memory_before, sample_before, inside, action_map)
+            warped = jnp.concatenate([sample_before, memory], -1)
         p_loc, p_scale = self.p_grid(warped, inside, action_map)
         p_loc, p_scale = jnp.where(first, 0.0, p_loc), jnp.where(first, 1.0, p_scale)  # N(0, I) on first frames
-        lifted = self.camera_lift(encoded["features"]).reshape(warped.shape)
+        lifted = self.camera_lift(encoded["features"]).reshape(warped.shape[:3] + (c,))
         q_loc, q_scale = self.q_grid(warped, inside, lidar_map, lifted)
         if lidar_seen is not None:  # from the prior only as far as the lidar sees the cell
             update = LIDAR_UPDATES[self.cfg.grid_update]
@@ -462,6 +488,8 @@ class PerceptionModel(nn.Module):
         if seen is not None:
             q_loc, q_scale = _unless_seen(seen[:, None, None, None], (q_loc, q_scale), (p_loc, p_scale))
         grid = _sample(q_loc, q_scale, key)
+        if memory is not None:
+            grid = jnp.concatenate([grid, memory], -1)
         outputs = {
             "grid": grid,
             "motion": motion,
@@ -516,7 +544,7 @@ class PerceptionModel(nn.Module):
 
     def decode(self, z, features=None, grid=None):
         """Latent [N, Z] (and the frame's features [N, 2F], read by the PIXOR decoder with
-        ``detection_input="latent_and_features"``; the bird-eye grid [N, G, G, C], read by the bird-eye
+        ``detection_input="latent_and_features"``; the bird-eye grid [N, G, G, C + D], read by the bird-eye
         decoders: PIXOR, lidar and roadmap, PIXOR without z with ``detection_input="grid"``, lidar without the
         grid with ``lidar_decoder_input="latent"``) -> dict: built
         image means [N, R, R, 3], det_logit / det_cls [N, R, R, 1] (logit / probability), det_reg
@@ -562,9 +590,11 @@ class FilterState:
         before its first).
     first: bool [B], the next frame starts the stream: its filter restarts, the pose belief's included
         (``state.replace(first=state.first.at[i].set(True))`` restarts stream i, e.g. at a new drive).
-    grid: with the bird-eye latent (``--model.latent=bev``, the default), float32 [B, G, G, C]: the grid's
-        sample of each stream's last frame, in that frame's ego axes (:mod:`e2e_percep_jax.bev_latent`; zeros
-        before the first); None with the vector latent (``--model.latent=vector``).
+    grid: with the bird-eye latent (``--model.latent=bev``, the default), float32 [B, G, G, C + D]: the grid's
+        sample of each stream's last frame (C = ``--model.grid_channels``), then its deterministic memory
+        (D = ``--model.grid_memory_channels``, 0 by default), in that frame's ego axes
+        (:mod:`e2e_percep_jax.bev_latent`; zeros before the first); None with the vector latent
+        (``--model.latent=vector``).
     grid_offset: with ``--model.grid_warp=lattice``, float32 [B, 2]: where the grid's cell centres lie from
         the ego's (metres ahead, to the left; each within half a cell), the grid being carried on that lattice
         (``bev_latent.warp_on_lattice``); None otherwise.
@@ -591,7 +621,7 @@ def init_filter_state(batch_size: int, cfg: Config) -> FilterState:
     """The latent filter's state before a sequence's first frame: zero latents, ``first`` True, no pose."""
     m = cfg.model
     cells = (batch_size, m.grid_cells, m.grid_cells)
-    grid = jnp.zeros(cells + (m.grid_channels,)) if m.latent == "bev" else None
+    grid = jnp.zeros(cells + (m.grid_channels + m.grid_memory_channels,)) if m.latent == "bev" else None
     return FilterState(
         z1=jnp.zeros((batch_size, m.z1_dim)),
         z2=jnp.zeros((batch_size, m.z2_dim)),
@@ -641,7 +671,7 @@ def filter_step(params, state: FilterState, camera, lidar, prev_action, key, cfg
     with outputs z1 [B, z1], z2 [B, z2], the z1 posterior and prior
     (``q_z1_loc``/``q_z1_scale``, ``p_z1_loc``/``p_z1_scale``), z2's (``z2_loc``/``z2_scale``) and the
     frame's ``features`` [B, 2 feature_dim]; with the bird-eye latent also the grid's sample ``grid``
-    [B, G, G, C], its posterior and prior per cell (``q_grid_loc``/``q_grid_scale``,
+    [B, G, G, C + D] (the memory's D channels after the sample's C), its posterior and prior per cell (``q_grid_loc``/``q_grid_scale``,
     ``p_grid_loc``/``p_grid_scale``) and the ego-motion head's ``motion`` [B, 3] (dx m, dy m, dyaw rad from
     frame t-1 to t, in frame t-1's axes; :func:`bev_latent.relative_motion` is its truth); with
     ``--model.grid_warp=lattice`` also the state's ``grid_carried`` and ``grid_offset``
