@@ -159,7 +159,8 @@ class ModelConfig:
     grid_channels: int = 8
     # D channels of a deterministic recurrent memory per cell beside the grid's C Gaussians (Dreamer's path,
     # per cell): h_t = GRU(warped h_t-1, warped s_t-1, a_t-1), read by the grid's prior and posterior and by
-    # the decoders beside s_t, and carried with it. What h holds costs no KL and no sampling noise. 0 = none.
+    # the decoders beside s_t, and carried with it; the frame reaches it only through the ego's motion that
+    # warps it. What h holds costs no KL and no sampling noise. 0 = none.
     grid_memory_channels: int = 0
     grid_update: str = "learned"  # one of GRID_UPDATES
     lidar_decoder_input: str = "latent_and_grid"  # one of LIDAR_DECODER_INPUTS

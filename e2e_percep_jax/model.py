@@ -433,8 +433,8 @@ class PerceptionModel(nn.Module):
         outputs ``grid_carried`` and ``grid_offset`` are the state's; ``grid`` is then the sample on the ego's
         cells, what the decoders read. With ``grid_memory_channels`` D > 0 the state's grid holds the sample's C
         channels, then the memory's D: the memory is carried with the sample, updated by :class:`CellGRU` from
-        what was carried alone (it never reads the frame, so the prior may read it), and ``grid`` is the sample
-        with the memory after it. Returns the outputs."""
+        what was carried alone (it reads the frame only through the motion that warps it, as the prior does),
+        and ``grid`` is the sample with the memory after it. Returns the outputs."""
         first = state.first[:, None, None, None]
         inputs = [encoded["features"], state.z1, state.z2, prev_action]
         motion = self.motion_head(jnp.concatenate(inputs, -1)) * bev_latent.MOTION_UNIT

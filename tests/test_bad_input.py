@@ -135,6 +135,14 @@ CASES = {
     "train grid_cells above half the image": Case(
         "train", ["--model.latent=bev", "--model.grid_cells=32"], "--model.grid_cells=32: must be a power of two in"
     ),
+    "train grid_memory_channels negative": Case(
+        "train", ["--model.grid_memory_channels=-1"], "--model.grid_memory_channels=-1: must be >= 0"
+    ),
+    "train grid_memory_channels on the vector latent": Case(
+        "train",
+        ["--model.latent=vector", "--model.grid_memory_channels=4"],
+        "--model.grid_memory_channels=4: must be >= 0, and > 0 only with --model.latent=bev",
+    ),
     "train batch_size zero": Case("train", ["--data.batch_size=0"], "--data.batch_size=0: must be positive"),
     "train batch_size not a multiple of the devices": Case(
         "train",

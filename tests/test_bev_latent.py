@@ -401,15 +401,21 @@ def test_the_grid_kl_and_the_motion_term_match_numpy(params):
 
 @pytest.mark.slow
 @pytest.mark.parametrize(
-    "grid_warp, grid_motion", [("bilinear", "ego"), ("lattice", "ego"), ("lattice", "ego_and_carried_flow")]
+    "grid_warp, grid_motion, memory",
+    [
+        ("bilinear", "ego", 0),
+        ("lattice", "ego", 0),
+        ("lattice", "ego_and_carried_flow", 0),
+        ("lattice", "ego_and_carried_flow", 4),
+    ],
 )
-def test_streaming_the_grid_equals_the_training_scan(params, grid_warp, grid_motion):
+def test_streaming_the_grid_equals_the_training_scan(params, grid_warp, grid_motion, memory):
     """filter_step frame by frame (the grid in the state) gives filter_sequence's grid, with sampled latents
     (each frame's key as the scan splits it; the means are the same code with no key). On the lattice the
-    state carries the lattice's grid and offset (and a carried flow its flow and lidar map), and
-    :func:`model.end_state` of the scan is the streamed state."""
-    cfg = config_lib.replace(CFG, model=dict(grid_warp=grid_warp, grid_motion=grid_motion))
-    if grid_motion != "ego":
+    state carries the lattice's grid and offset (and a carried flow its flow and lidar map, a memory its
+    channels after the sample's), and :func:`model.end_state` of the scan is the streamed state."""
+    cfg = config_lib.replace(CFG, model=dict(grid_warp=grid_warp, grid_motion=grid_motion, grid_memory_channels=memory))
+    if grid_motion != "ego" or memory:
         params = model.init_params(jax.random.PRNGKey(0), cfg)
     batch = synthetic_batch(1, cfg)
     key = jax.random.PRNGKey(3)
@@ -422,13 +428,37 @@ def test_streaming_the_grid_equals_the_training_scan(params, grid_warp, grid_mot
         state, out = step(params, state, batch["camera"][:, t], batch["lidar"][:, t], prev_action[:, t], keys[t], cfg)
         np.testing.assert_allclose(out["grid"], scanned["grid"][:, t], rtol=1e-4, atol=1e-4)
         np.testing.assert_allclose(out["z1"], scanned["z1"][:, t], rtol=1e-4, atol=1e-4)
-    assert state.grid.shape == (batch["camera"].shape[0], 16, 16, cfg.model.grid_channels)
+    assert state.grid.shape == (batch["camera"].shape[0], 16, 16, cfg.model.grid_channels + memory)
     ended, _ = model.end_state(scanned, batch["action"])
     jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-4), state, ended)
     if grid_warp == "lattice":
         offset = np.asarray(state.grid_offset)
         assert offset.shape == (batch["camera"].shape[0], 2) and np.all(np.abs(offset) <= 1.0 + 1e-5)
         np.testing.assert_allclose(bev_latent.shift(state.grid, -state.grid_offset), out["grid"], atol=1e-5)
+
+
+def test_the_grids_memory_reads_the_frame_only_through_the_motion_that_carries_it():
+    """With a memory per cell (``--model.grid_memory_channels``) the prior reads the memory, so the memory of
+    frame t may depend on frame t only through the ego's motion that warps it: with the motion head's output
+    held at zero, two different frames after the same state give the same memory channels and different
+    samples (the posterior's means, no key), while a different carried state changes the memory."""
+    cfg = config_lib.replace(CFG, model=dict(grid_memory_channels=4))
+    params = model.init_params(jax.random.PRNGKey(0), cfg)
+    head = params["params"]["motion_head"]
+    last = sorted(head)[-1]
+    params["params"]["motion_head"] = {**head, last: jax.tree.map(jnp.zeros_like, head[last])}
+    batch = synthetic_batch(1, cfg)
+    camera, lidar, action = batch["camera"], batch["lidar"], batch["action"]
+    state = model.init_filter_state(camera.shape[0], cfg)
+    state, _ = model.filter_step(params, state, camera[:, 0], lidar[:, 0], action[:, 0], None, cfg)
+    c = cfg.model.grid_channels
+    _, seen = model.filter_step(params, state, camera[:, 1], lidar[:, 1], action[:, 0], None, cfg)
+    _, other = model.filter_step(params, state, 255 - camera[:, 1], 255 - lidar[:, 1], action[:, 0], None, cfg)
+    np.testing.assert_array_equal(seen["grid"][..., c:], other["grid"][..., c:])
+    assert np.abs(np.asarray(seen["grid"][..., :c] - other["grid"][..., :c])).max() > 1e-3
+    moved = state.replace(grid=state.grid + 1.0)
+    _, carried = model.filter_step(params, moved, camera[:, 1], lidar[:, 1], action[:, 0], None, cfg)
+    assert np.abs(np.asarray(carried["grid"][..., c:] - seen["grid"][..., c:])).max() > 1e-3
 
 
 @pytest.mark.slow
