@@ -402,12 +402,7 @@ def test_the_grid_kl_and_the_motion_term_match_numpy(params):
 @pytest.mark.slow
 @pytest.mark.parametrize(
     "grid_warp, grid_motion, memory",
-    [
-        ("bilinear", "ego", 0),
-        ("lattice", "ego", 0),
-        ("lattice", "ego_and_carried_flow", 0),
-        ("lattice", "ego_and_carried_flow", 4),
-    ],
+    [("bilinear", "ego", 0), ("lattice", "ego", 0), ("lattice", "ego_and_carried_flow", 4)],
 )
 def test_streaming_the_grid_equals_the_training_scan(params, grid_warp, grid_motion, memory):
     """filter_step frame by frame (the grid in the state) gives filter_sequence's grid, with sampled latents
