@@ -22,7 +22,7 @@
   (``det_cls`` > 0.5); targets elsewhere are ignored, whatever their value. Both weigh each pixel 1, but
   the positive pixels of remembered vehicles ``train.remembered_weight``, those of unseen ones
   ``train.unseen_weight`` (:func:`group_pixels`), and those of vehicles the lidar is about to lose
-  ``train.hiding_weight`` (:func:`hiding`).
+  ``train.hiding_weight`` (:func:`hiding`), in one pass over the boxes (:func:`pixel_weights`).
 - pose, by ``model.pose_head``: ``belief`` (the presets): the belief head's cross-entropies and offset and
   speed losses (``pose_belief.loss_terms``), logged as ``pose_place``, ``pose_heading``, ``pose_offset`` and
   ``pose_speed``; ``regression``: smooth-L1 (beta 1) on the pose in
@@ -117,10 +117,13 @@ def group_pixels(batch: dict, group: str):
     ``metrics.GROUPS``, from ``metrics.box_groups``: "remembered" is seen by a sensor within the last
     ``metrics.REMEMBER_FRAMES`` frames of its sequence and by neither now, "unseen" by neither in that
     time), bool [B, T+1, R, R, 1], from the batch's :data:`MEMORY_KEYS`."""
-    groups = metrics_lib.box_groups(
+    return box_pixels(batch, _box_groups(batch) == metrics_lib.GROUPS.index(group))
+
+
+def _box_groups(batch: dict):
+    return metrics_lib.box_groups(
         batch["boxes_lidar_visible"], batch["boxes_camera_visible"], batch["boxes_frames_since_seen"]
     )
-    return box_pixels(batch, groups == metrics_lib.GROUPS.index(group))
 
 
 def hiding(batch: dict, frames: int = HIDING_FRAMES):
@@ -133,14 +136,32 @@ def hiding(batch: dict, frames: int = HIDING_FRAMES):
     return valid & lidar & lost_soon
 
 
+def pixel_rank(batch: dict, rank):
+    """The highest ``rank`` (int [B, T+1, N], 0 = none) among the vehicles in view whose box holds each pixel of
+    the class map, int [B, T+1, R, R, 1]: one pass over every box, whatever the ranks mean."""
+    rank = jnp.where(batch["boxes_valid"], rank, 0)
+    centres = geo.bev_pixel_centres(batch["det_cls"].shape[-2])[:, :, None, :]  # [R, R, 1, 2]
+    boxes = batch["boxes"][:, :, None, None]  # [B, T+1, 1, 1, N, 5]
+    inside = geo.points_in_boxes(centres, boxes)  # [B, T+1, R, R, N]
+    return jnp.max(jnp.where(inside, rank[:, :, None, None], 0), -1, keepdims=True)
+
+
 def box_pixels(batch: dict, chosen):
     """Whether each pixel of the class map lies inside the box of a vehicle ``chosen`` (bool [B, T+1, N]) and
     in view, bool [B, T+1, R, R, 1]."""
-    chosen = batch["boxes_valid"] & chosen
-    centres = geo.bev_pixel_centres(batch["det_cls"].shape[-2])[:, :, None, :]  # [R, R, 1, 2]
-    boxes = batch["boxes"][:, :, None, None]  # [B, T+1, 1, 1, N, 5]
-    inside = geo.points_in_boxes(centres, boxes) & chosen[:, :, None, None]  # [B, T+1, R, R, N]
-    return jnp.any(inside, -1, keepdims=True)
+    return pixel_rank(batch, chosen.astype(jnp.int32)) > 0
+
+
+def pixel_weights(batch: dict, remembered_weight: float, unseen_weight: float, hiding_weight: float):
+    """The detection loss's weight on each pixel of the class map, float32 [B, T+1, R, R, 1]: inside the box of
+    a vehicle about to hide (:func:`hiding`) ``hiding_weight``, else of a remembered one ``remembered_weight``,
+    else of an unseen one ``unseen_weight`` (:func:`group_pixels`' groups), else 1."""
+    groups = _box_groups(batch)
+    rank = jnp.where(groups == metrics_lib.GROUPS.index("unseen"), 1, 0)
+    rank = jnp.where(groups == metrics_lib.GROUPS.index("remembered"), 2, rank)
+    rank = jnp.where(hiding(batch), 3, rank)
+    by_rank = jnp.asarray([1.0, unseen_weight, remembered_weight, hiding_weight], jnp.float32)
+    return by_rank[pixel_rank(batch, rank)]
 
 
 def detection_terms(
@@ -153,20 +174,15 @@ def detection_terms(
 ) -> dict:
     """``det_cls`` and ``det_reg`` of decoded PIXOR maps ``pred["det_logit"]`` [B, T+1, R, R, 1] and
     ``pred["det_reg"]`` [B, T+1, R, R, 6] against the batch's targets, per sequence, times ``weight``; the
-    positive pixels of remembered vehicles count ``remembered_weight`` times, those of unseen vehicles
-    ``unseen_weight`` times (:func:`group_pixels`), those of vehicles about to hide ``hiding_weight`` times
-    (:func:`hiding`); a pixel inside the boxes of more than one takes the hiding weight, else the remembered one."""
+    positive pixels weighed by the vehicles' groups (:func:`pixel_weights`) when a group's weight is not 1."""
     b = batch["det_cls"].shape[0]
     # Regression targets are defined at positive pixels only (elsewhere they may be anything, even
     # non-finite): select them with `where` on both sides so no NaN reaches the value or the gradient.
     positive = batch["det_cls"] > 0.5
     pixel_weight = 1.0
-    if unseen_weight != 1.0:
-        pixel_weight = jnp.where(positive & group_pixels(batch, "unseen"), unseen_weight, pixel_weight)
-    if remembered_weight != 1.0:
-        pixel_weight = jnp.where(positive & group_pixels(batch, "remembered"), remembered_weight, pixel_weight)
-    if hiding_weight != 1.0:
-        pixel_weight = jnp.where(positive & box_pixels(batch, hiding(batch)), hiding_weight, pixel_weight)
+    if (remembered_weight, unseen_weight, hiding_weight) != (1.0, 1.0, 1.0):
+        group_weight = pixel_weights(batch, remembered_weight, unseen_weight, hiding_weight)
+        pixel_weight = jnp.where(positive, group_weight, 1.0)
     focal = optax.sigmoid_focal_loss(pred["det_logit"], batch["det_cls"], alpha=FOCAL_ALPHA, gamma=FOCAL_GAMMA)
     terms = {"det_cls": weight * per_sequence(pixel_weight * focal, b)}
     reg_target = jnp.where(positive, batch["det_reg"], 0.0)

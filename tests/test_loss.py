@@ -244,28 +244,31 @@ def test_the_filter_sees_the_shadowed_lidar_and_the_reconstruction_the_whole_one
 def test_group_weights_scale_the_detection_terms_at_their_vehicles_only():
     """--train.remembered_weight and --train.unseen_weight: against a pixel-by-pixel loop, the positive pixels
     inside a remembered vehicle's box (seen 5 frames ago, by neither sensor now) count w times in det_cls and
-    det_reg, those inside an unseen one's (last seen 31 frames ago) u times, u = 0 included; a box the lidar
-    sees and a remembered one outside the view count once."""
+    det_reg, those inside an unseen one's (last seen 31 frames ago) u times, u = 0 included, and a pixel inside
+    both the remembered weight, whether or not it is 1; a box the lidar sees and a remembered one outside the
+    view count once."""
     r, w = 64, 4.0
     rng = np.random.default_rng(0)
     centres = np.asarray(geo.bev_pixel_centres(r, np), np.float64)  # [R, R, 2] ego metres
-    # (x m, y m, yaw rad, length m, width m): remembered, lidar-visible, seen long ago, remembered but not valid
+    # (x m, y m, yaw rad, length m, width m): remembered, lidar-visible, seen long ago, remembered but not valid,
+    # seen long ago over the first one's box
     boxes = np.array(
         [
             [20.0, 4.0, 0.4, 10.0, 4.0],
             [12.0, -6.0, -0.2, 4.5, 2.0],
             [-5.0, -8.0, 0.3, 6.0, 3.0],
             [8.0, 10.0, 0.0, 10.0, 4.0],
+            [17.0, 3.5, 0.0, 6.0, 3.0],
         ]
     )
     batch = {
         "det_cls": (rng.uniform(size=(1, 2, r, r, 1)) > 0.6).astype(np.float32),
         "det_reg": rng.normal(size=(1, 2, r, r, 6)).astype(np.float32),
-        "boxes": np.broadcast_to(boxes, (1, 2, 4, 5)).astype(np.float32),
-        "boxes_valid": np.broadcast_to([True, True, True, False], (1, 2, 4)),
-        "boxes_lidar_visible": np.broadcast_to([False, True, False, False], (1, 2, 4)),
-        "boxes_camera_visible": np.zeros((1, 2, 4), bool),
-        "boxes_frames_since_seen": np.broadcast_to(np.array([5, 0, 31, 5], np.int32), (1, 2, 4)),
+        "boxes": np.broadcast_to(boxes, (1, 2, 5, 5)).astype(np.float32),
+        "boxes_valid": np.broadcast_to([True, True, True, False, True], (1, 2, 5)),
+        "boxes_lidar_visible": np.broadcast_to([False, True, False, False, False], (1, 2, 5)),
+        "boxes_camera_visible": np.zeros((1, 2, 5), bool),
+        "boxes_frames_since_seen": np.broadcast_to(np.array([5, 0, 31, 5, 31], np.int32), (1, 2, 5)),
     }
     pred = {
         "det_logit": rng.normal(size=(1, 2, r, r, 1)).astype(np.float32),
@@ -284,13 +287,14 @@ def test_group_weights_scale_the_detection_terms_at_their_vehicles_only():
                 )
         return mask
 
-    remembered, unseen = inside(boxes[0]), inside(boxes[2])
+    remembered, unseen = inside(boxes[0]), inside(boxes[2]) | inside(boxes[4])
     positive = batch["det_cls"][..., 0] > 0.5
     focal = np_focal(pred["det_logit"][..., 0].astype(np.float64), batch["det_cls"][..., 0])
     reg = np_smooth_l1(pred["det_reg"].astype(np.float64) - batch["det_reg"]).sum(-1) * positive
     for rw, uw in ((w, 1.0), (1.0, 0.0), (w, 0.5)):
         weight = np.where(positive & remembered, rw, np.where(positive & unseen, uw, 1.0))  # [1, 2, R, R]
-        assert (positive & remembered).sum() > 20 and (positive & unseen).sum() > 10  # the boxes hold positives
+        assert (positive & remembered).sum() > 20 and (positive & unseen & ~remembered).sum() > 10  # positives
+        assert (positive & remembered & unseen).sum() > 5  # and where two groups' boxes overlap
         got = loss.detection_terms(pred, batch, 2.0, remembered_weight=rw, unseen_weight=uw)
         np.testing.assert_allclose(got["det_cls"], 2.0 * np.sum(weight * focal), rtol=1e-4)
         np.testing.assert_allclose(got["det_reg"], 2.0 * loss.DET_REG_WEIGHT * np.sum(weight * reg), rtol=1e-4)
