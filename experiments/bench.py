@@ -81,6 +81,11 @@ flags.DEFINE_list(
     ["ego"],
     "latent, infer: what carries the bird-eye grid's content (--model.grid_motion) in its figures",
 )
+flags.DEFINE_list(
+    "grid_memory_channels",
+    ["0"],
+    "latent, infer: the bird-eye grid's deterministic memory channels per cell (--model.grid_memory_channels)",
+)
 flags.DEFINE_integer("memory_steps", 300, "training steps of the cpu-config run whose resident memory is sampled")
 flags.DEFINE_boolean(
     "keep_freed_buffers",
@@ -115,6 +120,10 @@ def main(argv):
             raise ValueError(f"--place_frames={','.join(FLAGS.place_frames)}: expected positive integers")
         if not all(c.isdigit() for c in FLAGS.grid_cells):
             raise ValueError(f"--grid_cells={','.join(FLAGS.grid_cells)}: expected positive integers")
+        if not all(d.isdigit() for d in FLAGS.grid_memory_channels):
+            raise ValueError(
+                f"--grid_memory_channels={','.join(FLAGS.grid_memory_channels)}: expected non-negative integers"
+            )
         for flag, allowed in (("grid_warps", config_lib.GRID_WARPS), ("grid_motions", config_lib.GRID_MOTIONS)):
             if unknown := sorted(set(FLAGS[flag].value) - set(allowed)):
                 raise ValueError(f"--{flag}={','.join(FLAGS[flag].value)}: unknown {unknown}; choose from {allowed}")

@@ -52,14 +52,19 @@ def paper_config(batch_size, seq_len, image_size):
 
 def latent_models(base: config_lib.Config) -> dict:
     """``base`` with each latent (``config.LATENTS``), the bird-eye grid at each ``--grid_cells``,
-    ``--grid_warps`` and ``--grid_motions``: {the figure's name ("vector", "bev, 16 cells", "bev, 16 cells,
-    lattice", "bev, 16 cells, lattice, flow", ...): config}. A taught or carried flow trains with its term
-    (``--train.flow_weight=1``)."""
+    ``--grid_warps``, ``--grid_motions`` and ``--grid_memory_channels``: {the figure's name ("vector", "bev,
+    16 cells", "bev, 16 cells, lattice", "bev, 16 cells, lattice, flow", "bev, 16 cells, memory 16", ...):
+    config}. A taught or carried flow trains with its term (``--train.flow_weight=1``)."""
     models = {"vector": config_lib.replace(base, model=dict(latent="vector"))}
-    for cells, warp, motion in itertools.product(FLAGS.grid_cells, FLAGS.grid_warps, FLAGS.grid_motions):
+    for cells, warp, motion, memory in itertools.product(
+        FLAGS.grid_cells, FLAGS.grid_warps, FLAGS.grid_motions, FLAGS.grid_memory_channels
+    ):
         name = f"bev, {cells} cells" + ("" if warp == "bilinear" else f", {warp}")
         name += "" if motion == "ego" else ", " + motion.removeprefix("ego_and_").replace("_", " ")
-        grid = dict(latent="bev", grid_cells=int(cells), grid_warp=warp, grid_motion=motion)
+        name += f", memory {memory}" if int(memory) else ""
+        grid = dict(
+            latent="bev", grid_cells=int(cells), grid_warp=warp, grid_motion=motion, grid_memory_channels=int(memory)
+        )
         taught = dict(train=dict(flow_weight=1.0)) if motion in config_lib.TAUGHT_FLOW_MOTIONS else {}
         models[name] = config_lib.replace(base, model=grid, **taught)
     return models
