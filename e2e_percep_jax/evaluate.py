@@ -59,7 +59,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from e2e_percep_jax import calibration, detection, pose_belief, report, summary
+from e2e_percep_jax import bev_latent, calibration, detection, pose_belief, report, summary
 from e2e_percep_jax import config as config_lib
 from e2e_percep_jax import metrics as metrics_lib
 from e2e_percep_jax import protocol as protocol_lib
@@ -173,8 +173,9 @@ def make_chunk_fn(cfg: Config, town, perceiver, sample: bool, heads=None):
     program per E and params' shapes.
 
     ``out`` holds per frame [C, E, ...]: cand_boxes [k, 5], cand_scores [k] (k = ``eval.top_k``),
-    saturated, the true boxes / boxes_valid, boxes_group (each box's index into ``metrics.GROUPS``) and
-    pose, pose_pred (metres) and pose_nll
+    saturated, the true boxes / boxes_valid, boxes_group (each box's index into ``metrics.GROUPS``),
+    lidar_seen [R, R] (the pixels the lidar sees: ``bev_latent.lidar_visibility``) and pose, pose_pred
+    (metres) and pose_nll
     (the perceiver's negative log-likelihood of the true pose, NaN if it has none); ``pictured`` int32
     [C, 2]: world 0 (the video's drive) and the world with the most remembered vehicles in view, then the
     most vehicles (the examples' candidate), with those two worlds' images [C, 2, R, R, 3] uint8: camera, lidar, roadmap, the perceiver's reconstructions
@@ -230,6 +231,7 @@ def make_chunk_fn(cfg: Config, town, perceiver, sample: bool, heads=None):
             "boxes": frame["boxes"],
             "boxes_valid": valid,
             "boxes_group": group,
+            "lidar_seen": bev_latent.lidar_visibility(frame["lidar"], cfg.data.image_size)[..., 0] > 0,
             "pose": frame["pose"],
             "pose_pred": outputs.pose,
             "pose_nll": nll,
@@ -572,7 +574,8 @@ class _Scores:
 
     def _score_boxes(self, out, t, w, boxes, scores, drive, frame):
         truth = out["boxes"][t, w], out["boxes_valid"][t, w], out["boxes_group"][t, w]
-        self.det.add_frame(boxes, scores, *truth, drive=drive)
+        in_shadow = metrics_lib.in_lidar_shadow(boxes, out["lidar_seen"][t, w])
+        self.det.add_frame(boxes, scores, *truth, drive=drive, pred_in_shadow=in_shadow)
         self.memory.add_frame(boxes, scores, *truth, drive=drive, frame=frame)
 
     def pose_chunk(self, out, rows, hosts, with_boxes: bool) -> int:
@@ -600,6 +603,19 @@ class _Scores:
                 boxes, scores, _ = self._detections(out, t, w, hosts.get(d))
                 self._score_boxes(out, t, w, boxes, scores, d, f)
         return len(rows) * len(drives)
+
+    def _shadow_ap(self, key, span) -> dict:
+        """metrics.json's ``remembered_ap_in_shadow`` and its ``_interval95``, by IoU threshold (none without
+        scored frames)."""
+        if not self.det.has_shadow():
+            return {}
+        shadow = dict(false_positives="shadow")
+        results = self.det.results(**shadow)
+        intervals = self.det.intervals(BOOTSTRAP_RESAMPLES, **shadow)
+        return {
+            "remembered_ap_in_shadow": {key(t): summary.defined(c["remembered"].ap) for t, c in results.items()},
+            "remembered_ap_in_shadow_interval95": {key(t): span(v["remembered"]) for t, v in intervals.items()},
+        }
 
     def metrics(self, has_cover: bool, num_frames: int, remembered_chosen) -> dict:
         """metrics.json's detection, pose and baseline sections (``has_cover``: whether the perceiver has a
@@ -644,6 +660,9 @@ class _Scores:
                 "remembered_ap_as_seen": {
                     key(t): summary.defined(v) for t, v in self.det.remembered_ap_as_seen().items()
                 },
+                # the remembered AP against the false positives in the lidar's shadow alone: where only a
+                # memory or a guess can report a vehicle
+                **self._shadow_ap(key, span),
                 "score_threshold": ev.score_threshold,
                 "score_floor": ev.score_floor,
                 "nms_iou": ev.nms_iou,

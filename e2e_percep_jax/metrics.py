@@ -248,6 +248,27 @@ def box_groups(lidar_visible, camera_visible, frames_since_seen):
     return group.astype(jnp.int32)
 
 
+# Points of a box's footprint, as fractions of its length and width: 5 along (under a metre apart for a car) and
+# 3 across, pulled in from the edges so that a point on an edge does not read the neighbouring pixel.
+_FOOTPRINT = np.stack(np.meshgrid(np.linspace(-0.45, 0.45, 5), np.linspace(-0.45, 0.45, 3), indexing="ij"), -1)
+
+
+def in_lidar_shadow(boxes, lidar_seen):
+    """bool [M]: whether the lidar sees none of each box's footprint (``boxes`` [M, 5], ego frame, metres), read
+    at 15 points spread over it in the pixels of ``lidar_seen`` bool [R, R] (``bev_latent.lidar_visibility``
+    at one cell a pixel; points outside the view are not seen). A detection the lidar sees in part is one the
+    sensor can check; one wholly in the shadow only a memory, or a guess, can report."""
+    boxes, lidar_seen = _as_boxes(boxes), np.asarray(lidar_seen, bool)
+    r = lidar_seen.shape[0]
+    local = _FOOTPRINT.reshape(-1, 2) * boxes[:, None, 3:5]  # [M, P, 2]
+    points = boxes[:, None, :2] + geo.rotate(local, boxes[:, None, 2])
+    pixel = np.floor(geo.ego_to_bev_px(points, r)).astype(np.int64)
+    inside = np.all((pixel >= 0) & (pixel < r), -1)
+    pixel = np.clip(pixel, 0, r - 1)
+    seen = lidar_seen[pixel[..., 0], pixel[..., 1]] & inside
+    return ~np.any(seen, -1)
+
+
 def _ap_from_counts(counts, num_gt):
     """AP of every subset from outcome counts, vectorised over leading axes.
 
@@ -293,6 +314,9 @@ class DetectionAccumulator:
     - a detection matched to a ground truth of another group is excluded (neither TP nor FP);
     - an unmatched detection is a false positive in every group (it cannot be attributed to one),
       so a group's precision is pessimistic.
+    Where the caller says which detections lie in the lidar's shadow, the unmatched ones there are also
+    counted apart: ``false_positives="shadow"`` scores against them alone, the precision of what a perceiver
+    reports where only a memory (or a guess) can put a vehicle.
 
     Memory is flat in the number of frames: outcomes are counted per drive and score bin, so scores
     (in [0, 1]) closer than ``1 / score_bins`` count as ties (one point of the PR curve).
@@ -301,12 +325,12 @@ class DetectionAccumulator:
     def __init__(self, iou_thresholds=(0.1, 0.3, 0.5, 0.7), score_bins=1000):
         self.iou_thresholds = tuple(float(t) for t in iou_thresholds)
         self.score_bins = int(score_bins)
-        # per drive: [threshold, outcome (0 unmatched, 1 + g matched a box of group g), score bin], and
-        # the ground truths of each group
-        self._counts, self._num_gt = {}, {}
+        # per drive: [threshold, outcome (0 unmatched, 1 + g matched a box of group g), score bin], the
+        # ground truths of each group, and [threshold, score bin] of the unmatched detections in the shadow
+        self._counts, self._num_gt, self._shadow_fp = {}, {}, {}
         self.num_frames = 0
 
-    def add_frame(self, pred_boxes, pred_scores, gt_boxes, gt_valid, gt_group, drive: int = 0):
+    def add_frame(self, pred_boxes, pred_scores, gt_boxes, gt_valid, gt_group, drive: int = 0, pred_in_shadow=None):
         """Adds one frame of drive ``drive``.
 
         Args:
@@ -314,6 +338,8 @@ class DetectionAccumulator:
           gt_boxes: ``[G, 5]`` the world's ground-truth boxes, same frame as the detections.
           gt_valid: bool ``[G]``, False for padding. gt_group: int ``[G]``, each box's index into
           :data:`GROUPS` (:func:`box_groups`).
+          pred_in_shadow: bool ``[M]``, whether each detection's centre lies where the lidar does not see
+          (:func:`in_lidar_shadow`); None: not known, and the shadow's counts stay empty for every drive.
         """
         pred_scores = np.asarray(pred_scores, dtype=np.float64)
         if not np.all((pred_scores >= 0.0) & (pred_scores <= 1.0)):  # also catches nan
@@ -333,16 +359,31 @@ class DetectionAccumulator:
         thr_index = np.broadcast_to(np.arange(len(self.iou_thresholds))[:, None], matched.shape)
         np.add.at(self._counts[drive], (thr_index, outcome, np.broadcast_to(score_bin, matched.shape)), 1)
         self._num_gt[drive] += np.bincount(gt_group, minlength=len(GROUPS))
+        if pred_in_shadow is not None:
+            shadow_fp = self._shadow_fp.setdefault(drive, np.zeros(self._counts[drive][:, 0].shape, np.int64))
+            unmatched = (outcome == 0) & np.asarray(pred_in_shadow, bool)
+            np.add.at(shadow_fp, (thr_index[unmatched], np.broadcast_to(score_bin, matched.shape)[unmatched]), 1)
         self.num_frames += 1
 
-    def _stacked(self):
-        """Counts [D, T, 1 + G, S] with the highest scores first, and ground truths [D, G], over the drives."""
+    def has_shadow(self) -> bool:
+        """Whether every frame said which of its detections lie in the lidar's shadow."""
+        return bool(self._counts) and set(self._shadow_fp) == set(self._counts)
+
+    def _stacked(self, false_positives: str = "scene"):
+        """Counts [D, T, 1 + G, S] with the highest scores first, and ground truths [D, G], over the drives;
+        ``false_positives="shadow"``: the unmatched outcome counts only the detections in the lidar's shadow."""
+        if false_positives not in ("scene", "shadow"):
+            raise ValueError(f"false_positives={false_positives!r}: expected 'scene' or 'shadow'")
+        if false_positives == "shadow" and not self.has_shadow():
+            raise ValueError("false_positives='shadow': add_frame was not given pred_in_shadow for every frame")
         if not self._counts:
             shape = (len(self.iou_thresholds), 1 + len(GROUPS), self.score_bins)
             return np.zeros((1,) + shape, np.int64), np.zeros((1, len(GROUPS)), np.int64)
         drives = sorted(self._counts)
-        counts = np.stack([self._counts[d] for d in drives])[..., ::-1]
-        return counts, np.stack([self._num_gt[d] for d in drives])
+        counts = np.stack([self._counts[d] for d in drives])
+        if false_positives == "shadow":
+            counts[:, :, 0] = np.stack([self._shadow_fp[d] for d in drives])
+        return counts[..., ::-1], np.stack([self._num_gt[d] for d in drives])
 
     def num_gt(self) -> dict:
         """Ground-truth boxes counted, over all boxes and per group: ``{subset: int}``."""
@@ -354,9 +395,10 @@ class DetectionAccumulator:
         per_drive = self._stacked()[1]
         return dict(zip(SUBSETS, [int(np.sum(per_drive.sum(1) > 0))] + [int(v) for v in (per_drive > 0).sum(0)]))
 
-    def results(self):
-        """PR curves: ``{iou_threshold: {subset: PRCurve}}``, subsets :data:`SUBSETS`."""
-        counts, per_drive_gt = self._stacked()
+    def results(self, false_positives: str = "scene"):
+        """PR curves: ``{iou_threshold: {subset: PRCurve}}``, subsets :data:`SUBSETS`; the false positives are
+        every unmatched detection of the scene, or (``"shadow"``) those in the lidar's shadow."""
+        counts, per_drive_gt = self._stacked(false_positives)
         counts, num_gt = counts.sum(0), per_drive_gt.sum(0)
         n = dict(zip(SUBSETS, [int(num_gt.sum())] + [int(v) for v in num_gt]))
         score = np.arange(self.score_bins)[::-1] / self.score_bins
@@ -393,10 +435,10 @@ class DetectionAccumulator:
             out[thr] = average_precision(precision, recall)
         return out
 
-    def intervals(self, num_resamples: int = 1000, seed: int = 0, level: float = 0.95):
-        """Bootstrap intervals of every AP over whole drives (:func:`bootstrap_interval`):
-        ``{iou_threshold: {subset: (low, high)}}``."""
-        counts, num_gt = self._stacked()
+    def intervals(self, num_resamples: int = 1000, seed: int = 0, level: float = 0.95, false_positives: str = "scene"):
+        """Bootstrap intervals of every AP over whole drives (:func:`bootstrap_interval`), the false positives
+        as in :meth:`results`: ``{iou_threshold: {subset: (low, high)}}``."""
+        counts, num_gt = self._stacked(false_positives)
         flat = counts.reshape(len(counts), -1)
 
         def ap(weights):

@@ -92,6 +92,19 @@ def _as_seen_lines(as_seen) -> list:
     ]
 
 
+def _shadow_lines(ap, interval) -> list:
+    """report.md's line on the remembered AP against the false positives in the lidar's shadow (none for an
+    evaluation made before it was counted, or without remembered boxes)."""
+    if ap is None or ap.get("0.1") is None:
+        return []
+    cell = lambda t: fmt(ap[t], True) + (" [{}, {}]".format(*(fmt(v, True) for v in interval[t])) if interval else "")
+    return [
+        "Against the false positives in the lidar's shadow alone (where only a memory or a guess can report a "
+        "vehicle), remembered AP " + " / ".join(cell(t) for t in ap) + f" at IoU {' / '.join(ap)}.",
+        "",
+    ]
+
+
 def _memory_lines(memory, seconds: float) -> list:
     """report.md's lines on what the perceiver kept of the vehicles it found in the ``seconds`` before (none
     for an evaluation made before they were counted)."""
@@ -225,6 +238,7 @@ def markdown(m: dict) -> str:
         ),
         "",
         *_as_seen_lines(det.get("remembered_ap_as_seen")),
+        *_shadow_lines(det.get("remembered_ap_in_shadow"), det.get("remembered_ap_in_shadow_interval95")),
         *_memory_lines(det.get("memory"), remember_s),
         "## Table II: ego global pose error (in brackets: the 95 % bootstrap interval over the pose drives)",
         "",

@@ -524,6 +524,9 @@ def test_end_to_end_report_files(memory_run):
         curve = det["pr_curves"][thr]["all"]
         recall = [v for v in curve["recall"] if v is not None]
         assert recall == sorted(recall) and all(0 <= p <= 1 for p in curve["precision"])
+        # against the false positives in the lidar's shadow, some of the scene's, the remembered AP cannot fall
+        scene, shadow = det["ap"][thr]["remembered"], det["remembered_ap_in_shadow"][thr]
+        assert (shadow is None) == (scene is None) and (shadow is None or shadow >= scene), (thr, scene, shadow)
     for name in ("location_m", "heading_rad", "speed_mps"):
         assert np.isfinite(m["pose"][name]["mean"]) and m["pose"][name]["mean"] >= 0
         assert np.isfinite(m["baseline"]["pose"][name]["mean"])

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from e2e_percep_jax import metrics
+from e2e_percep_jax.sim import geometry as geo
 
 THRESHOLDS = (0.1, 0.3, 0.5, 0.7)
 
@@ -295,6 +296,78 @@ def test_the_remembered_ap_as_seen_is_the_groups_ap_when_memory_matches_sight():
         assert hidden_found.remembered_ap_as_seen()[thr] == pytest.approx(hidden_found.results()[thr]["remembered"].ap)
     assert hidden_missed.results()[0.5]["remembered"].ap == 0.0 < hidden_missed.remembered_ap_as_seen()[0.5]
     assert math.isnan(metrics.DetectionAccumulator(THRESHOLDS).remembered_ap_as_seen()[0.5])
+
+
+def test_the_shadow_ap_counts_only_the_false_positives_the_lidar_cannot_see():
+    """The groups' frame above with a second unmatched detection: in sight at 0.8, in the shadow at 0.75. Over
+    the scene the remembered match at 0.7 comes third (AP 1/2 x 1/3); against the shadow's false positives
+    alone, second (AP 1/2 x 1/2). Without the shadow's flags that figure is refused."""
+    gt = _cars(3)
+    lidar, remembered = metrics.GROUPS.index("lidar"), metrics.GROUPS.index("remembered")
+    group = np.array([lidar, remembered, remembered])
+    det = np.stack([gt[0], box(0, 30, 0, 4, 2), box(0, -30, 0, 4, 2), gt[1]])
+    acc = metrics.DetectionAccumulator((0.5,))
+    acc.add_frame(det, [0.9, 0.8, 0.75, 0.7], gt, np.ones(3, bool), group, pred_in_shadow=[False, False, True, True])
+    assert acc.results()[0.5]["remembered"].ap == pytest.approx(1 / 6)
+    shadow = acc.results(false_positives="shadow")[0.5]["remembered"]
+    np.testing.assert_allclose(shadow.precision, [0, 1 / 2])
+    assert shadow.ap == pytest.approx(1 / 4)
+    low, high = acc.intervals(50, false_positives="shadow")[0.5]["remembered"]
+    assert low == high == pytest.approx(1 / 4)  # one drive: every resample is that drive
+    unknown = metrics.DetectionAccumulator((0.5,))
+    _frame(unknown, det, [0.9, 0.8, 0.75, 0.7], gt, group=group)
+    assert not unknown.has_shadow()
+    with pytest.raises(ValueError, match="pred_in_shadow"):
+        unknown.results(false_positives="shadow")
+
+
+@pytest.mark.parametrize("thr", THRESHOLDS)
+def test_the_shadow_ap_is_the_ap_with_the_unmatched_detections_in_sight_left_out(thr):
+    """Brute force on random frames: dropping a detection that matched nothing changes no other match, so the
+    shadow's curves equal those of the scene with the unmatched detections in sight removed; and with fewer
+    false positives no group's AP falls."""
+    rng = np.random.default_rng(11)
+    flagged, pruned = metrics.DetectionAccumulator((thr,)), metrics.DetectionAccumulator((thr,))
+    for drive in range(6):
+        for _ in range(5):
+            gt = np.stack([box(*rng.uniform(-20, 20, 2), rng.uniform(-3, 3), 4.5, 2) for _ in range(6)])
+            group = rng.integers(0, len(metrics.GROUPS), 6)
+            det = np.concatenate([gt[:4] + rng.normal(0, 0.5, (4, 5)) * [1, 1, 0.1, 0, 0], gt[4:] * 0 + [0, 0, 0, 4, 2]])
+            det[4:, :2] = rng.uniform(-20, 20, (2, 2))
+            scores, in_shadow = rng.uniform(0, 1, 6), rng.random(6) < 0.5
+            flagged.add_frame(det, scores, gt, np.ones(6, bool), group, drive=drive, pred_in_shadow=in_shadow)
+            unmatched = metrics.match_detections(det, scores, gt, (thr,))[0] < 0
+            keep = ~(unmatched & ~in_shadow)
+            pruned.add_frame(det[keep], scores[keep], gt, np.ones(6, bool), group, drive=drive)
+    shadow, scene, reference = (
+        flagged.results(false_positives="shadow")[thr],
+        flagged.results()[thr],
+        pruned.results()[thr],
+    )
+    for subset in metrics.SUBSETS:
+        np.testing.assert_allclose(shadow[subset].ap, reference[subset].ap, equal_nan=True)
+        assert not shadow[subset].ap < scene[subset].ap  # NaN for an empty group
+    assert flagged.intervals(200, false_positives="shadow") == pruned.intervals(200)
+
+
+def test_a_box_is_in_the_shadow_where_the_lidar_sees_none_of_its_footprint():
+    """A box shrunk to a point reads the pixel it lies on (round trip through the BEV view's pixel centres); a
+    car over unseen pixels is in the shadow until one pixel under its footprint, its front end's, is seen; one
+    turned by 90 degrees covers the pixels across instead."""
+    r = 16  # 2 m pixels
+    seen = np.random.default_rng(2).random((r, r)) < 0.5
+    centres = np.asarray(geo.bev_pixel_centres(r, np)).reshape(-1, 2)
+    points = np.concatenate([centres, np.tile([0.3, 0.01, 0.01], (r * r, 1))], axis=1)
+    np.testing.assert_array_equal(metrics.in_lidar_shadow(points, seen), ~seen.reshape(-1))
+    car = np.array([[1.0, 1.0, 0.0, 4.4, 2.2]])  # x 1 m ahead, spans pixels 8-10 down, 7 across
+    hidden = np.zeros((r, r), bool)
+    assert metrics.in_lidar_shadow(car, hidden).all()
+    row, col = np.floor(geo.ego_to_bev_px(np.array([1.0 + 2.0, 1.0]), r)).astype(int)  # under its front end
+    corner = hidden.copy()
+    corner[row, col] = True
+    assert not metrics.in_lidar_shadow(car, corner).any()
+    turned = car + [0, 0, np.pi / 2, 0, 0]  # now spans across, not down: the front's pixel is not under it
+    assert metrics.in_lidar_shadow(turned, corner).all()
 
 
 def test_box_groups_partition_by_who_saw_the_box():
