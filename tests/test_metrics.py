@@ -332,7 +332,9 @@ def test_the_shadow_ap_is_the_ap_with_the_unmatched_detections_in_sight_left_out
         for _ in range(5):
             gt = np.stack([box(*rng.uniform(-20, 20, 2), rng.uniform(-3, 3), 4.5, 2) for _ in range(6)])
             group = rng.integers(0, len(metrics.GROUPS), 6)
-            det = np.concatenate([gt[:4] + rng.normal(0, 0.5, (4, 5)) * [1, 1, 0.1, 0, 0], gt[4:] * 0 + [0, 0, 0, 4, 2]])
+            det = np.concatenate(
+                [gt[:4] + rng.normal(0, 0.5, (4, 5)) * [1, 1, 0.1, 0, 0], gt[4:] * 0 + [0, 0, 0, 4, 2]]
+            )
             det[4:, :2] = rng.uniform(-20, 20, (2, 2))
             scores, in_shadow = rng.uniform(0, 1, 6), rng.random(6) < 0.5
             flagged.add_frame(det, scores, gt, np.ones(6, bool), group, drive=drive, pred_in_shadow=in_shadow)
