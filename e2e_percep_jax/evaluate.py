@@ -605,8 +605,8 @@ class _Scores:
         return len(rows) * len(drives)
 
     def _shadow_ap(self, key, span) -> dict:
-        """metrics.json's ``remembered_ap_in_shadow`` and its ``_interval95``, by IoU threshold (none without
-        scored frames)."""
+        """metrics.json's ``remembered_ap_in_shadow``, its ``_interval95`` and ``false_positives_in_shadow``, by
+        IoU threshold (none without scored frames)."""
         if not self.det.has_shadow():
             return {}
         shadow = dict(false_positives="shadow")
@@ -615,6 +615,10 @@ class _Scores:
         return {
             "remembered_ap_in_shadow": {key(t): summary.defined(c["remembered"].ap) for t, c in results.items()},
             "remembered_ap_in_shadow_interval95": {key(t): span(v["remembered"]) for t, v in intervals.items()},
+            # of the false positives at the operating score, the share in the shadow
+            "false_positives_in_shadow": {
+                key(t): v for t, v in self.det.shadow_share(self.cfg.eval.score_threshold).items()
+            },
         }
 
     def metrics(self, has_cover: bool, num_frames: int, remembered_chosen) -> dict:

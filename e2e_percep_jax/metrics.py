@@ -338,8 +338,8 @@ class DetectionAccumulator:
           gt_boxes: ``[G, 5]`` the world's ground-truth boxes, same frame as the detections.
           gt_valid: bool ``[G]``, False for padding. gt_group: int ``[G]``, each box's index into
           :data:`GROUPS` (:func:`box_groups`).
-          pred_in_shadow: bool ``[M]``, whether each detection's centre lies where the lidar does not see
-          (:func:`in_lidar_shadow`); None: not known, and the shadow's counts stay empty for every drive.
+          pred_in_shadow: bool ``[M]``, whether each detection's footprint lies wholly where the lidar does not
+          see (:func:`in_lidar_shadow`); None: not known, and the shadow's counts stay empty for every drive.
         """
         pred_scores = np.asarray(pred_scores, dtype=np.float64)
         if not np.all((pred_scores >= 0.0) & (pred_scores <= 1.0)):  # also catches nan
@@ -384,6 +384,15 @@ class DetectionAccumulator:
         if false_positives == "shadow":
             counts[:, :, 0] = np.stack([self._shadow_fp[d] for d in drives])
         return counts[..., ::-1], np.stack([self._num_gt[d] for d in drives])
+
+    def shadow_share(self, score_threshold: float) -> dict:
+        """``{iou_threshold: share}``: of the unmatched detections scoring ``score_threshold`` or more, the share
+        in the lidar's shadow (None where there is none): how many of the false positives at an operating
+        score are guesses where no sensor sees, and how many errors of seeing."""
+        scene, shadow = self._stacked()[0][:, :, 0], self._stacked("shadow")[0][:, :, 0]  # [D, T, S], high first
+        above = np.arange(self.score_bins)[::-1] / self.score_bins >= score_threshold - 1e-9
+        unmatched, in_shadow = scene[..., above].sum((0, 2)), shadow[..., above].sum((0, 2))
+        return {t: float(s / n) if n else None for t, s, n in zip(self.iou_thresholds, in_shadow, unmatched)}
 
     def num_gt(self) -> dict:
         """Ground-truth boxes counted, over all boxes and per group: ``{subset: int}``."""

@@ -92,15 +92,22 @@ def _as_seen_lines(as_seen) -> list:
     ]
 
 
-def _shadow_lines(ap, interval) -> list:
-    """report.md's line on the remembered AP against the false positives in the lidar's shadow (none for an
-    evaluation made before it was counted, or without remembered boxes)."""
+def _shadow_lines(ap, interval, share=None) -> list:
+    """report.md's line on the remembered AP against the false positives in the lidar's shadow, and the share
+    of the false positives at the operating score that lie there (none for an evaluation made before they
+    were counted, or without remembered boxes)."""
     if ap is None or ap.get("0.1") is None:
         return []
     cell = lambda t: fmt(ap[t], True) + (" [{}, {}]".format(*(fmt(v, True) for v in interval[t])) if interval else "")
+    shares = (
+        f" Of the false positives at the operating score, {' / '.join(fmt(v, True) for v in share.values())} lie "
+        f"there at IoU {' / '.join(share)}."
+        if share
+        else ""
+    )
     return [
         "Against the false positives in the lidar's shadow alone (where only a memory or a guess can report a "
-        "vehicle), remembered AP " + " / ".join(cell(t) for t in ap) + f" at IoU {' / '.join(ap)}.",
+        "vehicle), remembered AP " + " / ".join(cell(t) for t in ap) + f" at IoU {' / '.join(ap)}." + shares,
         "",
     ]
 
@@ -238,7 +245,11 @@ def markdown(m: dict) -> str:
         ),
         "",
         *_as_seen_lines(det.get("remembered_ap_as_seen")),
-        *_shadow_lines(det.get("remembered_ap_in_shadow"), det.get("remembered_ap_in_shadow_interval95")),
+        *_shadow_lines(
+            det.get("remembered_ap_in_shadow"),
+            det.get("remembered_ap_in_shadow_interval95"),
+            det.get("false_positives_in_shadow"),
+        ),
         *_memory_lines(det.get("memory"), remember_s),
         "## Table II: ego global pose error (in brackets: the 95 % bootstrap interval over the pose drives)",
         "",

@@ -527,6 +527,7 @@ def test_end_to_end_report_files(memory_run):
         # against the false positives in the lidar's shadow, some of the scene's, the remembered AP cannot fall
         scene, shadow = det["ap"][thr]["remembered"], det["remembered_ap_in_shadow"][thr]
         assert (shadow is None) == (scene is None) and (shadow is None or shadow >= scene), (thr, scene, shadow)
+    assert list(det["false_positives_in_shadow"]) == list(det["ap"])  # their counts: test_metrics
     for name in ("location_m", "heading_rad", "speed_mps"):
         assert np.isfinite(m["pose"][name]["mean"]) and m["pose"][name]["mean"] >= 0
         assert np.isfinite(m["baseline"]["pose"][name]["mean"])
@@ -549,6 +550,9 @@ def test_end_to_end_report_files(memory_run):
         "baseline: constant mean pose",
     ):
         assert needle in report, needle
+    shares = det["false_positives_in_shadow"].values()
+    if det["remembered_ap_in_shadow"]["0.1"] is not None and any(v is not None for v in shares):
+        assert "lie there at IoU" in report
 
     pr = cv2.imread(os.path.join(out, "pr_curves.png"))
     assert pr is not None and pr.shape[1] > pr.shape[0] and pr.std() > 10

@@ -314,6 +314,9 @@ def test_the_shadow_ap_counts_only_the_false_positives_the_lidar_cannot_see():
     assert shadow.ap == pytest.approx(1 / 4)
     low, high = acc.intervals(50, false_positives="shadow")[0.5]["remembered"]
     assert low == high == pytest.approx(1 / 4)  # one drive: every resample is that drive
+    # of the false positives at 0.8 and 0.75, one in the shadow; at 0.78 only the one in sight; none at 0.85
+    assert acc.shadow_share(0.5) == {0.5: 0.5} and acc.shadow_share(0.78) == {0.5: 0.0}
+    assert acc.shadow_share(0.85) == {0.5: None}
     unknown = metrics.DetectionAccumulator((0.5,))
     _frame(unknown, det, [0.9, 0.8, 0.75, 0.7], gt, group=group)
     assert not unknown.has_shadow()
@@ -324,10 +327,12 @@ def test_the_shadow_ap_counts_only_the_false_positives_the_lidar_cannot_see():
 @pytest.mark.parametrize("thr", THRESHOLDS)
 def test_the_shadow_ap_is_the_ap_with_the_unmatched_detections_in_sight_left_out(thr):
     """Brute force on random frames: dropping a detection that matched nothing changes no other match, so the
-    shadow's curves equal those of the scene with the unmatched detections in sight removed; and with fewer
-    false positives no group's AP falls."""
+    shadow's curves equal those of the scene with the unmatched detections in sight removed; with fewer
+    false positives no group's AP falls; and the shadow's share of the false positives above a score is their
+    count."""
     rng = np.random.default_rng(11)
     flagged, pruned = metrics.DetectionAccumulator((thr,)), metrics.DetectionAccumulator((thr,))
+    unmatched_above, in_shadow_above = 0, 0  # counted here: the unmatched detections scoring 0.5 or more
     for drive in range(6):
         for _ in range(5):
             gt = np.stack([box(*rng.uniform(-20, 20, 2), rng.uniform(-3, 3), 4.5, 2) for _ in range(6)])
@@ -340,6 +345,8 @@ def test_the_shadow_ap_is_the_ap_with_the_unmatched_detections_in_sight_left_out
             flagged.add_frame(det, scores, gt, np.ones(6, bool), group, drive=drive, pred_in_shadow=in_shadow)
             unmatched = metrics.match_detections(det, scores, gt, (thr,))[0] < 0
             keep = ~(unmatched & ~in_shadow)
+            unmatched_above += np.sum(unmatched & (scores >= 0.5))
+            in_shadow_above += np.sum(unmatched & in_shadow & (scores >= 0.5))
             pruned.add_frame(det[keep], scores[keep], gt, np.ones(6, bool), group, drive=drive)
     shadow, scene, reference = (
         flagged.results(false_positives="shadow")[thr],
@@ -350,6 +357,8 @@ def test_the_shadow_ap_is_the_ap_with_the_unmatched_detections_in_sight_left_out
         np.testing.assert_allclose(shadow[subset].ap, reference[subset].ap, equal_nan=True)
         assert not shadow[subset].ap < scene[subset].ap  # NaN for an empty group
     assert flagged.intervals(200, false_positives="shadow") == pruned.intervals(200)
+    assert unmatched_above > in_shadow_above > 0
+    assert flagged.shadow_share(0.5) == {thr: pytest.approx(in_shadow_above / unmatched_above)}
 
 
 def test_a_box_is_in_the_shadow_where_the_lidar_sees_none_of_its_footprint():
