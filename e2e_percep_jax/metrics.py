@@ -385,12 +385,16 @@ class DetectionAccumulator:
             counts[:, :, 0] = np.stack([self._shadow_fp[d] for d in drives])
         return counts[..., ::-1], np.stack([self._num_gt[d] for d in drives])
 
+    def _bin_scores(self):
+        """[S]: each score bin's lowest score, highest bin first (the order of :meth:`_stacked`'s counts)."""
+        return np.arange(self.score_bins)[::-1] / self.score_bins
+
     def shadow_share(self, score_threshold: float) -> dict:
         """``{iou_threshold: share}``: of the unmatched detections scoring ``score_threshold`` or more, the share
         in the lidar's shadow (None where there is none): how many of the false positives at an operating
         score are guesses where no sensor sees, and how many errors of seeing."""
         scene, shadow = self._stacked()[0][:, :, 0], self._stacked("shadow")[0][:, :, 0]  # [D, T, S], high first
-        above = np.arange(self.score_bins)[::-1] / self.score_bins >= score_threshold - 1e-9
+        above = _at_or_above(self._bin_scores(), score_threshold)
         unmatched, in_shadow = scene[..., above].sum((0, 2)), shadow[..., above].sum((0, 2))
         return {t: float(s / n) if n else None for t, s, n in zip(self.iou_thresholds, in_shadow, unmatched)}
 
@@ -410,7 +414,7 @@ class DetectionAccumulator:
         counts, per_drive_gt = self._stacked(false_positives)
         counts, num_gt = counts.sum(0), per_drive_gt.sum(0)
         n = dict(zip(SUBSETS, [int(num_gt.sum())] + [int(v) for v in num_gt]))
-        score = np.arange(self.score_bins)[::-1] / self.score_bins
+        score = self._bin_scores()
         out = {}
         for thr, c in zip(self.iou_thresholds, counts):  # high scores first
             fp = c[0]
@@ -760,9 +764,14 @@ def curve_summary(curve, max_points=200):
     }
 
 
+def _at_or_above(score, threshold):
+    """Whether each score passes an operating ``threshold`` (a margin for a bin score rounded just below it)."""
+    return score >= threshold - 1e-9
+
+
 def at_threshold(curve, threshold):
     """(precision, recall) of a PR curve when detections need score >= ``threshold``."""
-    above = curve.score >= threshold - 1e-9
+    above = _at_or_above(curve.score, threshold)
     if not np.any(above):
         return None, 0.0 if curve.num_gt else None
     i = np.nonzero(above)[0][-1]
